@@ -1,0 +1,585 @@
+"""The render pool: batched MuJoCo states -> uint8 RGB frames and per-pixel labels.
+
+This file owns the CPU side of the picture: worker processes, each with its own MjModel, MjData,
+EGL context and MuJoCo render context; the kinematics needed to draw a state; the visual settings
+(`RenderSettings`, recorded in run summaries); the per-sample colour / camera perturbations of the
+Distracting Control Suite applied just before drawing; and the rule that turns MuJoCo's
+segmentation into the four labels BACKGROUND / FLOOR / AGENT / OTHER.
+
+Agent rule (REFERENCE section 4), per segmentation object type:
+- geom: AGENT if its id is one of the task's agent geoms, FLOOR if one of its floor geoms, else OTHER.
+- site: a site is rigidly attached to a body, so it takes that body's side: AGENT if the body
+  carries an agent geom, else OTHER (e.g. finger's spinner "tip" and the world "target" site).
+- tendon: AGENT if every body it attaches to (through its wrap sites and wrap geoms) carries an
+  agent geom, else OTHER. ball_in_cup's string joins the cup and the ball, both agent, so it is
+  AGENT (with width 0.003 it covers at most a pixel or two at 84x84).
+- anything else drawn (decor, skins, flexes): OTHER. Pixels where nothing is drawn: BACKGROUND.
+
+Drawing: each worker renders its samples into "tile sheets": sample k's RGB image and its
+segmentation image go to two viewports of one large offscreen buffer, one `mjv_updateScene` per
+sample serves both, and one `mjr_readPixels` per sheet reads everything back (per-frame readback
+is what limits throughput, DESIGN.md). Results return through one shared-memory block; only the
+small inputs (qpos, perturbations) are pickled.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import threading
+import traceback
+from collections.abc import Callable
+from multiprocessing import connection, get_context, resource_tracker, shared_memory
+from typing import Any
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+LABEL_BACKGROUND, LABEL_FLOOR, LABEL_AGENT, LABEL_OTHER = 0, 1, 2, 3
+LABEL_NAMES = ("background", "floor", "agent", "other")
+
+# Perturbation keys understood by RenderPool.render (all numpy, leading batch dim B):
+#   "mat_rgb"    f32 [B, nmat, 3]   material RGB (alpha kept from the model)
+#   "geom_rgb"   f32 [B, ngeom, 3]  RGB of geoms drawn without a material (alpha kept)
+#   "cam_sphere" f32 [B, 4]         (radius, horizontal angle, vertical angle, roll) of the camera,
+#                                   relative to the agent's centre of mass for tracking cameras
+#                                   and to the world origin for fixed ones
+#   "cam_lookat" f32 [B, 3]         point a fixed camera looks at (ignored for tracking cameras)
+PERTURB_KEYS = ("mat_rgb", "geom_rgb", "cam_sphere", "cam_lookat")
+
+_WORKER_TIMEOUT_S = 600.0
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderSettings:
+    """Visual settings of the render pool; recorded in run summaries (dataclasses.asdict)."""
+
+    width: int = 84
+    height: int = 84
+    shadows: bool = False  # shadows and reflections together cost ~2.8x (DESIGN.md)
+    reflections: bool = False
+    skybox: bool = False  # the background is composited from videos (or left black) anyway
+    msaa_samples: int = 0  # offscreen multisample anti-aliasing; MuJoCo's default is 4
+    num_workers: int = 0  # 0 -> min(os.cpu_count(), 8)
+    tiles_per_sheet: int = 64  # samples drawn into one offscreen buffer before one readback
+
+    def resolved_workers(self) -> int:
+        return self.num_workers if self.num_workers > 0 else min(os.cpu_count() or 1, 8)
+
+
+def apply_settings(model: mujoco.MjModel, settings: RenderSettings) -> None:
+    """Sets the model-side visual options (they must be set before the render context exists)."""
+    model.vis.quality.offsamples = int(settings.msaa_samples)
+
+
+def apply_scene_flags(scene: mujoco.MjvScene, settings: RenderSettings) -> None:
+    scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = settings.shadows
+    scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = settings.reflections
+    scene.flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = settings.skybox
+
+
+def kinematics(model: mujoco.MjModel, data: mujoco.MjData) -> None:
+    """What drawing a state needs: body/geom/site poses, camera and light poses, tendon paths.
+
+    Cheaper than mj_forward (no collision, no dynamics); tests check the pictures are identical.
+    """
+    mujoco.mj_kinematics(model, data)
+    mujoco.mj_comPos(model, data)  # subtree centres of mass: tracking cameras follow them
+    mujoco.mj_camlight(model, data)
+    if model.nflex:
+        mujoco.mj_flex(model, data)
+    if model.ntendon:
+        mujoco.mj_tendon(model, data)  # wrap points, which mjv_updateScene draws
+
+
+def label_tables(model: mujoco.MjModel, agent_geom_ids, floor_geom_ids) -> dict[int, np.ndarray]:
+    """Per object type (mjtObj value) -> uint8 label of each object of that type (the agent rule)."""
+    agent = np.zeros(model.ngeom, bool)
+    agent[np.asarray(agent_geom_ids, int)] = True
+    floor = np.zeros(model.ngeom, bool)
+    floor[np.asarray(floor_geom_ids, int)] = True
+    if (agent & floor).any():
+        raise ValueError(f"geoms {np.flatnonzero(agent & floor)} are both agent and floor")
+    geom = np.full(model.ngeom, LABEL_OTHER, np.uint8)
+    geom[agent] = LABEL_AGENT
+    geom[floor] = LABEL_FLOOR
+
+    agent_body = np.zeros(model.nbody, bool)
+    agent_body[model.geom_bodyid[agent]] = True
+    site = np.where(agent_body[model.site_bodyid], LABEL_AGENT, LABEL_OTHER).astype(np.uint8)
+
+    tendon = np.full(model.ntendon, LABEL_OTHER, np.uint8)
+    for t in range(model.ntendon):
+        adr, num = model.tendon_adr[t], model.tendon_num[t]
+        bodies = []
+        for w in range(adr, adr + num):
+            kind, obj = model.wrap_type[w], model.wrap_objid[w]
+            if kind == mujoco.mjtWrap.mjWRAP_SITE:
+                bodies.append(model.site_bodyid[obj])
+            elif kind in (mujoco.mjtWrap.mjWRAP_SPHERE, mujoco.mjtWrap.mjWRAP_CYLINDER):
+                bodies.append(model.geom_bodyid[obj])
+        if bodies and all(agent_body[b] for b in bodies):
+            tendon[t] = LABEL_AGENT
+    return {
+        int(mujoco.mjtObj.mjOBJ_GEOM): geom,
+        int(mujoco.mjtObj.mjOBJ_SITE): site,
+        int(mujoco.mjtObj.mjOBJ_TENDON): tendon,
+    }
+
+
+def labels_from_segmentation(seg: np.ndarray, tables: dict[int, np.ndarray]) -> np.ndarray:
+    """seg int32 [..., 2] (object id, object type), as mujoco.Renderer returns -> uint8 labels."""
+    objid, objtype = seg[..., 0], seg[..., 1]
+    out = np.full(objid.shape, LABEL_OTHER, np.uint8)
+    out[objtype == -1] = LABEL_BACKGROUND
+    for kind, table in tables.items():
+        hit = objtype == kind
+        out[hit] = table[objid[hit]]
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Camera perturbation geometry (used in the workers, after kinematics of the sample).
+
+
+def sphere_to_cart(sphere: np.ndarray) -> np.ndarray:
+    """(radius, horizontal angle, vertical angle from +z) -> xyz."""
+    r, h, v = sphere[0], sphere[1], sphere[2]
+    return np.array([r * np.sin(v) * np.cos(h), r * np.sin(v) * np.sin(h), r * np.cos(v)])
+
+
+def cart_to_sphere(xyz: np.ndarray) -> np.ndarray:
+    r = float(np.linalg.norm(xyz))
+    return np.array([r, np.arctan2(xyz[1], xyz[0]), np.arctan2(np.linalg.norm(xyz[:2]), xyz[2])])
+
+
+def look_at_xmat(target: np.ndarray, position: np.ndarray, roll: float) -> np.ndarray:
+    """Camera frame (MuJoCo: looks along -z, y up) at `position` facing `target`, level horizon,
+    then rolled by `roll` about its viewing axis. Returns the 3x3 frame, columns = camera axes."""
+    forward = target - position
+    forward = forward / np.linalg.norm(forward)
+    right = np.cross(forward, np.array([0.0, 0.0, 1.0]))
+    norm = np.linalg.norm(right)
+    # Looking straight up or down: any horizontal right axis keeps the view well defined.
+    right = right / norm if norm > 1e-9 else np.array([1.0, 0.0, 0.0])
+    up = np.cross(right, forward)
+    frame = np.stack([right, up, -forward], axis=1)
+    c, s = np.cos(roll), np.sin(roll)
+    roll_mat = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return frame @ roll_mat
+
+
+def lookat_point(data: mujoco.MjData, cam_id: int, anchor: np.ndarray) -> np.ndarray:
+    """The point on the camera's viewing axis as far away as `anchor` (the agent's centre)."""
+    dist = np.linalg.norm(data.cam_xpos[cam_id] - anchor)
+    return data.cam_xpos[cam_id] + data.cam_xmat[cam_id].reshape(3, 3) @ np.array([0, 0, -dist])
+
+
+def perturbed_camera_pose(
+    model: mujoco.MjModel, data: mujoco.MjData, cam_id: int, sphere: np.ndarray, lookat: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """World position and frame of the perturbed camera for the current (kinematics-done) state."""
+    tracking = model.cam_mode[cam_id] != mujoco.mjtCamLight.mjCAMLIGHT_FIXED
+    if tracking:
+        com = data.subtree_com[1]
+        position = sphere_to_cart(sphere) + com
+        target = lookat_point(data, cam_id, com)
+    else:
+        position = sphere_to_cart(sphere)
+        target = np.asarray(lookat, np.float64)
+    return position, look_at_xmat(target, position, float(sphere[3]))
+
+
+# ---------------------------------------------------------------------------------------------
+# One worker's renderer.
+
+
+class TileRenderer:
+    """Renders batches of states with one GL context; usable in-process (tests, preview)."""
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        *,
+        camera: int | str,
+        agent_geom_ids,
+        floor_geom_ids,
+        settings: RenderSettings,
+    ):
+        from mujoco.rendering.classic import gl_context
+
+        self.model = model
+        self.settings = settings
+        self.data = mujoco.MjData(model)
+        h, w = settings.height, settings.width
+        self.cols = max(1, min(settings.tiles_per_sheet, 16))  # sample pairs across a sheet
+        self.rows = max(1, -(-settings.tiles_per_sheet // self.cols))
+        sheet_w, sheet_h = 2 * self.cols * w, self.rows * h
+        apply_settings(model, settings)
+        model.vis.global_.offwidth = max(model.vis.global_.offwidth, sheet_w)
+        model.vis.global_.offheight = max(model.vis.global_.offheight, sheet_h)
+
+        self.cam_id = camera if isinstance(camera, int) else model.camera(camera).id
+        if not 0 <= self.cam_id < model.ncam:
+            raise ValueError(f"camera {camera!r} not in the model's {model.ncam} cameras")
+        self.camera = mujoco.MjvCamera()
+        self.camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        self.camera.fixedcamid = self.cam_id
+
+        self.gl = gl_context.GLContext(sheet_w, sheet_h)
+        self.gl.make_current()
+        self.con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self.con)
+        self.scene = mujoco.MjvScene(model, maxgeom=10000)
+        self.option = mujoco.MjvOption()
+        apply_scene_flags(self.scene, settings)
+
+        self.tables = label_tables(model, agent_geom_ids, floor_geom_ids)
+        self.sheet = np.empty((sheet_h, sheet_w, 3), np.uint8)
+        self.mat_rgba0 = model.mat_rgba.copy()
+        self.geom_rgba0 = model.geom_rgba.copy()
+        self.no_material = model.geom_matid < 0
+
+    def gl_info(self) -> dict[str, str]:
+        from OpenGL import GL
+
+        self.gl.make_current()
+        return {
+            "GL_VENDOR": GL.glGetString(GL.GL_VENDOR).decode(),
+            "GL_RENDERER": GL.glGetString(GL.GL_RENDERER).decode(),
+            "GL_VERSION": GL.glGetString(GL.GL_VERSION).decode(),
+        }
+
+    def _scene_labels(self) -> np.ndarray:
+        """Label of each segmentation colour of the current scene: index = segid + 1, 0 = nothing."""
+        n = self.scene.ngeom
+        lut = np.full(n + 2, LABEL_OTHER, np.uint8)
+        lut[0] = LABEL_BACKGROUND
+        for g in self.scene.geoms[:n]:
+            if g.segid < 0:
+                continue
+            table = self.tables.get(int(g.objtype))
+            if table is not None and 0 <= g.objid < len(table):
+                lut[g.segid + 1] = table[g.objid]
+        return lut
+
+    def _set_sample(self, i: int, qpos, mocap_pos, mocap_quat, perturb) -> None:
+        m, d = self.model, self.data
+        if "mat_rgb" in perturb:
+            m.mat_rgba[:, :3] = perturb["mat_rgb"][i]
+        else:
+            m.mat_rgba[:] = self.mat_rgba0
+        if "geom_rgb" in perturb:
+            m.geom_rgba[self.no_material, :3] = perturb["geom_rgb"][i][self.no_material]
+        else:
+            m.geom_rgba[:] = self.geom_rgba0
+        d.qpos[:] = qpos[i]
+        if mocap_pos is not None:
+            d.mocap_pos[:] = mocap_pos[i]
+        if mocap_quat is not None:
+            d.mocap_quat[:] = mocap_quat[i]
+        kinematics(m, d)
+        if "cam_sphere" in perturb:
+            lookat = perturb["cam_lookat"][i] if "cam_lookat" in perturb else np.zeros(3)
+            pos, xmat = perturbed_camera_pose(m, d, self.cam_id, perturb["cam_sphere"][i], lookat)
+            d.cam_xpos[self.cam_id] = pos
+            d.cam_xmat[self.cam_id] = xmat.reshape(-1)
+
+    def render(
+        self,
+        qpos: np.ndarray,
+        rgb_out: np.ndarray,
+        labels_out: np.ndarray,
+        *,
+        mocap_pos=None,
+        mocap_quat=None,
+        perturb: dict[str, np.ndarray] | None = None,
+    ) -> None:
+        """qpos [B,nq] -> rgb_out uint8 [B,H,W,3], labels_out uint8 [B,H,W] (written in place)."""
+        perturb = perturb or {}
+        h, w = self.settings.height, self.settings.width
+        flags = self.scene.flags
+        seg_flags = (mujoco.mjtRndFlag.mjRND_SEGMENT, mujoco.mjtRndFlag.mjRND_IDCOLOR)
+        per_sheet = self.rows * self.cols
+        self.gl.make_current()
+        for start in range(0, qpos.shape[0], per_sheet):
+            count = min(per_sheet, qpos.shape[0] - start)
+            luts = []
+            for k in range(count):
+                self._set_sample(start + k, qpos, mocap_pos, mocap_quat, perturb)
+                mujoco.mjv_updateScene(
+                    self.model,
+                    self.data,
+                    self.option,
+                    None,
+                    self.camera,
+                    mujoco.mjtCatBit.mjCAT_ALL,
+                    self.scene,
+                )
+                r, c = divmod(k, self.cols)
+                mujoco.mjr_render(mujoco.MjrRect(2 * c * w, r * h, w, h), self.scene, self.con)
+                for f in seg_flags:
+                    flags[f] = 1
+                mujoco.mjr_render(
+                    mujoco.MjrRect((2 * c + 1) * w, r * h, w, h), self.scene, self.con
+                )
+                for f in seg_flags:
+                    flags[f] = 0
+                luts.append(self._scene_labels())
+            rows_used = -(-count // self.cols)
+            sheet = self.sheet[: rows_used * h]
+            mujoco.mjr_readPixels(
+                sheet, None, mujoco.MjrRect(0, 0, sheet.shape[1], rows_used * h), self.con
+            )
+            for k in range(count):
+                r, c = divmod(k, self.cols)
+                # GL rows run bottom-up: flip each tile.
+                tile = sheet[r * h : (r + 1) * h]
+                rgb_out[start + k] = tile[::-1, 2 * c * w : (2 * c + 1) * w]
+                seg = tile[::-1, (2 * c + 1) * w : (2 * c + 2) * w].astype(np.int32)
+                segid = seg[..., 0] | (seg[..., 1] << 8) | (seg[..., 2] << 16)
+                lut = luts[k]
+                labels_out[start + k] = lut[np.minimum(segid, len(lut) - 1)]
+        if perturb:
+            self.model.mat_rgba[:] = self.mat_rgba0
+            self.model.geom_rgba[:] = self.geom_rgba0
+
+    def close(self) -> None:
+        if getattr(self, "con", None) is not None:
+            self.gl.make_current()
+            self.con.free()
+            self.con = None
+            self.gl.free()
+
+
+# ---------------------------------------------------------------------------------------------
+# Worker processes and the pool.
+
+
+def _attach_shm(name: str) -> shared_memory.SharedMemory:
+    # The parent owns and unlinks the block; a worker that registered it with the resource
+    # tracker would make the tracker unlink it (or warn about a leak) when the worker exits.
+    register = resource_tracker.register
+    resource_tracker.register = lambda *args, **kwargs: None
+    try:
+        return shared_memory.SharedMemory(name=name)
+    finally:
+        resource_tracker.register = register
+
+
+def _worker_main(conn, model_fn, init_kwargs) -> None:
+    renderer = None
+    shm = None
+    try:
+        renderer = TileRenderer(model_fn(), **init_kwargs)
+        conn.send(("ok", None))
+    except BaseException:  # noqa: BLE001 - any failure must reach the parent
+        conn.send(("error", traceback.format_exc()))
+        return
+    h, w = init_kwargs["settings"].height, init_kwargs["settings"].width
+    while True:
+        try:
+            msg = conn.recv()
+        except EOFError:
+            break
+        kind = msg[0]
+        try:
+            if kind == "close":
+                break
+            if kind == "info":
+                conn.send(("ok", renderer.gl_info()))
+            elif kind == "render":
+                _, shm_name, capacity, lo, qpos, mocap_pos, mocap_quat, perturb = msg
+                if shm is None or shm.name != shm_name:
+                    if shm is not None:
+                        shm.close()
+                    shm = _attach_shm(shm_name)
+                rgb, labels = _views(shm, capacity, h, w)
+                n = qpos.shape[0]
+                renderer.render(
+                    qpos,
+                    rgb[lo : lo + n],
+                    labels[lo : lo + n],
+                    mocap_pos=mocap_pos,
+                    mocap_quat=mocap_quat,
+                    perturb=perturb,
+                )
+                conn.send(("ok", None))
+            else:
+                conn.send(("error", f"unknown message {kind!r}"))
+        except BaseException:  # noqa: BLE001
+            conn.send(("error", traceback.format_exc()))
+    if shm is not None:
+        shm.close()
+    renderer.close()
+
+
+def _views(shm: shared_memory.SharedMemory, capacity: int, h: int, w: int):
+    rgb = np.ndarray((capacity, h, w, 3), np.uint8, buffer=shm.buf)
+    labels = np.ndarray((capacity, h, w), np.uint8, buffer=shm.buf, offset=capacity * h * w * 3)
+    return rgb, labels
+
+
+class RenderPool:
+    """Worker processes turning batched states into RGB frames and pixel labels.
+
+    model_fn: picklable zero-argument callable returning a mujoco.MjModel (each worker calls it).
+    camera: camera id or name. agent_geom_ids / floor_geom_ids: geom ids for the labels.
+    """
+
+    def __init__(
+        self,
+        model_fn: Callable[[], mujoco.MjModel],
+        *,
+        camera: int | str,
+        agent_geom_ids,
+        floor_geom_ids,
+        settings: RenderSettings = RenderSettings(),
+    ):
+        self.settings = settings
+        self._lock = threading.Lock()
+        self._shm: shared_memory.SharedMemory | None = None
+        self._capacity = 0
+        init_kwargs = dict(
+            camera=camera,
+            agent_geom_ids=[int(i) for i in agent_geom_ids],
+            floor_geom_ids=[int(i) for i in floor_geom_ids],
+            settings=settings,
+        )
+        # spawn, not fork: the parent may hold JAX / CUDA threads that a fork would corrupt.
+        ctx = get_context("spawn")
+        self._conns: list[connection.Connection] = []
+        self._procs = []
+        for _ in range(settings.resolved_workers()):
+            parent, child = ctx.Pipe()
+            proc = ctx.Process(
+                target=_worker_main, args=(child, model_fn, init_kwargs), daemon=True
+            )
+            proc.start()
+            child.close()
+            self._conns.append(parent)
+            self._procs.append(proc)
+        try:
+            for i in range(len(self._conns)):
+                self._receive(i)
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def num_workers(self) -> int:
+        return len(self._conns)
+
+    def _receive(self, i: int) -> Any:
+        conn, proc = self._conns[i], self._procs[i]
+        deadline = _WORKER_TIMEOUT_S
+        while not conn.poll(1.0):
+            deadline -= 1.0
+            if not proc.is_alive():
+                raise RuntimeError(f"render worker {i} died (exit code {proc.exitcode})")
+            if deadline <= 0:
+                raise TimeoutError(f"render worker {i} gave no answer in {_WORKER_TIMEOUT_S} s")
+        status, payload = conn.recv()
+        if status != "ok":
+            raise RuntimeError(f"render worker {i} failed:\n{payload}")
+        return payload
+
+    def _ensure_capacity(self, batch: int) -> None:
+        if batch <= self._capacity:
+            return
+        h, w = self.settings.height, self.settings.width
+        if self._shm is not None:
+            self._shm.close()
+            self._shm.unlink()
+        self._capacity = batch
+        self._shm = shared_memory.SharedMemory(create=True, size=batch * h * w * 4)
+
+    def gl_info(self) -> list[dict[str, str]]:
+        """GL vendor / renderer / version strings of every worker's context."""
+        with self._lock:
+            for conn in self._conns:
+                conn.send(("info",))
+            return [self._receive(i) for i in range(len(self._conns))]
+
+    def render(
+        self,
+        qpos: np.ndarray,
+        *,
+        mocap_pos: np.ndarray | None = None,
+        mocap_quat: np.ndarray | None = None,
+        perturb: dict[str, np.ndarray] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """qpos [B,nq] -> (rgb uint8 [B,H,W,3], labels uint8 [B,H,W]). perturb: PERTURB_KEYS."""
+        qpos = np.asarray(qpos, np.float64)
+        if qpos.ndim != 2:
+            raise ValueError(f"qpos must be [B, nq], got shape {qpos.shape}")
+        perturb = {k: np.asarray(v) for k, v in (perturb or {}).items()}
+        unknown = set(perturb) - set(PERTURB_KEYS)
+        if unknown:
+            raise ValueError(f"unknown perturbation keys {sorted(unknown)}; valid: {PERTURB_KEYS}")
+        batch = qpos.shape[0]
+        for name, arr in [("mocap_pos", mocap_pos), ("mocap_quat", mocap_quat), *perturb.items()]:
+            if arr is not None and np.shape(arr)[0] != batch:
+                raise ValueError(f"{name} has leading dim {np.shape(arr)[0]}, qpos has {batch}")
+        h, w = self.settings.height, self.settings.width
+        with self._lock:
+            self._ensure_capacity(batch)
+            bounds = np.linspace(0, batch, len(self._conns) + 1).round().astype(int)
+            busy = []
+            for i, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
+                if hi <= lo:
+                    continue
+                part = slice(lo, hi)
+                self._conns[i].send(
+                    (
+                        "render",
+                        self._shm.name,
+                        self._capacity,
+                        int(lo),
+                        qpos[part],
+                        None if mocap_pos is None else np.asarray(mocap_pos)[part],
+                        None if mocap_quat is None else np.asarray(mocap_quat)[part],
+                        {k: v[part] for k, v in perturb.items()},
+                    )
+                )
+                busy.append(i)
+            errors = []
+            for i in busy:
+                try:
+                    self._receive(i)
+                except RuntimeError as err:
+                    errors.append(err)
+            if errors:
+                raise errors[0]
+            rgb, labels = _views(self._shm, self._capacity, h, w)
+            return rgb[:batch].copy(), labels[:batch].copy()
+
+    def close(self) -> None:
+        for conn in self._conns:
+            try:
+                conn.send(("close",))
+            except (BrokenPipeError, OSError):
+                pass
+        for proc in self._procs:
+            proc.join(timeout=10)
+            if proc.is_alive():
+                proc.terminate()
+        for conn in self._conns:
+            conn.close()
+        self._conns, self._procs = [], []
+        if self._shm is not None:
+            self._shm.close()
+            self._shm.unlink()
+            self._shm = None
+
+    def __enter__(self) -> RenderPool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        if getattr(self, "_conns", None):
+            self.close()

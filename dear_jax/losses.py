@@ -1,0 +1,101 @@
+"""DEAR's losses and the baselines' losses as pure functions of arrays.
+
+Import these into any JAX agent: none needs a config object or a network. Every function works
+under `jax.jit`, `jax.vmap` and `jax.grad`. Shapes: B is the batch, F the latent width,
+H x W the image, K stacked frames. Reductions follow REFERENCE.md and are part of the contract
+(the mask loss is a *sum* over pixels and frames, averaged over the batch).
+"""
+
+from __future__ import annotations
+
+import chex
+import jax
+import jax.numpy as jnp
+import optax
+
+ORTHOGONALITY_FORMS = ("abs_cos", "reference_code")
+_COS_EPS = 1e-8
+
+
+def split_latent(z: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """z [..., F] -> (z_env [..., F/2], z_agent [..., F/2]): the first half is the environment's."""
+    f = z.shape[-1]
+    if f % 2:
+        raise ValueError(f"latent width must be even to split into halves, got {f}")
+    return z[..., : f // 2], z[..., f // 2 :]
+
+
+def mask_loss(logits: jax.Array, mask: jax.Array) -> jax.Array:
+    """Binary cross-entropy of the agent-mask decoder, from logits.
+
+    L = mean_b sum_{h,w,k} BCE(sigmoid(logits[b,h,w,k]), mask[b,h,w,k])
+    logits: float [B, H, W, K]; mask: {0, 1} (any dtype) [B, H, W, K]. Returns a scalar.
+    """
+    chex.assert_equal_shape([logits, mask])
+    bce = optax.sigmoid_binary_cross_entropy(logits, mask.astype(logits.dtype))
+    return jnp.mean(jnp.sum(bce.reshape(bce.shape[0], -1), axis=-1))
+
+
+def cosine_similarity(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Cosine similarity along the last axis: [..., F] x [..., F] -> [...]."""
+    dot = jnp.sum(a * b, axis=-1)
+    norm = jnp.linalg.norm(a, axis=-1) * jnp.linalg.norm(b, axis=-1)
+    return dot / jnp.maximum(norm, _COS_EPS)
+
+
+def orthogonality_loss(z_agent: jax.Array, z_env: jax.Array, form: str = "abs_cos") -> jax.Array:
+    """DEAR's disentanglement loss between the two halves of the latent; [B, F/2] x 2 -> scalar.
+
+    form="abs_cos" (the paper, default): mean_b |cos(z_agent, sg(z_env))|.
+    form="reference_code" (the public code): mean_b (1 - cos(sg(z_env), z_agent)).
+    The environment half is a fixed target: the gradient reaches z_agent only.
+    """
+    chex.assert_equal_shape([z_agent, z_env])
+    # DEAR stops the gradient at z_E so that only the agent half is pushed away from it.
+    cos = cosine_similarity(z_agent, jax.lax.stop_gradient(z_env))
+    if form == "abs_cos":
+        return jnp.mean(jnp.abs(cos))
+    if form == "reference_code":
+        return jnp.mean(1.0 - cos)
+    raise ValueError(f"unknown orthogonality form {form!r}; valid: {ORTHOGONALITY_FORMS}")
+
+
+def reconstruction_loss(recon: jax.Array, obs: jax.Array) -> jax.Array:
+    """SEAR's image reconstruction loss.
+
+    L = mean_b sum_{h,w,c} (clip(recon, -0.5, 0.5) - (obs / 255 - 0.5))^2
+    recon: float [B, H, W, C] in the [-0.5, 0.5] pixel scale; obs: uint8 [B, H, W, C].
+    """
+    chex.assert_equal_shape([recon, obs])
+    target = obs.astype(recon.dtype) / 255.0 - 0.5
+    err = jnp.square(jnp.clip(recon, -0.5, 0.5) - target)
+    return jnp.mean(jnp.sum(err.reshape(err.shape[0], -1), axis=-1))
+
+
+def ted_loss(logits: jax.Array, labels: jax.Array) -> jax.Array:
+    """TED's temporal classification loss: mean binary cross-entropy from logits, [N] x [N] -> scalar."""
+    chex.assert_equal_shape([logits, labels])
+    return jnp.mean(optax.sigmoid_binary_cross_entropy(logits, labels.astype(logits.dtype)))
+
+
+def td_target(
+    reward: jax.Array, discount: jax.Array, next_q1: jax.Array, next_q2: jax.Array
+) -> jax.Array:
+    """n-step clipped double-Q target y = R_n + gamma_n * min(Q1', Q2'), all [B].
+
+    `discount` is the product gamma^n * prod(env discounts) over the n steps. The target is a
+    constant for the critic (stop_gradient).
+    """
+    return jax.lax.stop_gradient(reward + discount * jnp.minimum(next_q1, next_q2))
+
+
+def critic_loss(q1: jax.Array, q2: jax.Array, target: jax.Array) -> jax.Array:
+    """DrQ-v2's twin critic loss: MSE(Q1, y) + MSE(Q2, y), all [B] -> scalar."""
+    chex.assert_equal_shape([q1, q2, target])
+    return jnp.mean(jnp.square(q1 - target)) + jnp.mean(jnp.square(q2 - target))
+
+
+def actor_loss(q1: jax.Array, q2: jax.Array) -> jax.Array:
+    """DrQ-v2's actor loss: -mean(min(Q1, Q2)) at the policy's sampled action, [B] x 2 -> scalar."""
+    chex.assert_equal_shape([q1, q2])
+    return -jnp.mean(jnp.minimum(q1, q2))

@@ -1,0 +1,279 @@
+"""A replay buffer that lives on the accelerator, one per seed (vmap it over seeds).
+
+It stores single uint8 frames and masks of E parallel environments in a ring of T rows
+([T, E, ...]; a row is one batched environment step), plus the action that led to each frame,
+rewards, discounts and an episode id per entry. Frame stacks, n-step returns and TED's
+same-episode frames are rebuilt at sample time, so memory is that of single frames
+(REFERENCE.md section 1: a stacked 250k buffer would need ~21 GB per seed).
+
+Conventions (dm_env / DrQ-v2): entry (t, e) holds the timestep returned by the environment; its
+`action` is the action that produced it (zeros on the first step of an episode). The transition
+sampled at (t, e) is: obs = stack(t), action = action[t+1], reward = sum_k gamma^(k-1) r[t+k],
+discount = gamma^n' prod_k d[t+k], next_obs = stack(t+n'), where n' <= n stops at the end of the
+episode and at the newest row: a transition never crosses an episode boundary.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+
+@struct.dataclass
+class ReplayState:
+    frames: jax.Array  # uint8 [T, E, H, W, C]
+    masks: jax.Array  # uint8 [T, E, H, W]
+    actions: jax.Array  # f32 [T, E, A]
+    rewards: jax.Array  # f32 [T, E]
+    discounts: jax.Array  # f32 [T, E]
+    episode: jax.Array  # int32 [T, E]: episode id of the entry, counted per environment
+    episodes_started: jax.Array  # int32 [E]
+    pos: jax.Array  # int32 []: next row to write
+    size: jax.Array  # int32 []: rows written so far, at most T
+
+    @property
+    def rows(self) -> int:
+        return self.frames.shape[0]
+
+
+@struct.dataclass
+class Batch:
+    obs: jax.Array  # uint8 [B, H, W, C*K], oldest frame first
+    action: jax.Array  # f32 [B, A]
+    reward: jax.Array  # f32 [B]
+    discount: jax.Array  # f32 [B]
+    next_obs: jax.Array  # uint8 [B, H, W, C*K]
+    mask: jax.Array  # uint8 [B, H, W, K]: agent masks of obs's frames
+    far_obs: jax.Array | None = None  # uint8 [B, H, W, C*K]: same episode, >= 2 steps from obs
+    far_valid: jax.Array | None = None  # f32 [B]: 1 where far_obs exists
+
+
+def entry_bytes(frame_shape: tuple[int, int, int], action_dim: int) -> int:
+    """Bytes one (row, env) entry takes: frame, mask, action, reward, discount, episode id."""
+    h, w, c = frame_shape
+    return h * w * c + h * w + 4 * action_dim + 4 + 4 + 4
+
+
+def replay_bytes(num_seeds: int, capacity: int, frame_shape, action_dim: int) -> int:
+    return num_seeds * capacity * entry_bytes(tuple(frame_shape), action_dim)
+
+
+def available_bytes(device: jax.Device | None = None) -> int:
+    """Memory free for new buffers on `device` (accelerator memory, or host RAM for the CPU)."""
+    device = device or jax.devices()[0]
+    stats = device.memory_stats() if device.platform != "cpu" else None
+    if stats and "bytes_limit" in stats:
+        return int(stats["bytes_limit"] - stats.get("bytes_in_use", 0))
+    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def check_fits(
+    num_seeds: int,
+    capacity: int,
+    frame_shape,
+    action_dim: int,
+    available: int | None = None,
+    headroom: float = 0.8,
+) -> int:
+    """Raise MemoryError, saying how much is needed, unless the buffers fit in `headroom` of memory."""
+    need = replay_bytes(num_seeds, capacity, frame_shape, action_dim)
+    have = available_bytes() if available is None else available
+    if need > headroom * have:
+        gib = 2**30
+        per_seed = need / num_seeds
+        fit = int(headroom * have // per_seed)
+        raise MemoryError(
+            f"replay for {num_seeds} seeds x {capacity:,} entries needs {need / gib:.2f} GiB "
+            f"({per_seed / gib:.2f} GiB per seed), but only {have / gib:.2f} GiB is free on "
+            f"{jax.devices()[0].platform} and {headroom:.0%} of it may be used; lower "
+            f"replay.capacity (about {int(headroom * have / need * capacity):,} fits) or seeds "
+            f"(at most {fit} fit)"
+        )
+    return need
+
+
+def init(
+    capacity: int, num_envs: int, frame_shape, action_dim: int, leading: tuple[int, ...] = ()
+) -> ReplayState:
+    """Empty buffers of `capacity` entries (rounded up to whole rows of `num_envs`).
+
+    `leading` adds batch axes in front (e.g. (num_seeds,)) so seeds can be vmapped.
+    """
+    rows = math.ceil(capacity / num_envs)
+    h, w, c = frame_shape
+    lead = tuple(leading)
+
+    def zeros(shape, dtype):
+        return jnp.zeros(lead + shape, dtype)
+
+    return ReplayState(
+        frames=zeros((rows, num_envs, h, w, c), jnp.uint8),
+        masks=zeros((rows, num_envs, h, w), jnp.uint8),
+        actions=zeros((rows, num_envs, action_dim), jnp.float32),
+        rewards=zeros((rows, num_envs), jnp.float32),
+        discounts=zeros((rows, num_envs), jnp.float32),
+        episode=jnp.full(lead + (rows, num_envs), -1, jnp.int32),
+        episodes_started=zeros((num_envs,), jnp.int32),
+        pos=zeros((), jnp.int32),
+        size=zeros((), jnp.int32),
+    )
+
+
+def add(
+    state: ReplayState,
+    frame: jax.Array,
+    mask: jax.Array,
+    action: jax.Array,
+    reward: jax.Array,
+    discount: jax.Array,
+    first: jax.Array,
+) -> ReplayState:
+    """Write one row: the timestep of every environment ([E, ...] each) and the action behind it."""
+    chex.assert_shape(first, (state.frames.shape[1],))
+    started = state.episodes_started + first.astype(jnp.int32)
+    # A first timestep opens a new episode id; every later one belongs to the latest.
+    episode = started - 1
+    action = jnp.where(first[:, None], 0.0, action)  # nothing led to a reset observation
+    p = state.pos
+
+    def put(buf, value):
+        return buf.at[p].set(value.astype(buf.dtype))
+
+    return state.replace(
+        frames=put(state.frames, frame),
+        masks=put(state.masks, mask),
+        actions=put(state.actions, action),
+        rewards=put(state.rewards, jnp.where(first, 0.0, reward)),
+        discounts=put(state.discounts, jnp.where(first, 1.0, discount)),
+        episode=put(state.episode, episode),
+        episodes_started=started,
+        pos=(p + 1) % state.rows,
+        size=jnp.minimum(state.size + 1, state.rows),
+    )
+
+
+def _age(state: ReplayState, row: jax.Array) -> jax.Array:
+    """How many rows after the oldest stored row `row` is (>= size means not stored)."""
+    oldest = jnp.where(state.size == state.rows, state.pos, 0)
+    return (row - oldest) % state.rows
+
+
+def _same_episode_at(state, row, env, offset):
+    """Is row+offset stored and of the same episode as (row, env)? Also returns its ring row."""
+    target = (row + offset) % state.rows
+    age = _age(state, row) + offset
+    stored = (age >= 0) & (age < state.size)
+    same = state.episode[target, env] == state.episode[row, env]
+    return stored & same, target
+
+
+def sample_weights(state: ReplayState, frame_stack: int) -> jax.Array:
+    """[T, E] weights: 1 where a transition may start, 0 elsewhere.
+
+    A start needs a successor in the same episode, and, once the ring has wrapped, a full stack of
+    stored history (the oldest rows have lost the frames before them).
+    """
+    rows = jnp.arange(state.rows)
+    age = _age(state, rows)
+    full = state.size == state.rows
+    history_ok = jnp.where(full, age >= frame_stack - 1, True)
+    nxt = (rows + 1) % state.rows
+    has_next = (age + 1 < state.size)[:, None] & (state.episode[nxt] == state.episode[rows])
+    return (has_next & (age < state.size)[:, None] & history_ok[:, None]).astype(jnp.float32)
+
+
+def _stack_rows(state, row, env, frame_stack):
+    """Rows of the stack ending at `row`, oldest first; frames before the episode start repeat it."""
+    rows = [row]
+    for k in range(1, frame_stack):
+        ok, prev = _same_episode_at(state, row, env, -k)
+        rows.append(jnp.where(ok, prev, rows[-1]))
+    return jnp.stack(rows[::-1], axis=-1)  # [B, K]
+
+
+def _gather_stack(buf, rows, env):
+    """buf [T, E, H, W, (C)] at rows [B, K], env [B] -> [B, H, W, K*C] (oldest frame first)."""
+    x = buf[rows, env[:, None]]  # [B, K, H, W, (C)]
+    if x.ndim == 4:
+        x = x[..., None]
+    b, k, h, w, c = x.shape
+    return jnp.moveaxis(x, 1, 3).reshape(b, h, w, k * c)
+
+
+def sample_at(
+    state: ReplayState,
+    row: jax.Array,
+    env: jax.Array,
+    *,
+    nstep: int,
+    gamma: float,
+    frame_stack: int,
+    far: jax.Array | None = None,
+) -> Batch:
+    """The transitions that start at entries (row[b], env[b]); see the module docstring.
+
+    `far` [B] (int offsets >= 2), when given, picks TED's same-episode frame at row +- far.
+    """
+    reward = jnp.zeros(row.shape, jnp.float32)
+    discount = jnp.ones(row.shape, jnp.float32)
+    alive = jnp.ones(row.shape, bool)
+    next_row = row
+    for k in range(1, nstep + 1):
+        ok, r = _same_episode_at(state, row, env, k)
+        alive = alive & ok
+        reward = reward + jnp.where(alive, discount * state.rewards[r, env], 0.0)
+        discount = jnp.where(alive, discount * gamma * state.discounts[r, env], discount)
+        next_row = jnp.where(alive, r, next_row)
+    first_step = (row + 1) % state.rows
+    batch = Batch(
+        obs=_gather_stack(state.frames, _stack_rows(state, row, env, frame_stack), env),
+        action=state.actions[first_step, env],
+        reward=reward,
+        discount=discount,
+        next_obs=_gather_stack(state.frames, _stack_rows(state, next_row, env, frame_stack), env),
+        mask=_gather_stack(state.masks, _stack_rows(state, row, env, frame_stack), env),
+    )
+    if far is None:
+        return batch
+    fwd_ok, fwd = _same_episode_at(state, row, env, far)
+    bwd_ok, bwd = _same_episode_at(state, row, env, -far)
+    far_row = jnp.where(fwd_ok, fwd, bwd)
+    return batch.replace(
+        far_obs=_gather_stack(state.frames, _stack_rows(state, far_row, env, frame_stack), env),
+        far_valid=(fwd_ok | bwd_ok).astype(jnp.float32),
+    )
+
+
+def sample(
+    state: ReplayState,
+    key: jax.Array,
+    batch_size: int,
+    *,
+    nstep: int,
+    gamma: float,
+    frame_stack: int,
+    far_max: int = 0,
+) -> Batch:
+    """Uniform sample of `batch_size` transitions among the valid starts.
+
+    far_max > 0 also returns TED's same-episode frames, 2..far_max steps away.
+    """
+    k_idx, k_far = jax.random.split(key)
+    weights = sample_weights(state, frame_stack).reshape(-1)
+    flat = jax.random.choice(k_idx, weights.shape[0], (batch_size,), p=weights / weights.sum())
+    row, env = jnp.divmod(flat, state.frames.shape[1])
+    far = None
+    if far_max > 0:
+        far = jax.random.randint(k_far, (batch_size,), 2, max(far_max, 2) + 1)
+    return sample_at(state, row, env, nstep=nstep, gamma=gamma, frame_stack=frame_stack, far=far)
+
+
+def num_transitions(state: ReplayState, frame_stack: int) -> np.ndarray:
+    """How many transitions can be sampled now (host value, for logs and tests)."""
+    return np.asarray(sample_weights(state, frame_stack).sum())

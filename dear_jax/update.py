@@ -1,0 +1,322 @@
+"""The DrQ-v2 learner with DEAR's (and SEAR's, TED's) auxiliary losses as pure functions.
+
+`AgentConfig` is static (which method, which encoder, widths, learning rates); `HParams` holds the
+numbers that may differ between seeds (loss weights, schedules), so a sweep is one vmapped axis.
+`update(state, batch, key, hp)` does, for one seed:
+  1. encoder + critic + auxiliary heads in one gradient step on
+     L = L_critic + alpha * L_mask + beta * L_dis (+ SEAR's reconstruction, TED's classifier);
+  2. the actor step on stopped features against the updated critic;
+  3. the target critic's EMA.
+`jax.jit(jax.vmap(update, in_axes=(0, 0, 0, hp_axes)))` runs S seeds in one call.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from dear_jax import augment, losses, networks
+from dear_jax.replay import Batch
+
+METHODS = ("drqv2", "dear", "sear", "ted")
+
+
+@dataclasses.dataclass(frozen=True)
+class AgentConfig:
+    """Static agent description: changing any field changes the compiled program."""
+
+    action_dim: int
+    method: str = "dear"
+    encoder: str = "pool"  # "pool" (DEAR/SEAR/TED) or "plain" (DrQ-v2's flattened convs)
+    latent_dim: int = 4096  # pool encoder output; split in halves for DEAR and SEAR
+    feature_dim: int = 50
+    hidden_dim: int = 1024
+    lr: float = 1e-4  # encoder, critic, actor and decoders
+    ted_lr: float = 1e-3
+    ortho_form: str = "abs_cos"  # or "reference_code" (see losses.orthogonality_loss)
+    obs_shape: tuple[int, int, int] = (84, 84, 9)
+    frame_stack: int = 3
+    augment_pad: int = 4
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method {self.method!r}; valid: {METHODS}")
+        if self.ortho_form not in losses.ORTHOGONALITY_FORMS:
+            raise ValueError(
+                f"unknown ortho_form {self.ortho_form!r}; valid: {losses.ORTHOGONALITY_FORMS}"
+            )
+        if self.method != "drqv2" and self.encoder != "pool":
+            raise ValueError(f"method {self.method!r} needs encoder='pool' (its heads read the latent)")
+
+    @property
+    def uses_mask(self) -> bool:
+        return self.method in ("dear", "sear")
+
+
+@struct.dataclass
+class HParams:
+    """Per-seed numbers (vmappable). Defaults: REFERENCE.md sections 1-3."""
+
+    alpha: float = 0.25  # mask loss weight (DEAR, SEAR)
+    beta: float = 100.0  # orthogonality loss weight (DEAR)
+    recon_weight: float = 1.0  # SEAR's reconstruction loss weight
+    ted_weight: float = 100.0
+    tau: float = 0.01  # target critic EMA rate
+    stddev_clip: float = 0.3
+    std_init: float = 1.0
+    std_final: float = 0.1
+    std_steps: float = 500_000.0  # agent steps of the linear std decay
+    explore_steps: float = 2000.0  # agent steps of uniform random actions
+
+
+@struct.dataclass
+class AgentState:
+    params: dict  # encoder, actor, critic, and per method: mask_decoder, recon_decoder, ted
+    target_critic: dict
+    opt_state: optax.OptState  # encoder + critic + auxiliary heads: one optimizer, one step
+    actor_opt_state: optax.OptState
+    steps: jax.Array  # int32: agent steps acted (drives the std schedule and exploration)
+    updates: jax.Array  # int32
+
+
+@dataclasses.dataclass(frozen=True)
+class Networks:
+    encoder: nn.Module
+    actor: nn.Module
+    critic: nn.Module
+    mask_decoder: nn.Module | None
+    recon_decoder: nn.Module | None
+    ted: nn.Module | None
+
+
+def make_networks(cfg: AgentConfig) -> Networks:
+    return Networks(
+        encoder=networks.encoder_module(cfg.encoder, cfg.latent_dim),
+        actor=networks.Actor(cfg.action_dim, cfg.feature_dim, cfg.hidden_dim),
+        critic=networks.Critic(cfg.feature_dim, cfg.hidden_dim),
+        mask_decoder=networks.PoolDecoder(cfg.frame_stack) if cfg.uses_mask else None,
+        recon_decoder=networks.PoolDecoder(cfg.obs_shape[-1]) if cfg.method == "sear" else None,
+        ted=networks.TEDClassifier() if cfg.method == "ted" else None,
+    )
+
+
+def _optimizers(cfg: AgentConfig):
+    main = optax.multi_transform(
+        {"default": optax.adam(cfg.lr), "ted": optax.adam(cfg.ted_lr)},
+        lambda params: {k: ("ted" if k == "ted" else "default") for k in params},
+    )
+    return main, optax.adam(cfg.lr)
+
+
+def init_params(cfg: AgentConfig, key: jax.Array) -> dict:
+    nets = make_networks(cfg)
+    keys = dict(zip(("encoder", "actor", "critic", "mask", "recon", "ted"), jax.random.split(key, 6)))
+    obs = jnp.zeros((1, *cfg.obs_shape), jnp.uint8)
+    encoder_params = nets.encoder.init(keys["encoder"], obs)
+    z = jnp.zeros(jax.eval_shape(nets.encoder.apply, encoder_params, obs).shape)
+    half = z[:, : z.shape[-1] // 2]
+    params = {
+        "encoder": encoder_params["params"],
+        "actor": nets.actor.init(keys["actor"], z)["params"],
+        "critic": nets.critic.init(keys["critic"], z, jnp.zeros((1, cfg.action_dim)))["params"],
+    }
+    if nets.mask_decoder is not None:
+        params["mask_decoder"] = nets.mask_decoder.init(keys["mask"], half)["params"]
+    if nets.recon_decoder is not None:
+        params["recon_decoder"] = nets.recon_decoder.init(keys["recon"], half)["params"]
+    if nets.ted is not None:
+        params["ted"] = nets.ted.init(keys["ted"], z, z)["params"]
+    return params
+
+
+def init(cfg: AgentConfig, key: jax.Array) -> AgentState:
+    """A fresh agent for one seed (vmap over keys for several)."""
+    params = init_params(cfg, key)
+    main_opt, actor_opt = _optimizers(cfg)
+    learner = {k: v for k, v in params.items() if k != "actor"}
+    return AgentState(
+        params=params,
+        target_critic=params["critic"],
+        opt_state=main_opt.init(learner),
+        actor_opt_state=actor_opt.init(params["actor"]),
+        steps=jnp.zeros((), jnp.int32),
+        updates=jnp.zeros((), jnp.int32),
+    )
+
+
+def std_schedule(steps: jax.Array, hp: HParams) -> jax.Array:
+    """Linear exploration std from std_init to std_final over std_steps agent steps."""
+    frac = jnp.clip(steps / hp.std_steps, 0.0, 1.0)
+    return hp.std_init + frac * (hp.std_final - hp.std_init)
+
+
+def sample_action(mean, std, key, clip=None):
+    """DrQ-v2's truncated normal: mean + noise (clipped to +-clip if given), clamped to (-1, 1).
+
+    The clamp passes gradients straight through, as in DrQ-v2, so the actor still learns at the
+    action bounds.
+    """
+    noise = std * jax.random.normal(key, mean.shape)
+    if clip is not None:
+        noise = jnp.clip(noise, -clip, clip)
+    x = mean + noise
+    eps = 1e-6
+    return x + jax.lax.stop_gradient(jnp.clip(x, -1.0 + eps, 1.0 - eps) - x)
+
+
+def act(
+    cfg: AgentConfig, state: AgentState, obs: jax.Array, key: jax.Array, hp: HParams, *, explore: bool
+) -> tuple[jax.Array, AgentState]:
+    """Actions for a batch of observations uint8 [N, 84, 84, 9] -> f32 [N, A].
+
+    explore=True: uniform actions during the first `explore_steps` agent steps, then the policy
+    with the scheduled std; counts the N steps. explore=False: the deterministic mean.
+    """
+    nets = make_networks(cfg)
+    z = nets.encoder.apply({"params": state.params["encoder"]}, obs)
+    mean = nets.actor.apply({"params": state.params["actor"]}, z)
+    if not explore:
+        return mean, state
+    k_noise, k_uniform = jax.random.split(key)
+    action = sample_action(mean, std_schedule(state.steps, hp), k_noise)
+    uniform = jax.random.uniform(k_uniform, mean.shape, minval=-1.0, maxval=1.0)
+    action = jnp.where(state.steps < hp.explore_steps, uniform, action)
+    return action, state.replace(steps=state.steps + obs.shape[0])
+
+
+def learner_loss(
+    learner: dict,
+    actor_params: dict,
+    target_critic: dict,
+    batch: Batch,
+    key: jax.Array,
+    hp: HParams,
+    std: jax.Array,
+    *,
+    cfg: AgentConfig,
+) -> tuple[jax.Array, dict]:
+    """Encoder + critic + auxiliary loss of one batch; `learner` is what is differentiated.
+
+    Returns (L, (metrics, z)) with L = L_critic + alpha L_mask + beta L_dis + w_rec L_rec
+    + w_ted L_ted, and z the stopped latent of the augmented batch, which the actor step reuses.
+    """
+    nets = make_networks(cfg)
+    k_obs, k_next, k_far, k_target, k_ted = jax.random.split(key, 5)
+    encode = lambda obs: nets.encoder.apply({"params": learner["encoder"]}, obs)  # noqa: E731
+
+    if cfg.uses_mask:
+        obs, mask = augment.random_shift_pair_batch(batch.obs, batch.mask, k_obs, cfg.augment_pad)
+    else:
+        obs, mask = augment.random_shift_batch(batch.obs, k_obs, cfg.augment_pad), None
+    next_obs = augment.random_shift_batch(batch.next_obs, k_next, cfg.augment_pad)
+
+    z = encode(obs)
+    z_next = encode(next_obs)
+    # DrQ-v2 has no target encoder: the target uses the online encoder without gradient.
+    z_next_sg = jax.lax.stop_gradient(z_next)
+    next_action = sample_action(
+        nets.actor.apply({"params": actor_params}, z_next_sg), std, k_target, hp.stddev_clip
+    )
+    tq1, tq2 = nets.critic.apply({"params": target_critic}, z_next_sg, next_action)
+    target = losses.td_target(batch.reward, batch.discount, tq1, tq2)
+    q1, q2 = nets.critic.apply({"params": learner["critic"]}, z, batch.action)
+    critic = losses.critic_loss(q1, q2, target)
+
+    z_env, z_agent = losses.split_latent(z)
+    metrics = {
+        "critic_loss": critic,
+        "q1": jnp.mean(q1),
+        "q2": jnp.mean(q2),
+        "target_q": jnp.mean(target),
+        "batch_reward": jnp.mean(batch.reward),
+        "cos_agent_env": jnp.mean(losses.cosine_similarity(z_agent, z_env)),
+    }
+    total = critic
+    if cfg.uses_mask:
+        logits = nets.mask_decoder.apply({"params": learner["mask_decoder"]}, z_agent)
+        l_mask = losses.mask_loss(logits, mask)
+        metrics["mask_loss"] = l_mask
+        total = total + hp.alpha * l_mask
+    if cfg.method == "dear":
+        l_dis = losses.orthogonality_loss(z_agent, z_env, cfg.ortho_form)
+        metrics["ortho_loss"] = l_dis
+        total = total + hp.beta * l_dis
+    if cfg.method == "sear":
+        recon = nets.recon_decoder.apply({"params": learner["recon_decoder"]}, z_env)
+        l_rec = losses.reconstruction_loss(recon, obs)
+        metrics["recon_loss"] = l_rec
+        total = total + hp.recon_weight * l_rec
+    if cfg.method == "ted":
+        l_ted, ted_metrics = _ted_loss(nets, learner, z, z_next, batch, k_far, k_ted, cfg)
+        metrics.update(ted_metrics, ted_loss=l_ted)
+        total = total + hp.ted_weight * l_ted
+    metrics["loss"] = total
+    return total, (metrics, jax.lax.stop_gradient(z))
+
+
+def _ted_loss(nets, learner, z, z_next, batch, k_far, k_shuffle, cfg):
+    """TED: positives (z_t, z_t+n); negatives (z_t, z_t+n of another sample) and (z_t, a frame of
+    the same episode >= 2 steps away). Mean BCE over the valid pairs."""
+    far = augment.random_shift_batch(batch.far_obs, k_far, cfg.augment_pad)
+    z_far = nets.encoder.apply({"params": learner["encoder"]}, far)
+    perm = jax.random.permutation(k_shuffle, z.shape[0])
+    classify = lambda a, b: nets.ted.apply({"params": learner["ted"]}, a, b)  # noqa: E731
+    logits = jnp.concatenate([classify(z, z_next), classify(z, z_next[perm]), classify(z, z_far)])
+    n = z.shape[0]
+    labels = jnp.concatenate([jnp.ones(n), jnp.zeros(2 * n)])
+    weights = jnp.concatenate([jnp.ones(2 * n), batch.far_valid])
+    bce = optax.sigmoid_binary_cross_entropy(logits, labels)
+    loss = jnp.sum(weights * bce) / jnp.sum(weights)
+    acc = jnp.sum(weights * ((logits > 0) == (labels > 0.5))) / jnp.sum(weights)
+    return loss, {"ted_accuracy": acc}
+
+
+def actor_loss(
+    actor_params: dict, critic_params: dict, z: jax.Array, key, hp: HParams, std, *, cfg: AgentConfig
+):
+    """DrQ-v2's actor loss on stopped features: -min(Q1, Q2)(z, a ~ pi(z))."""
+    nets = make_networks(cfg)
+    mean = nets.actor.apply({"params": actor_params}, z)
+    action = sample_action(mean, std, key, hp.stddev_clip)
+    q1, q2 = nets.critic.apply({"params": critic_params}, z, action)
+    loss = losses.actor_loss(q1, q2)
+    return loss, {"actor_loss": loss}
+
+
+def update(
+    state: AgentState, batch: Batch, key: jax.Array, hp: HParams, *, cfg: AgentConfig
+) -> tuple[AgentState, dict]:
+    """One DrQ-v2 update for one seed; bind `cfg` (functools.partial) before jit/vmap."""
+    main_opt, actor_opt = _optimizers(cfg)
+    k_learner, k_actor = jax.random.split(key)
+    std = std_schedule(state.steps, hp)
+    learner = {k: v for k, v in state.params.items() if k != "actor"}
+
+    grads, (metrics, z) = jax.grad(learner_loss, has_aux=True)(
+        learner, state.params["actor"], state.target_critic, batch, k_learner, hp, std, cfg=cfg
+    )
+    updates, opt_state = main_opt.update(grads, state.opt_state, learner)
+    learner = optax.apply_updates(learner, updates)
+
+    # The actor learns from the stopped features of the pre-update encoder, as in DrQ-v2: the
+    # encoder is shaped by the critic and the auxiliary losses only.
+    actor_grads, actor_metrics = jax.grad(actor_loss, has_aux=True)(
+        state.params["actor"], learner["critic"], z, k_actor, hp, std, cfg=cfg
+    )
+    actor_updates, actor_opt_state = actor_opt.update(actor_grads, state.actor_opt_state)
+    actor_params = optax.apply_updates(state.params["actor"], actor_updates)
+
+    target = optax.incremental_update(learner["critic"], state.target_critic, hp.tau)
+    new_state = state.replace(
+        params={**learner, "actor": actor_params},
+        target_critic=target,
+        opt_state=opt_state,
+        actor_opt_state=actor_opt_state,
+        updates=state.updates + 1,
+    )
+    return new_state, {**metrics, **actor_metrics, "std": std}

@@ -7,7 +7,8 @@ Distracting Control Suite applied just before drawing; and the rule that turns M
 segmentation into the four labels BACKGROUND / FLOOR / AGENT / OTHER.
 
 Agent rule (REFERENCE section 4), per segmentation object type:
-- geom: AGENT if its id is one of the task's agent geoms, FLOOR if one of its floor geoms, else OTHER.
+- geom: AGENT if its id is one of the task's agent geoms, FLOOR if one of its floor geoms,
+  else OTHER.
 - site: a site is rigidly attached to a body, so it takes that body's side: AGENT if the body
   carries an agent geom, else OTHER (e.g. finger's spinner "tip" and the world "target" site).
 - tendon: AGENT if every body it attaches to (through its wrap sites and wrap geoms) carries an
@@ -63,7 +64,10 @@ class RenderSettings:
     skybox: bool = False  # the background is composited from videos (or left black) anyway
     msaa_samples: int = 0  # offscreen multisample anti-aliasing; MuJoCo's default is 4
     num_workers: int = 0  # 0 -> min(os.cpu_count(), 8)
-    tiles_per_sheet: int = 64  # samples drawn into one offscreen buffer before one readback
+    # Samples drawn into one offscreen buffer before one readback. 0 -> auto: 1 on software GL
+    # (bit-identical to mujoco.Renderer), 64 on a GPU (tiles at other offsets can differ from
+    # mujoco.Renderer by 1 intensity level in a few pixels: rasterisation at another position).
+    tiles_per_sheet: int = 0
 
     def resolved_workers(self) -> int:
         return self.num_workers if self.num_workers > 0 else min(os.cpu_count() or 1, 8)
@@ -95,7 +99,7 @@ def kinematics(model: mujoco.MjModel, data: mujoco.MjData) -> None:
 
 
 def label_tables(model: mujoco.MjModel, agent_geom_ids, floor_geom_ids) -> dict[int, np.ndarray]:
-    """Per object type (mjtObj value) -> uint8 label of each object of that type (the agent rule)."""
+    """Per object type (mjtObj value) -> uint8 label of each object of that type (agent rule)."""
     agent = np.zeros(model.ngeom, bool)
     agent[np.asarray(agent_geom_ids, int)] = True
     floor = np.zeros(model.ngeom, bool)
@@ -214,13 +218,6 @@ class TileRenderer:
         self.settings = settings
         self.data = mujoco.MjData(model)
         h, w = settings.height, settings.width
-        self.cols = max(1, min(settings.tiles_per_sheet, 16))  # sample pairs across a sheet
-        self.rows = max(1, -(-settings.tiles_per_sheet // self.cols))
-        sheet_w, sheet_h = 2 * self.cols * w, self.rows * h
-        apply_settings(model, settings)
-        model.vis.global_.offwidth = max(model.vis.global_.offwidth, sheet_w)
-        model.vis.global_.offheight = max(model.vis.global_.offheight, sheet_h)
-
         self.cam_id = camera if isinstance(camera, int) else model.camera(camera).id
         if not 0 <= self.cam_id < model.ncam:
             raise ValueError(f"camera {camera!r} not in the model's {model.ncam} cameras")
@@ -228,8 +225,17 @@ class TileRenderer:
         self.camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
         self.camera.fixedcamid = self.cam_id
 
-        self.gl = gl_context.GLContext(sheet_w, sheet_h)
+        # The offscreen buffer (not this surface) receives the pictures; its size is a model
+        # option read when the MuJoCo context is made, so the sheet is decided first.
+        self.gl = gl_context.GLContext(w, h)
         self.gl.make_current()
+        self.tiles = settings.tiles_per_sheet or self._auto_tiles()
+        self.cols = min(self.tiles, 16)  # sample pairs across a sheet
+        self.rows = -(-self.tiles // self.cols)
+        sheet_w, sheet_h = 2 * self.cols * w, self.rows * h
+        apply_settings(model, settings)
+        model.vis.global_.offwidth = max(model.vis.global_.offwidth, sheet_w)
+        model.vis.global_.offheight = max(model.vis.global_.offheight, sheet_h)
         self.con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self.con)
         self.scene = mujoco.MjvScene(model, maxgeom=10000)
@@ -242,6 +248,12 @@ class TileRenderer:
         self.geom_rgba0 = model.geom_rgba.copy()
         self.no_material = model.geom_matid < 0
 
+    def _auto_tiles(self) -> int:
+        # Software rasterisers (Mesa llvmpipe) pay per pixel of the whole buffer, so one sample
+        # per sheet is fastest there (measured); on a GPU the per-readback cost dominates.
+        renderer = self.gl_info()["GL_RENDERER"].lower()
+        return 1 if any(s in renderer for s in ("llvmpipe", "softpipe", "swrast")) else 64
+
     def gl_info(self) -> dict[str, str]:
         from OpenGL import GL
 
@@ -253,7 +265,7 @@ class TileRenderer:
         }
 
     def _scene_labels(self) -> np.ndarray:
-        """Label of each segmentation colour of the current scene: index = segid + 1, 0 = nothing."""
+        """Label of each segmentation colour of the current scene: [segid + 1], [0] = nothing."""
         n = self.scene.ngeom
         lut = np.full(n + 2, LABEL_OTHER, np.uint8)
         lut[0] = LABEL_BACKGROUND
@@ -338,10 +350,14 @@ class TileRenderer:
                 # GL rows run bottom-up: flip each tile.
                 tile = sheet[r * h : (r + 1) * h]
                 rgb_out[start + k] = tile[::-1, 2 * c * w : (2 * c + 1) * w]
-                seg = tile[::-1, (2 * c + 1) * w : (2 * c + 2) * w].astype(np.int32)
-                segid = seg[..., 0] | (seg[..., 1] << 8) | (seg[..., 2] << 16)
+                seg = tile[::-1, (2 * c + 1) * w : (2 * c + 2) * w]
                 lut = luts[k]
-                labels_out[start + k] = lut[np.minimum(segid, len(lut) - 1)]
+                if len(lut) <= 256:  # ids fit the red byte; the others are zero
+                    labels_out[start + k] = lut[seg[..., 0]]
+                else:
+                    seg = seg.astype(np.int32)
+                    segid = seg[..., 0] | (seg[..., 1] << 8) | (seg[..., 2] << 16)
+                    labels_out[start + k] = lut[np.minimum(segid, len(lut) - 1)]
         if perturb:
             self.model.mat_rgba[:] = self.mat_rgba0
             self.model.geom_rgba[:] = self.geom_rgba0

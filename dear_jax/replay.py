@@ -86,14 +86,12 @@ def check_fits(
     have = available_bytes() if available is None else available
     if need > headroom * have:
         gib = 2**30
-        per_seed = need / num_seeds
-        fit = int(headroom * have // per_seed)
+        fits = int(headroom * have / need * capacity)
         raise MemoryError(
             f"replay for {num_seeds} seeds x {capacity:,} entries needs {need / gib:.2f} GiB "
-            f"({per_seed / gib:.2f} GiB per seed), but only {have / gib:.2f} GiB is free on "
+            f"({need / num_seeds / gib:.2f} GiB per seed), but only {have / gib:.2f} GiB is free on "
             f"{jax.devices()[0].platform} and {headroom:.0%} of it may be used; lower "
-            f"replay.capacity (about {int(headroom * have / need * capacity):,} fits) or seeds "
-            f"(at most {fit} fit)"
+            f"replay.capacity to at most {fits:,} or run fewer seeds"
         )
     return need
 

@@ -1,0 +1,122 @@
+"""Loss values against hand-worked examples, and where gradients may and may not flow."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dear_jax import losses
+
+
+def test_split_latent_halves():
+    z = jnp.arange(8.0).reshape(2, 4)
+    env, agent = losses.split_latent(z)
+    np.testing.assert_array_equal(env, [[0, 1], [4, 5]])
+    np.testing.assert_array_equal(agent, [[2, 3], [6, 7]])
+    with pytest.raises(ValueError, match="even"):
+        losses.split_latent(jnp.zeros((2, 3)))
+
+
+def test_mask_loss_sums_pixels_and_frames_then_averages_batch():
+    # Sample 0: logit 0 on a 1 -> ln 2; logit ln 3 (p = 3/4) on a 0 -> ln 4.
+    # Sample 1: logit 0 on a 0 -> ln 2; logit -ln 3 (p = 1/4) on a 1 -> ln 4.
+    logits = jnp.array([[0.0, math.log(3)], [0.0, -math.log(3)]]).reshape(2, 1, 1, 2)
+    mask = jnp.array([[1, 0], [0, 1]], jnp.uint8).reshape(2, 1, 1, 2)
+    expected = ((math.log(2) + math.log(4)) + (math.log(2) + math.log(4))) / 2
+    np.testing.assert_allclose(losses.mask_loss(logits, mask), expected, rtol=1e-6)
+
+
+def test_mask_loss_scales_with_pixels_not_batch():
+    logits = jnp.zeros((4, 84, 84, 3))
+    mask = jnp.ones((4, 84, 84, 3))
+    np.testing.assert_allclose(losses.mask_loss(logits, mask), 84 * 84 * 3 * math.log(2), rtol=1e-5)
+
+
+def test_orthogonality_loss_forms():
+    z_agent = jnp.array([[1.0, 0.0], [1.0, 0.0]])
+    z_env = jnp.array([[1.0, 1.0], [-2.0, 0.0]])  # cos = 1/sqrt(2), then -1
+    c = 1 / math.sqrt(2)
+    np.testing.assert_allclose(losses.orthogonality_loss(z_agent, z_env), (c + 1) / 2, rtol=1e-6)
+    np.testing.assert_allclose(
+        losses.orthogonality_loss(z_agent, z_env, "reference_code"), ((1 - c) + 2) / 2, rtol=1e-6
+    )
+    with pytest.raises(ValueError, match="abs_cos"):
+        losses.orthogonality_loss(z_agent, z_env, "cosine")
+
+
+def test_orthogonality_loss_is_zero_for_orthogonal_halves():
+    z_agent = jnp.array([[0.0, 3.0, 0.0]])
+    z_env = jnp.array([[2.0, 0.0, -1.0]])
+    assert float(losses.orthogonality_loss(z_agent, z_env)) == 0.0
+
+
+@pytest.mark.parametrize("form", losses.ORTHOGONALITY_FORMS)
+def test_orthogonality_gradient_reaches_agent_half_only(form):
+    key_a, key_e = jax.random.split(jax.random.key(0))
+    z_agent = jax.random.normal(key_a, (5, 16))
+    z_env = jax.random.normal(key_e, (5, 16))
+    g_agent, g_env = jax.grad(losses.orthogonality_loss, argnums=(0, 1))(z_agent, z_env, form)
+    assert np.all(np.asarray(g_env) == 0.0)
+    assert np.abs(np.asarray(g_agent)).sum() > 0
+
+
+def test_orthogonality_through_a_full_latent():
+    """Differentiating w.r.t. the whole z = [z_E, z_A]: only the agent half moves."""
+    z = jax.random.normal(jax.random.key(1), (3, 8))
+
+    def loss(z):
+        z_env, z_agent = losses.split_latent(z)
+        return losses.orthogonality_loss(z_agent, z_env)
+
+    g = np.asarray(jax.grad(loss)(z))
+    assert np.all(g[:, :4] == 0.0) and np.abs(g[:, 4:]).sum() > 0
+
+
+def test_reconstruction_loss_clips_prediction_and_scales_target():
+    obs = jnp.array([0, 255], jnp.uint8).reshape(1, 1, 1, 2)  # targets -0.5 and 0.5
+    recon = jnp.array([0.0, 2.0]).reshape(1, 1, 1, 2)  # 2.0 is clipped to 0.5
+    np.testing.assert_allclose(losses.reconstruction_loss(recon, obs), 0.25, rtol=1e-6)
+    # The clip stops the gradient of the out-of-range prediction.
+    g = jax.grad(losses.reconstruction_loss)(recon, obs)
+    np.testing.assert_allclose(np.asarray(g).ravel(), [1.0, 0.0], rtol=1e-6)
+
+
+def test_ted_loss_is_mean_bce():
+    logits = jnp.array([0.0, math.log(3)])
+    labels = jnp.array([1.0, 1.0])  # ln 2 and -ln(3/4)
+    np.testing.assert_allclose(
+        losses.ted_loss(logits, labels), (math.log(2) + math.log(4 / 3)) / 2, rtol=1e-6
+    )
+
+
+def test_td_target_and_critic_loss():
+    y = losses.td_target(
+        jnp.array([1.0, 0.5]), jnp.array([0.99, 0.0]), jnp.array([2.0, 5.0]), jnp.array([3.0, 1.0])
+    )
+    np.testing.assert_allclose(y, [1.0 + 0.99 * 2.0, 0.5], rtol=1e-6)
+    q1, q2 = jnp.array([3.0, 0.5]), jnp.array([2.98, 1.5])
+    expected = ((3.0 - 2.98) ** 2 + 0.0) / 2 + (0.0 + 1.0) / 2
+    np.testing.assert_allclose(losses.critic_loss(q1, q2, y), expected, rtol=1e-5)
+    # The target is a constant for the critic.
+    g = jax.grad(lambda nq: losses.td_target(jnp.ones(2), jnp.ones(2), nq, nq).sum())(jnp.ones(2))
+    assert np.all(np.asarray(g) == 0.0)
+
+
+def test_actor_loss_is_negative_min_q():
+    np.testing.assert_allclose(
+        losses.actor_loss(jnp.array([1.0, 4.0]), jnp.array([2.0, 3.0])), -(1.0 + 3.0) / 2
+    )
+
+
+def test_losses_under_jit_and_vmap():
+    key = jax.random.key(2)
+    logits = jax.random.normal(key, (3, 4, 2, 2, 3))  # 3 seeds, batch 4
+    mask = (logits > 0).astype(jnp.uint8)
+    per_seed = jax.jit(jax.vmap(losses.mask_loss))(logits, mask)
+    for s in range(3):
+        np.testing.assert_allclose(per_seed[s], losses.mask_loss(logits[s], mask[s]), rtol=1e-6)
+    z = jax.random.normal(key, (3, 4, 8))
+    ortho = jax.jit(jax.vmap(losses.orthogonality_loss))(z[..., 4:], z[..., :4])
+    assert ortho.shape == (3,)

@@ -1,0 +1,154 @@
+"""The device replay against a plain Python reference: stacks, n-step returns, episode ends, wrap-around."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dear_jax import replay
+
+FRAME = (2, 2, 1)  # tiny frames: the value identifies (env, global step)
+
+
+def _frame_value(env, g):
+    return (g * 3 + env * 101) % 251
+
+
+def _rollout(num_envs, steps, seed):
+    """Random episodes per env with random lengths (some of length 1 transition)."""
+    rng = np.random.default_rng(seed)
+    logs = []
+    first = np.ones(num_envs, bool)
+    remaining = rng.integers(1, 6, num_envs)
+    for g in range(steps):
+        step = {
+            "frame": np.stack([np.full(FRAME, _frame_value(e, g), np.uint8) for e in range(num_envs)]),
+            "mask": np.stack([np.full(FRAME[:2], (g + e) % 2, np.uint8) for e in range(num_envs)]),
+            "action": rng.uniform(-1, 1, (num_envs, 2)).astype(np.float32),
+            "reward": rng.uniform(0, 1, num_envs).astype(np.float32),
+            "discount": (rng.uniform(size=num_envs) > 0.2).astype(np.float32),
+            "first": first.copy(),
+        }
+        logs.append(step)
+        last = remaining == 0
+        remaining = np.where(last, rng.integers(1, 6, num_envs), remaining - 1)
+        first = last
+    return logs
+
+
+def _reference(logs, rows, e, g, nstep, gamma, k_stack):
+    """Plain Python transition starting at global step g of env e, or None if not a valid start."""
+    total = len(logs)
+    oldest = max(0, total - rows)
+    ep = np.cumsum([s["first"][e] for s in logs]) - 1
+    if g < oldest or g + 1 >= total or ep[g + 1] != ep[g]:
+        return None
+    if total > rows and g - oldest < k_stack - 1:
+        return None
+
+    def stack(i):
+        # frames before the episode start (or before the oldest stored row) repeat the first one
+        start = min(j for j in range(oldest, i + 1) if ep[j] == ep[i])
+        return [max(i - k, start) for k in range(k_stack - 1, -1, -1)]
+
+    reward, discount, nxt = 0.0, 1.0, g
+    for k in range(1, nstep + 1):
+        j = g + k
+        if j >= total or ep[j] != ep[g]:
+            break
+        reward += discount * logs[j]["reward"][e]
+        discount *= gamma * logs[j]["discount"][e]
+        nxt = j
+    return {
+        "obs": [_frame_value(e, j) for j in stack(g)],
+        "next_obs": [_frame_value(e, j) for j in stack(nxt)],
+        "mask": [logs[j]["mask"][e][0, 0] for j in stack(g)],
+        "action": logs[g + 1]["action"][e],
+        "reward": reward,
+        "discount": discount,
+    }
+
+
+@pytest.mark.parametrize("steps,capacity", [(9, 30), (23, 30), (61, 30)])
+def test_sample_matches_python_reference(steps, capacity):
+    num_envs, nstep, gamma, k = 3, 3, 0.9, 3
+    logs = _rollout(num_envs, steps, seed=steps)
+    state = replay.init(capacity, num_envs, FRAME, 2)
+    add = jax.jit(replay.add)
+    for s in logs:
+        state = add(state, s["frame"], s["mask"], s["action"], s["reward"], s["discount"], s["first"])
+    rows = state.rows
+    total = len(logs)
+    starts, expected = [], []
+    for g in range(max(0, total - rows), total):
+        for e in range(num_envs):
+            ref = _reference(logs, rows, e, g, nstep, gamma, k)
+            if ref is not None:
+                starts.append((g % rows, e))
+                expected.append(ref)
+    weights = np.asarray(replay.sample_weights(state, k))
+    assert weights.sum() == len(starts)
+    for row, e in starts:
+        assert weights[row, e] == 1.0
+    row = jnp.array([s[0] for s in starts])
+    env = jnp.array([s[1] for s in starts])
+    batch = replay.sample_at(state, row, env, nstep=nstep, gamma=gamma, frame_stack=k)
+    for i, ref in enumerate(expected):
+        np.testing.assert_array_equal(batch.obs[i, 0, 0], ref["obs"])
+        np.testing.assert_array_equal(batch.next_obs[i, 0, 0], ref["next_obs"])
+        np.testing.assert_array_equal(batch.mask[i, 0, 0], ref["mask"])
+        np.testing.assert_allclose(batch.action[i], ref["action"], rtol=1e-6)
+        np.testing.assert_allclose(batch.reward[i], ref["reward"], rtol=1e-5)
+        np.testing.assert_allclose(batch.discount[i], ref["discount"], rtol=1e-5)
+
+
+def test_uniform_sample_only_returns_valid_starts_and_far_frames_of_same_episode():
+    num_envs = 2
+    logs = _rollout(num_envs, 40, seed=5)
+    state = replay.init(24, num_envs, FRAME, 2)
+    for s in logs:
+        state = replay.add(
+            state, s["frame"], s["mask"], s["action"], s["reward"], s["discount"], s["first"]
+        )
+    sample = jax.jit(functools.partial(replay.sample, batch_size=512, nstep=2, gamma=0.99,
+                                       frame_stack=3, far_max=6))
+    batch = sample(state, jax.random.key(0))
+    values = {}  # frame value -> (env, global step)
+    for g in range(len(logs)):
+        for e in range(num_envs):
+            values[_frame_value(e, g)] = (e, g)
+    ep = {e: np.cumsum([s["first"][e] for s in logs]) - 1 for e in range(num_envs)}
+    valid_pairs = 0
+    for i in range(512):
+        e, g = values[int(batch.obs[i, 0, 0, -1])]
+        ref = _reference(logs, state.rows, e, g, 2, 0.99, 3)
+        assert ref is not None
+        np.testing.assert_allclose(batch.reward[i], ref["reward"], rtol=1e-5)
+        if batch.far_valid[i]:
+            e2, g2 = values[int(batch.far_obs[i, 0, 0, -1])]
+            assert e2 == e and ep[e][g2] == ep[e][g] and 2 <= abs(g2 - g) <= 6
+            valid_pairs += 1
+    assert valid_pairs > 100
+
+
+def test_vmapped_over_seeds():
+    s, num_envs = 3, 2
+    state = replay.init(10, num_envs, FRAME, 2, leading=(s,))
+    frame = jnp.arange(s * num_envs * 4, dtype=jnp.uint8).reshape(s, num_envs, *FRAME)
+    state = jax.vmap(replay.add)(
+        state, frame, frame[..., 0], jnp.zeros((s, num_envs, 2)), jnp.ones((s, num_envs)),
+        jnp.ones((s, num_envs)), jnp.ones((s, num_envs), bool),
+    )
+    assert state.frames.shape == (s, 5, num_envs, *FRAME)
+    np.testing.assert_array_equal(state.frames[:, 0], frame)
+    np.testing.assert_array_equal(state.pos, [1, 1, 1])
+
+
+def test_capacity_check_says_how_much_is_needed():
+    need = replay.replay_bytes(5, 250_000, (84, 84, 3), 6)
+    assert need == 5 * 250_000 * (84 * 84 * 3 + 84 * 84 + 24 + 12)
+    with pytest.raises(MemoryError, match=r"needs 32\.90 GiB .* capacity to at most 38,9\d\d"):
+        replay.check_fits(5, 250_000, (84, 84, 3), 6, available=8 * 2**30)
+    assert replay.check_fits(1, 1000, (84, 84, 3), 6, available=8 * 2**30) == need // 1250

@@ -149,6 +149,6 @@ def test_vmapped_over_seeds():
 def test_capacity_check_says_how_much_is_needed():
     need = replay.replay_bytes(5, 250_000, (84, 84, 3), 6)
     assert need == 5 * 250_000 * (84 * 84 * 3 + 84 * 84 + 24 + 12)
-    with pytest.raises(MemoryError, match=r"needs 32\.90 GiB .* capacity to at most 48,633"):
+    with pytest.raises(MemoryError, match=r"needs 32\.90 GiB .* replay.capacity to at most 48,633"):
         replay.check_fits(5, 250_000, (84, 84, 3), 6, available=8 * 2**30)
     assert replay.check_fits(1, 1000, (84, 84, 3), 6, available=8 * 2**30) == need // 1250

@@ -1,0 +1,245 @@
+"""Render pool: pictures equal mujoco.Renderer's, labels follow MuJoCo's segmentation, perturbations."""
+
+import copy
+import functools
+import importlib.util
+import os
+import pathlib
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import mujoco
+import numpy as np
+import pytest
+
+from envs import render as R
+
+SUITE = pathlib.Path(importlib.util.find_spec("dm_control").origin).parent / "suite"
+
+
+def load(xml: str) -> mujoco.MjModel:
+    return mujoco.MjModel.from_xml_path(str(SUITE / xml))
+
+
+def subtree_geoms(model, body_names):
+    roots = {model.body(b).id for b in body_names}
+    ids = []
+    for g in range(model.ngeom):
+        b = model.geom_bodyid[g]
+        while b != 0 and b not in roots:
+            b = model.body_parentid[b]
+        if b in roots:
+            ids.append(g)
+    return ids
+
+
+# task -> (xml, agent bodies, floor geom, camera); REFERENCE section 4's agents.
+TASKS = {
+    "walker": ("walker.xml", ("torso",), "floor", 0),
+    "cup": ("ball_in_cup.xml", ("cup", "ball"), "ground", 0),
+    "finger": ("finger.xml", ("proximal",), "ground", 0),
+}
+
+
+def task_facts(name):
+    xml, bodies, floor, cam = TASKS[name]
+    model = load(xml)
+    return model, subtree_geoms(model, bodies), [model.geom(floor).id], cam
+
+
+def random_qpos(model, n, seed, scale=0.4):
+    rng = np.random.default_rng(seed)
+    qpos = np.tile(model.qpos0, (n, 1)) + rng.normal(0.0, scale, (n, model.nq))
+    return qpos
+
+
+def reference_render(model, qpos, cam, settings, perturb_rgb=None):
+    """mujoco.Renderer after mj_forward: RGB and (object id, object type) segmentation."""
+    model = copy.deepcopy(model)
+    R.apply_settings(model, settings)
+    data = mujoco.MjData(model)
+    rgbs, segs = [], []
+    with mujoco.Renderer(model, settings.height, settings.width) as renderer:
+        R.apply_scene_flags(renderer.scene, settings)
+        for q in qpos:
+            data.qpos[:] = q
+            mujoco.mj_forward(model, data)
+            renderer.update_scene(data, cam)
+            rgbs.append(renderer.render())
+            renderer.enable_segmentation_rendering()
+            segs.append(renderer.render())
+            renderer.disable_segmentation_rendering()
+    return np.stack(rgbs), np.stack(segs)
+
+
+def tile_render(model, qpos, cam, agent, floor, settings, **kwargs):
+    tr = R.TileRenderer(
+        copy.deepcopy(model),
+        camera=cam,
+        agent_geom_ids=agent,
+        floor_geom_ids=floor,
+        settings=settings,
+    )
+    try:
+        rgb = np.zeros((len(qpos), settings.height, settings.width, 3), np.uint8)
+        labels = np.zeros((len(qpos), settings.height, settings.width), np.uint8)
+        tr.render(qpos, rgb, labels, **kwargs)
+        return rgb, labels
+    finally:
+        tr.close()
+
+
+@pytest.mark.parametrize("task", ["walker", "cup"])
+def test_pool_equals_single_process_renderer(task):
+    """Two spawned workers, shared memory, one tile per sheet: bit-identical to mujoco.Renderer."""
+    model, agent, floor, cam = task_facts(task)
+    settings = R.RenderSettings(num_workers=2, tiles_per_sheet=1)
+    qpos = random_qpos(model, 5, seed=1)
+    with R.RenderPool(
+        functools.partial(copy.deepcopy, model),
+        camera=cam,
+        agent_geom_ids=agent,
+        floor_geom_ids=floor,
+        settings=settings,
+    ) as pool:
+        rgb, labels = pool.render(qpos)
+        # a second, smaller batch reuses the same shared block
+        rgb2, labels2 = pool.render(qpos[3:])
+    ref_rgb, ref_seg = reference_render(model, qpos, cam, settings)
+    assert rgb.dtype == np.uint8 and rgb.shape == (5, 84, 84, 3) and labels.shape == (5, 84, 84)
+    np.testing.assert_array_equal(rgb, ref_rgb)
+    np.testing.assert_array_equal(rgb2, ref_rgb[3:])
+    np.testing.assert_array_equal(labels2, labels[3:])
+    tables = R.label_tables(model, agent, floor)
+    np.testing.assert_array_equal(labels, R.labels_from_segmentation(ref_seg, tables))
+
+
+@pytest.mark.parametrize("task", ["walker", "cup", "finger"])
+def test_mask_lies_exactly_on_agent_geoms(task):
+    """Agent label <=> MuJoCo's segmentation shows one of the agent geoms (checked independently)."""
+    model, agent, floor, cam = task_facts(task)
+    settings = R.RenderSettings(tiles_per_sheet=1)
+    qpos = random_qpos(model, 4, seed=2, scale=0.2)
+    _, labels = tile_render(model, qpos, cam, agent, floor, settings)
+    _, seg = reference_render(model, qpos, cam, settings)
+    objid, objtype = seg[..., 0], seg[..., 1]
+    is_geom = objtype == mujoco.mjtObj.mjOBJ_GEOM
+    on_agent = is_geom & np.isin(objid, agent)
+    on_floor = is_geom & np.isin(objid, floor)
+    mask = labels == R.LABEL_AGENT
+    assert mask.sum(axis=(1, 2)).min() > 20, "every frame shows the agent"
+    np.testing.assert_array_equal(mask, on_agent)
+    np.testing.assert_array_equal(labels == R.LABEL_FLOOR, on_floor)
+    np.testing.assert_array_equal(labels == R.LABEL_BACKGROUND, objtype == -1)
+
+
+def test_tendon_and_sites_are_not_agent():
+    """The cup's string (tendon) and its visible sites are drawn but labelled OTHER."""
+    model, agent, floor, cam = task_facts("cup")
+    # A big picture of a stretched string, so the tendon covers many pixels.
+    settings = R.RenderSettings(width=480, height=480, tiles_per_sheet=1)
+    qpos = np.array([[0.0, 0.0, 0.1, 0.0]])  # ball 0.3 below the cup and aside: a long string
+    _, labels = tile_render(model, qpos, cam, agent, floor, settings)
+    _, seg = reference_render(model, qpos, cam, settings)
+    tendon = seg[..., 1] == mujoco.mjtObj.mjOBJ_TENDON
+    site = seg[..., 1] == mujoco.mjtObj.mjOBJ_SITE
+    assert tendon.sum() > 10 and site.sum() > 0, "the string and a site are visible"
+    assert (labels[tendon] == R.LABEL_OTHER).all()
+    assert (labels[site] == R.LABEL_OTHER).all()
+
+
+def test_tiled_sheet_matches_renderer_up_to_rasterisation():
+    """64 samples on one sheet: labels exact; RGB within one level in under 1% of pixels."""
+    model, agent, floor, cam = task_facts("walker")
+    settings = R.RenderSettings(tiles_per_sheet=20)  # 16 across, 2 rows: 2 sheets for 24 samples
+    qpos = random_qpos(model, 24, seed=3)
+    rgb, labels = tile_render(model, qpos, cam, agent, floor, settings)
+    ref_rgb, ref_seg = reference_render(model, qpos, cam, settings)
+    tables = R.label_tables(model, agent, floor)
+    np.testing.assert_array_equal(labels, R.labels_from_segmentation(ref_seg, tables))
+    diff = np.abs(rgb.astype(int) - ref_rgb)
+    assert diff.max() <= 1
+    assert (diff.max(-1) > 0).mean() < 0.01
+
+
+def test_kinematics_equals_forward_for_drawing():
+    """The pool's cheaper kinematics give the poses mj_forward gives (incl. tendon wrap points)."""
+    model = load("ball_in_cup.xml")
+    qpos = random_qpos(model, 3, seed=4)
+    d1, d2 = mujoco.MjData(model), mujoco.MjData(model)
+    for q in qpos:
+        d1.qpos[:] = d2.qpos[:] = q
+        R.kinematics(model, d1)
+        mujoco.mj_forward(model, d2)
+        for field in ("geom_xpos", "geom_xmat", "site_xpos", "cam_xpos", "cam_xmat", "wrap_xpos"):
+            np.testing.assert_array_equal(getattr(d1, field), getattr(d2, field), err_msg=field)
+
+
+def test_colour_perturbation_changes_pixels_not_labels():
+    model, agent, floor, cam = task_facts("walker")
+    settings = R.RenderSettings(tiles_per_sheet=1)
+    qpos = random_qpos(model, 3, seed=5)
+    rng = np.random.default_rng(0)
+    mat_rgb = np.clip(model.mat_rgba[None, :, :3] + rng.uniform(-0.3, 0.3, (3, model.nmat, 3)), 0, 1)
+    rgb0, labels0 = tile_render(model, qpos, cam, agent, floor, settings)
+    rgb1, labels1 = tile_render(
+        model, qpos, cam, agent, floor, settings, perturb={"mat_rgb": mat_rgb.astype(np.float32)}
+    )
+    # Colours move no geometry: every label stays; agent pixels change colour.
+    np.testing.assert_array_equal(labels1, labels0)
+    agent_px = labels0 == R.LABEL_AGENT
+    changed = (rgb1 != rgb0).any(-1)
+    assert changed[agent_px].mean() > 0.9
+
+
+def camera_sphere(model, cam):
+    """The unperturbed camera's own (radius, h, v, roll=0) relative to the agent's com."""
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    return np.append(R.cart_to_sphere(data.cam_xpos[cam] - data.subtree_com[1]), 0.0)
+
+
+def test_camera_perturbation_geometry():
+    """Zero perturbation reproduces the picture; zooming in by r -> 0.8 r grows the agent ~1/0.8^2;
+    a roll of 90 degrees turns the mask by 90 degrees about the image centre (near enough)."""
+    model, agent, floor, cam = task_facts("walker")
+    settings = R.RenderSettings(tiles_per_sheet=1)
+    qpos = model.qpos0[None].copy()
+    qpos[0, 1] = 0.2  # torso up so that the walker is in the middle of the picture
+    base = camera_sphere(model, cam)
+    zoom = base * [0.8, 1, 1, 1]
+    roll = base + [0, 0, 0, np.pi / 2]
+    spheres = np.stack([base, zoom, roll]).astype(np.float32)
+    qpos3 = np.repeat(qpos, 3, axis=0)
+    _, labels0 = tile_render(model, qpos3[:1], cam, agent, floor, settings)
+    _, labels = tile_render(
+        model, qpos3, cam, agent, floor, settings, perturb={"cam_sphere": spheres}
+    )
+    mask0 = labels0[0] == R.LABEL_AGENT
+    same, zoomed, rolled = (labels == R.LABEL_AGENT)
+    assert (same != mask0).mean() < 0.002  # float rounding of the rebuilt frame only
+    ratio = zoomed.sum() / mask0.sum()
+    assert 1.3 < ratio < 1.9, ratio  # 1/0.8^2 = 1.56 for a flat object; perspective varies it
+    # A quarter turn of the camera turns the picture by a quarter turn (the walker is centred).
+    overlap = (np.rot90(mask0, k=1) & rolled).sum() + (np.rot90(mask0, k=-1) & rolled).sum()
+    assert overlap / mask0.sum() > 0.6
+    assert (rolled & mask0).sum() / mask0.sum() < 0.6
+
+
+def test_bad_input_is_named():
+    model, agent, floor, cam = task_facts("walker")
+    with pytest.raises(ValueError, match="both agent and floor"):
+        R.label_tables(model, [0, 1], [0])
+    with R.RenderPool(
+        functools.partial(copy.deepcopy, model),
+        camera=cam,
+        agent_geom_ids=agent,
+        floor_geom_ids=floor,
+        settings=R.RenderSettings(num_workers=1),
+    ) as pool:
+        with pytest.raises(ValueError, match="valid"):
+            pool.render(model.qpos0[None], perturb={"colour": np.zeros((1, 3))})
+        with pytest.raises(ValueError, match=r"\[B, nq\]"):
+            pool.render(model.qpos0)
+        info = pool.gl_info()
+        assert len(info) == 1 and info[0]["GL_RENDERER"]

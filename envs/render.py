@@ -9,11 +9,10 @@ segmentation into the four labels BACKGROUND / FLOOR / AGENT / OTHER.
 Agent rule (REFERENCE section 4), per segmentation object type:
 - geom: AGENT if its id is one of the task's agent geoms, FLOOR if one of its floor geoms,
   else OTHER.
-- site: a site is rigidly attached to a body, so it takes that body's side: AGENT if the body
-  carries an agent geom, else OTHER (e.g. finger's spinner "tip" and the world "target" site).
-- tendon: AGENT if every body it attaches to (through its wrap sites and wrap geoms) carries an
-  agent geom, else OTHER. ball_in_cup's string joins the cup and the ball, both agent, so it is
-  AGENT (with width 0.003 it covers at most a pixel or two at 84x84).
+- site, tendon: OTHER, always. The mask is exactly "pixels of agent geoms", as the reference
+  computes it from MuJoCo's geom segmentation. ball_in_cup's string (a tendon 3 mm wide, a pixel
+  at most at 84x84) and visible sites (the cup's 5 mm site, finger's spinner tip and target
+  sites) are therefore scenery, never mask; tests/test_render.py checks both cases.
 - anything else drawn (decor, skins, flexes): OTHER. Pixels where nothing is drawn: BACKGROUND.
 
 Drawing: each worker renders its samples into "tile sheets": sample k's RGB image and its
@@ -85,17 +84,14 @@ def apply_scene_flags(scene: mujoco.MjvScene, settings: RenderSettings) -> None:
 
 
 def kinematics(model: mujoco.MjModel, data: mujoco.MjData) -> None:
-    """What drawing a state needs: body/geom/site poses, camera and light poses, tendon paths.
+    """What drawing a state needs, and no more than mj_forward's position stage.
 
-    Cheaper than mj_forward (no collision, no dynamics); tests check the pictures are identical.
+    Poses alone (mj_kinematics, mj_comPos, mj_camlight, mj_tendon) are not enough: MuJoCo draws a
+    tendon at its limit in the constraint colour (ball_in_cup's taut string turns red), which
+    needs the constraint rows of mj_fwdPosition. It costs 2-3 us per state on dm_control's
+    models, nothing next to drawing.
     """
-    mujoco.mj_kinematics(model, data)
-    mujoco.mj_comPos(model, data)  # subtree centres of mass: tracking cameras follow them
-    mujoco.mj_camlight(model, data)
-    if model.nflex:
-        mujoco.mj_flex(model, data)
-    if model.ntendon:
-        mujoco.mj_tendon(model, data)  # wrap points, which mjv_updateScene draws
+    mujoco.mj_fwdPosition(model, data)
 
 
 def label_tables(model: mujoco.MjModel, agent_geom_ids, floor_geom_ids) -> dict[int, np.ndarray]:
@@ -110,27 +106,8 @@ def label_tables(model: mujoco.MjModel, agent_geom_ids, floor_geom_ids) -> dict[
     geom[agent] = LABEL_AGENT
     geom[floor] = LABEL_FLOOR
 
-    agent_body = np.zeros(model.nbody, bool)
-    agent_body[model.geom_bodyid[agent]] = True
-    site = np.where(agent_body[model.site_bodyid], LABEL_AGENT, LABEL_OTHER).astype(np.uint8)
-
-    tendon = np.full(model.ntendon, LABEL_OTHER, np.uint8)
-    for t in range(model.ntendon):
-        adr, num = model.tendon_adr[t], model.tendon_num[t]
-        bodies = []
-        for w in range(adr, adr + num):
-            kind, obj = model.wrap_type[w], model.wrap_objid[w]
-            if kind == mujoco.mjtWrap.mjWRAP_SITE:
-                bodies.append(model.site_bodyid[obj])
-            elif kind in (mujoco.mjtWrap.mjWRAP_SPHERE, mujoco.mjtWrap.mjWRAP_CYLINDER):
-                bodies.append(model.geom_bodyid[obj])
-        if bodies and all(agent_body[b] for b in bodies):
-            tendon[t] = LABEL_AGENT
-    return {
-        int(mujoco.mjtObj.mjOBJ_GEOM): geom,
-        int(mujoco.mjtObj.mjOBJ_SITE): site,
-        int(mujoco.mjtObj.mjOBJ_TENDON): tendon,
-    }
+    # Sites and tendons (and every other drawn object type) fall back to OTHER.
+    return {int(mujoco.mjtObj.mjOBJ_GEOM): geom}
 
 
 def labels_from_segmentation(seg: np.ndarray, tables: dict[int, np.ndarray]) -> np.ndarray:

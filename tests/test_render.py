@@ -91,7 +91,8 @@ def tile_render(model, qpos, cam, agent, floor, settings, **kwargs):
 
 @pytest.mark.parametrize("task", ["walker", "cup"])
 def test_pool_equals_single_process_renderer(task):
-    """Two spawned workers, shared memory, one tile per sheet: bit-identical to mujoco.Renderer."""
+    """Two spawned workers, shared memory, one tile per sheet: bit-identical to mujoco.Renderer
+    after mj_forward (random cup states stretch the string past its limit: drawn red)."""
     model, agent, floor, cam = task_facts(task)
     settings = R.RenderSettings(num_workers=2, tiles_per_sheet=1)
     qpos = random_qpos(model, 5, seed=1)
@@ -162,25 +163,14 @@ def test_tiled_sheet_matches_renderer_up_to_rasterisation():
     assert (diff.max(-1) > 0).mean() < 0.01
 
 
-def test_kinematics_equals_forward_for_drawing():
-    """The pool's cheaper kinematics give the poses mj_forward gives (incl. tendon wrap points)."""
-    model = load("ball_in_cup.xml")
-    qpos = random_qpos(model, 3, seed=4)
-    d1, d2 = mujoco.MjData(model), mujoco.MjData(model)
-    for q in qpos:
-        d1.qpos[:] = d2.qpos[:] = q
-        R.kinematics(model, d1)
-        mujoco.mj_forward(model, d2)
-        for field in ("geom_xpos", "geom_xmat", "site_xpos", "cam_xpos", "cam_xmat", "wrap_xpos"):
-            np.testing.assert_array_equal(getattr(d1, field), getattr(d2, field), err_msg=field)
-
-
 def test_colour_perturbation_changes_pixels_not_labels():
     model, agent, floor, cam = task_facts("walker")
     settings = R.RenderSettings(tiles_per_sheet=1)
     qpos = random_qpos(model, 3, seed=5)
     rng = np.random.default_rng(0)
-    mat_rgb = np.clip(model.mat_rgba[None, :, :3] + rng.uniform(-0.3, 0.3, (3, model.nmat, 3)), 0, 1)
+    mat_rgb = np.clip(
+        model.mat_rgba[None, :, :3] + rng.uniform(-0.3, 0.3, (3, model.nmat, 3)), 0, 1
+    )
     rgb0, labels0 = tile_render(model, qpos, cam, agent, floor, settings)
     rgb1, labels1 = tile_render(
         model, qpos, cam, agent, floor, settings, perturb={"mat_rgb": mat_rgb.astype(np.float32)}
@@ -216,7 +206,7 @@ def test_camera_perturbation_geometry():
         model, qpos3, cam, agent, floor, settings, perturb={"cam_sphere": spheres}
     )
     mask0 = labels0[0] == R.LABEL_AGENT
-    same, zoomed, rolled = (labels == R.LABEL_AGENT)
+    same, zoomed, rolled = labels == R.LABEL_AGENT
     assert (same != mask0).mean() < 0.002  # float rounding of the rebuilt frame only
     ratio = zoomed.sum() / mask0.sum()
     assert 1.3 < ratio < 1.9, ratio  # 1/0.8^2 = 1.56 for a flat object; perspective varies it

@@ -1,4 +1,4 @@
-"""Render pool: pictures equal mujoco.Renderer's, labels follow MuJoCo's segmentation, perturbations."""
+"""Render pool: pictures equal mujoco.Renderer's, labels follow MuJoCo's segmentation."""
 
 import copy
 import functools
@@ -117,7 +117,7 @@ def test_pool_equals_single_process_renderer(task):
 
 @pytest.mark.parametrize("task", ["walker", "cup", "finger"])
 def test_mask_lies_exactly_on_agent_geoms(task):
-    """Agent label <=> MuJoCo's segmentation shows one of the agent geoms (checked independently)."""
+    """Agent label <=> MuJoCo's segmentation shows an agent geom (checked independently)."""
     model, agent, floor, cam = task_facts(task)
     settings = R.RenderSettings(tiles_per_sheet=1)
     qpos = random_qpos(model, 4, seed=2, scale=0.2)

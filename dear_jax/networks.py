@@ -25,8 +25,12 @@ def _dense(features: int, name: str | None = None) -> nn.Dense:
 
 def _conv(features: int, stride: int) -> nn.Conv:
     return nn.Conv(
-        features, (3, 3), strides=(stride, stride), padding="VALID",
-        kernel_init=CONV_INIT, bias_init=ZEROS,
+        features,
+        (3, 3),
+        strides=(stride, stride),
+        padding="VALID",
+        kernel_init=CONV_INIT,
+        bias_init=ZEROS,
     )
 
 
@@ -35,8 +39,12 @@ def _conv_transpose(features: int, kernel: int, stride: int = 1, output_padding:
     # (in-1)*stride + kernel + output_padding, which the reference decoder's shapes rely on.
     pad = (kernel - 1, kernel - 1 + output_padding)
     return nn.ConvTranspose(
-        features, (kernel, kernel), strides=(stride, stride), padding=(pad, pad),
-        kernel_init=CONV_INIT, bias_init=ZEROS,
+        features,
+        (kernel, kernel),
+        strides=(stride, stride),
+        padding=(pad, pad),
+        kernel_init=CONV_INIT,
+        bias_init=ZEROS,
     )
 
 

@@ -27,8 +27,12 @@ def param_counts(cfg: AgentConfig) -> dict[str, int]:
 
 def params_table(action_dim: int = 6) -> list[tuple[str, dict[str, int]]]:
     rows = [(m, param_counts(AgentConfig(action_dim=action_dim, method=m))) for m in METHODS]
-    rows.append(("drqv2 (plain encoder)", param_counts(
-        AgentConfig(action_dim=action_dim, method="drqv2", encoder="plain"))))
+    rows.append(
+        (
+            "drqv2 (plain encoder)",
+            param_counts(AgentConfig(action_dim=action_dim, method="drqv2", encoder="plain")),
+        )
+    )
     return rows
 
 

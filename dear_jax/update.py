@@ -51,7 +51,9 @@ class AgentConfig:
                 f"unknown ortho_form {self.ortho_form!r}; valid: {losses.ORTHOGONALITY_FORMS}"
             )
         if self.method != "drqv2" and self.encoder != "pool":
-            raise ValueError(f"method {self.method!r} needs encoder='pool' (its heads read the latent)")
+            raise ValueError(
+                f"method {self.method!r} needs encoder='pool' (its heads read the latent)"
+            )
 
     @property
     def uses_mask(self) -> bool:
@@ -115,7 +117,9 @@ def _optimizers(cfg: AgentConfig):
 
 def init_params(cfg: AgentConfig, key: jax.Array) -> dict:
     nets = make_networks(cfg)
-    keys = dict(zip(("encoder", "actor", "critic", "mask", "recon", "ted"), jax.random.split(key, 6)))
+    keys = dict(
+        zip(("encoder", "actor", "critic", "mask", "recon", "ted"), jax.random.split(key, 6))
+    )
     obs = jnp.zeros((1, *cfg.obs_shape), jnp.uint8)
     encoder_params = nets.encoder.init(keys["encoder"], obs)
     z = jnp.zeros(jax.eval_shape(nets.encoder.apply, encoder_params, obs).shape)
@@ -170,7 +174,13 @@ def sample_action(mean, std, key, clip=None):
 
 
 def act(
-    cfg: AgentConfig, state: AgentState, obs: jax.Array, key: jax.Array, hp: HParams, *, explore: bool
+    cfg: AgentConfig,
+    state: AgentState,
+    obs: jax.Array,
+    key: jax.Array,
+    hp: HParams,
+    *,
+    explore: bool,
 ) -> tuple[jax.Array, AgentState]:
     """Actions for a batch of observations uint8 [N, 84, 84, 9] -> f32 [N, A].
 
@@ -277,7 +287,14 @@ def _ted_loss(nets, learner, z, z_next, batch, k_far, k_shuffle, cfg):
 
 
 def actor_loss(
-    actor_params: dict, critic_params: dict, z: jax.Array, key, hp: HParams, std, *, cfg: AgentConfig
+    actor_params: dict,
+    critic_params: dict,
+    z: jax.Array,
+    key,
+    hp: HParams,
+    std,
+    *,
+    cfg: AgentConfig,
 ):
     """DrQ-v2's actor loss on stopped features: -min(Q1, Q2)(z, a ~ pi(z))."""
     nets = make_networks(cfg)

@@ -24,7 +24,9 @@ def _rollout(num_envs, steps, seed):
     remaining = rng.integers(1, 6, num_envs)
     for g in range(steps):
         step = {
-            "frame": np.stack([np.full(FRAME, _frame_value(e, g), np.uint8) for e in range(num_envs)]),
+            "frame": np.stack(
+                [np.full(FRAME, _frame_value(e, g), np.uint8) for e in range(num_envs)]
+            ),
             "mask": np.stack([np.full(FRAME[:2], (g + e) % 2, np.uint8) for e in range(num_envs)]),
             "action": rng.uniform(-1, 1, (num_envs, 2)).astype(np.float32),
             "reward": rng.uniform(0, 1, num_envs).astype(np.float32),
@@ -78,7 +80,9 @@ def test_sample_matches_python_reference(steps, capacity):
     state = replay.init(capacity, num_envs, FRAME, 2)
     add = jax.jit(replay.add)
     for s in logs:
-        state = add(state, s["frame"], s["mask"], s["action"], s["reward"], s["discount"], s["first"])
+        state = add(
+            state, s["frame"], s["mask"], s["action"], s["reward"], s["discount"], s["first"]
+        )
     rows = state.rows
     total = len(logs)
     starts, expected = [], []
@@ -112,8 +116,11 @@ def test_uniform_sample_only_returns_valid_starts_and_far_frames_of_same_episode
         state = replay.add(
             state, s["frame"], s["mask"], s["action"], s["reward"], s["discount"], s["first"]
         )
-    sample = jax.jit(functools.partial(replay.sample, batch_size=512, nstep=2, gamma=0.99,
-                                       frame_stack=3, far_max=6))
+    sample = jax.jit(
+        functools.partial(
+            replay.sample, batch_size=512, nstep=2, gamma=0.99, frame_stack=3, far_max=6
+        )
+    )
     batch = sample(state, jax.random.key(0))
     values = {}  # frame value -> (env, global step)
     for g in range(len(logs)):
@@ -138,8 +145,13 @@ def test_vmapped_over_seeds():
     state = replay.init(10, num_envs, FRAME, 2, leading=(s,))
     frame = jnp.arange(s * num_envs * 4, dtype=jnp.uint8).reshape(s, num_envs, *FRAME)
     state = jax.vmap(replay.add)(
-        state, frame, frame[..., 0], jnp.zeros((s, num_envs, 2)), jnp.ones((s, num_envs)),
-        jnp.ones((s, num_envs)), jnp.ones((s, num_envs), bool),
+        state,
+        frame,
+        frame[..., 0],
+        jnp.zeros((s, num_envs, 2)),
+        jnp.ones((s, num_envs)),
+        jnp.ones((s, num_envs)),
+        jnp.ones((s, num_envs), bool),
     )
     assert state.frames.shape == (s, 5, num_envs, *FRAME)
     np.testing.assert_array_equal(state.frames[:, 0], frame)

@@ -1,0 +1,94 @@
+"""Architecture: parameter counts of the reference, output shapes, DrQ-v2 initialisation."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dear_jax import networks
+from dear_jax.report import param_counts
+from dear_jax.update import AgentConfig, init_params
+
+REFERENCE_COUNTS = {  # REFERENCE.md / issue 2, walker |A| = 6
+    "encoder": 8_423_072,
+    "actor": 1_312_924,
+    "critic": 2_422_936,
+    "mask_decoder": 2_126_291,
+    "recon_decoder": 2_128_025,
+    "ted": 20_481,
+}
+
+
+@pytest.mark.parametrize("method", ["drqv2", "dear", "sear", "ted"])
+def test_parameter_counts_equal_reference(method):
+    counts = param_counts(AgentConfig(action_dim=6, method=method))
+    expected_modules = {
+        "drqv2": {"encoder", "actor", "critic"},
+        "dear": {"encoder", "actor", "critic", "mask_decoder"},
+        "sear": {"encoder", "actor", "critic", "mask_decoder", "recon_decoder"},
+        "ted": {"encoder", "actor", "critic", "ted"},
+    }[method]
+    assert set(counts) == expected_modules
+    for name, n in counts.items():
+        assert n == REFERENCE_COUNTS[name], name
+
+
+def test_plain_encoder_is_flattened_convs():
+    counts = param_counts(AgentConfig(action_dim=6, method="drqv2", encoder="plain"))
+    assert counts["encoder"] == 9 * 9 * 32 + 32 + 3 * (9 * 32 * 32 + 32)
+    assert (
+        counts["actor"]
+        == 39200 * 50 + 50 + 100 + 50 * 1024 + 1024 + 1024 * 1024 + 1024 + 1024 * 6 + 6
+    )
+
+
+def _out_shape(module, *args):
+    """Output shape without computing anything (init and apply traced abstractly)."""
+    params = jax.eval_shape(module.init, jax.random.key(0), *args)
+    return jax.eval_shape(module.apply, params, *args)
+
+
+def test_shapes():
+    obs = jnp.zeros((2, 84, 84, 9), jnp.uint8)
+    z, half, a = jnp.zeros((2, 4096)), jnp.zeros((2, 2048)), jnp.zeros((2, 6))
+    assert _out_shape(networks.PoolEncoder(), obs).shape == (2, 4096)
+    assert _out_shape(networks.PlainEncoder(), obs).shape == (2, 39200)
+    assert _out_shape(networks.PoolDecoder(3), half).shape == (2, 84, 84, 3)
+    assert _out_shape(networks.PoolDecoder(9), half).shape == (2, 84, 84, 9)
+    assert _out_shape(networks.Actor(6), z).shape == (2, 6)
+    q1, q2 = _out_shape(networks.Critic(), z, a)
+    assert q1.shape == q2.shape == (2,)
+    assert _out_shape(networks.TEDClassifier(), z, z).shape == (2,)
+
+
+def test_decoder_and_actor_values():
+    z = jax.random.normal(jax.random.key(0), (2, 32))
+    actor = networks.Actor(6, hidden_dim=16)
+    mean = actor.apply(actor.init(jax.random.key(1), z), z)
+    assert np.all(np.abs(np.asarray(mean)) < 1.0)
+    dec = networks.PoolDecoder(3)
+    out = dec.apply(dec.init(jax.random.key(2), z), z)
+    assert out.shape == (2, 84, 84, 3) and np.all(np.isfinite(np.asarray(out)))
+
+
+def test_initialisation_orthogonal_with_drqv2_gains_and_zero_bias():
+    # Narrow widths keep the QR decompositions of the initialiser cheap on a CPU.
+    cfg = AgentConfig(action_dim=6, method="dear", latent_dim=256, hidden_dim=64)
+    params = init_params(cfg, jax.random.key(1))
+    linear = np.asarray(params["actor"]["MLP_0"]["Dense_1"]["kernel"])  # 64 x 64
+    np.testing.assert_allclose(linear.T @ linear, np.eye(64), atol=1e-5)
+    conv = np.asarray(params["encoder"]["ConvTrunk_0"]["Conv_1"]["kernel"]).reshape(-1, 32)
+    np.testing.assert_allclose(conv.T @ conv, 2 * np.eye(32), atol=1e-4)  # gain sqrt(2)
+    deconv = np.asarray(params["mask_decoder"]["ConvTranspose_1"]["kernel"]).reshape(-1, 32)
+    np.testing.assert_allclose(deconv.T @ deconv, 2 * np.eye(32), atol=1e-4)
+    for path, leaf in jax.tree_util.tree_leaves_with_path(params):
+        if path[-1].key == "bias" and "LayerNorm" not in str(path):
+            assert not np.any(np.asarray(leaf)), path
+
+
+def test_pixels_are_centred():
+    x = networks.preprocess(jnp.array([0, 255], jnp.uint8))
+    np.testing.assert_allclose(x, [-0.5, 0.5])
+    np.testing.assert_allclose(
+        networks.preprocess(jnp.array([128], jnp.uint8)), [128 / 255 - 0.5], atol=1e-7
+    )

@@ -1,0 +1,26 @@
+"""Environments: DMC tasks on MJX or CPU MuJoCo, rendered by a CPU worker pool.
+
+`envs.make(name, ...)` builds a batched `Env` (envs/base.py); `envs.names()` lists the tasks.
+"""
+
+import os
+
+# Before mujoco is imported anywhere: render workers and previews use EGL unless told otherwise.
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+from envs.base import Env, EnvSpec, EnvState, TimeStep  # noqa: E402
+from envs.physics import SolverSettings  # noqa: E402
+from envs.registry import make, names, register  # noqa: E402
+from envs.render import RenderSettings  # noqa: E402
+
+__all__ = [
+    "Env",
+    "EnvSpec",
+    "EnvState",
+    "RenderSettings",
+    "SolverSettings",
+    "TimeStep",
+    "make",
+    "names",
+    "register",
+]

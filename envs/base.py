@@ -1,0 +1,324 @@
+"""The batched environment: physics + render pool + distractions + masks + frame stack.
+
+`Env` glues the pieces of `envs/` into the interface the trainer uses (notes/env_interface.md):
+- physics (`envs/physics.py`, MJX or CPU MuJoCo) steps S x E envs through one agent step;
+- a background thread (one-thread executor) fetches qpos to the host, renders RGB + pixel labels
+  in the render pool (`envs/render.py`), uploads them and dispatches one jitted function that
+  composites the distraction background (`envs/distractions.py`), builds the mask variant
+  (`envs/masks.py`) and rolls the frame stack; `step_async` returns at once, so the caller can
+  dispatch accelerator work meanwhile;
+- episodes: auto-reset with dm_env semantics. Episode starts are drawn on the host (CPU MuJoCo,
+  `envs/dmc.py`) from a numpy RandomState seeded by the key given to `reset`.
+
+State ownership: `EnvState` holds the physics state, the frame stack, the jax key and, as host
+numpy leaves, the per-env step counters and `last` flags (so auto-reset needs no device sync).
+The per-env distraction draws (colours, camera, background frame) and the host RNG live in the
+Env object and advance with every step: an Env is stepped along one trajectory, not branched.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import functools
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from envs import distractions, masks
+from envs.dmc import DmcTask, render_model_fn
+from envs.physics import SolverSettings, make_physics, resolve_backend
+from envs.render import RenderPool, RenderSettings
+
+MASK_KINDS = ("true", "noisy", "approximate")
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvSpec:
+    """Static facts of a batched env (recorded in run summaries)."""
+
+    name: str
+    action_dim: int
+    action_repeat: int
+    episode_steps: int  # agent steps per episode after the first timestep
+    frame_shape: tuple[int, int, int] = (84, 84, 3)
+    frame_stack: int = 3
+    has_success: bool = False
+    floor_alpha: float = 1.0
+    num_seeds: int = 1
+    envs_per_seed: int = 1
+    backend: str = "cpu"
+    distraction: str = "none"
+    dynamic: bool = False
+    mask: str = "true"
+    physics_steps_per_agent_step: int = 1
+
+
+@flax.struct.dataclass
+class TimeStep:
+    obs: jax.Array  # uint8 [S,E,H,W,3*stack], oldest frame first
+    frame: jax.Array  # uint8 [S,E,H,W,3], newest composited frame
+    mask: jax.Array  # uint8 [S,E,H,W] in {0,1}, chosen variant
+    true_mask: jax.Array  # uint8 [S,E,H,W] in {0,1}
+    reward: jax.Array  # f32 [S,E], summed over the action repeat; 0 on a first step
+    discount: jax.Array  # f32 [S,E]
+    first: jax.Array  # bool [S,E]
+    last: jax.Array  # bool [S,E]
+    success: jax.Array  # f32 [S,E]
+
+
+@flax.struct.dataclass
+class EnvState:
+    physics: Any  # mjx.Data batched [S,E] (device) or physics.CpuState (host)
+    stack: jax.Array  # uint8 [S,E,H,W,3*stack]
+    key: jax.Array  # PRNG key for the mask noise
+    step: np.ndarray  # host int64 [S,E]: agent steps since the episode's first timestep
+    last: np.ndarray  # host bool [S,E]: the latest timestep ended its episode
+
+
+def _post(
+    rgb,
+    labels,
+    background,
+    stack,
+    reward,
+    first,
+    last,
+    key,
+    *,
+    floor_alpha,
+    mask_kind,
+    drop_prob,
+    composite,
+    frame_stack,
+):
+    """Device half of a step: composite, masks, frame stack, TimeStep fields (jitted)."""
+    frame = distractions.composite(rgb, labels, background, floor_alpha) if composite else rgb
+    true_mask = masks.agent_mask(labels)
+    mask = masks.make_mask(labels, key, mask_kind, drop_prob)
+    rolled = jnp.concatenate([stack[..., 3:], frame], axis=-1)
+    fresh = jnp.concatenate([frame] * frame_stack, axis=-1)
+    obs = jnp.where(first[..., None, None, None], fresh, rolled)
+    reward = jnp.where(first, 0.0, reward).astype(jnp.float32)
+    ts = TimeStep(
+        obs=obs,
+        frame=frame,
+        mask=mask,
+        true_mask=true_mask,
+        reward=reward,
+        discount=jnp.ones_like(reward),
+        first=first,
+        last=last,
+        success=jnp.zeros_like(reward),
+    )
+    return obs, ts
+
+
+class Env:
+    """S x E DMC envs; see notes/env_interface.md for the interface."""
+
+    def __init__(
+        self,
+        task: DmcTask,
+        *,
+        num_seeds: int = 1,
+        envs_per_seed: int = 1,
+        backend: str = "auto",
+        distraction: str = "none",
+        dynamic: bool = False,
+        background_dir=None,
+        split: str = "train",
+        mask: str = "true",
+        mask_drop_prob: float = 0.8,
+        render: RenderSettings = RenderSettings(),
+        seed: int = 0,
+        action_repeat: int = 2,
+        solver: SolverSettings = SolverSettings(),
+    ):
+        if mask not in MASK_KINDS:
+            raise ValueError(f"unknown mask {mask!r}; valid: {', '.join(MASK_KINDS)}")
+        distractions.check_difficulty(distraction)
+        if num_seeds < 1 or envs_per_seed < 1 or action_repeat < 1:
+            raise ValueError(
+                f"num_seeds, envs_per_seed and action_repeat must be >= 1, got "
+                f"{num_seeds}, {envs_per_seed}, {action_repeat}"
+            )
+        self.task = task
+        self.shape = (num_seeds, envs_per_seed)
+        self.batch = num_seeds * envs_per_seed
+        self._model = task.physics_model()
+        self._data = mujoco.MjData(self._model)
+        n_sub = task.n_sub_steps(self._model)
+        frames = task.frames_per_episode(self._model)
+        if frames % action_repeat:
+            raise ValueError(f"{frames} frames per episode not divisible by {action_repeat}")
+        backend = resolve_backend(backend)
+        self.physics = make_physics(
+            backend,
+            self._model,
+            task.make_reward(self._model),
+            n_sub_steps=n_sub,
+            action_repeat=action_repeat,
+            solver=solver,
+        )
+        h, w = render.height, render.width
+        self.spec = EnvSpec(
+            name=task.name,
+            action_dim=self._model.nu,
+            action_repeat=action_repeat,
+            episode_steps=frames // action_repeat,
+            frame_shape=(h, w, 3),
+            floor_alpha=task.floor_alpha,
+            num_seeds=num_seeds,
+            envs_per_seed=envs_per_seed,
+            backend=backend,
+            distraction=distraction,
+            dynamic=dynamic,
+            mask=mask,
+            physics_steps_per_agent_step=n_sub * action_repeat,
+        )
+        self.render_settings = render
+
+        render_model = task.render_model()
+        if distraction == "none":
+            self._backgrounds = jnp.zeros((1, 1, h, w, 3), jnp.uint8)
+            num_videos, num_frames = 0, 1
+        else:
+            videos = distractions.load_backgrounds(
+                background_dir,
+                split,
+                distractions.difficulty_videos(distraction),
+                size=h,
+                seed=seed,
+            )
+            self._backgrounds = jnp.asarray(videos)
+            num_videos, num_frames = videos.shape[:2]
+        self._distractor = distractions.Distractor(
+            render_model,
+            task.camera,
+            distraction,
+            dynamic=dynamic,
+            batch=self.batch,
+            num_videos=num_videos,
+            num_frames=num_frames,
+            seed=seed,
+        )
+        self._post = jax.jit(
+            functools.partial(
+                _post,
+                floor_alpha=task.floor_alpha,
+                mask_kind=mask,
+                drop_prob=mask_drop_prob,
+                composite=distraction != "none",
+                frame_stack=self.spec.frame_stack,
+            )
+        )
+        self._rng = np.random.RandomState(seed)
+        self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="env")
+        self._pool = RenderPool(
+            functools.partial(render_model_fn, task.name),
+            camera=task.camera,
+            agent_geom_ids=task.agent_geom_ids(render_model),
+            floor_geom_ids=task.floor_geom_ids(render_model),
+            settings=render,
+        )
+
+    # -- episode starts (host) --------------------------------------------------------------
+    def _initial_states(self, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """qpos [S,E,nq], qvel [S,E,nv]: fresh episode starts where `which`, qpos0 elsewhere."""
+        m, d = self._model, self._data
+        qpos = np.tile(m.qpos0, self.shape + (1,))
+        qvel = np.zeros(self.shape + (m.nv,))
+        for s, e in zip(*np.nonzero(which), strict=True):
+            mujoco.mj_resetData(m, d)
+            self.task.init_episode(m, d, self._rng)
+            qpos[s, e], qvel[s, e] = d.qpos, d.qvel
+        return qpos, qvel
+
+    # -- public API ---------------------------------------------------------------------------
+    def reset(self, key: jax.Array) -> tuple[EnvState, TimeStep]:
+        key, host_key = jax.random.split(key)
+        self._rng = np.random.RandomState(int(jax.random.randint(host_key, (), 0, 2**31 - 1)))
+        everyone = np.ones(self.shape, bool)
+        phys = self.physics.init(*self._initial_states(everyone))
+        self._distractor.reset(None)
+        step = np.zeros(self.shape, np.int64)
+        stack = jnp.zeros(
+            self.shape + self.spec.frame_shape[:2] + (3 * self.spec.frame_stack,), jnp.uint8
+        )
+        return self._finish(
+            phys,
+            jnp.zeros(self.shape, jnp.float32),
+            everyone,
+            step,
+            stack,
+            key,
+            self._distractor.perturb(),
+            self._distractor.background_index(),
+        )
+
+    def step_async(self, state: EnvState, action: jax.Array) -> concurrent.futures.Future:
+        """Dispatch physics now; render and post-process on the env thread. -> Future."""
+        reset = np.asarray(state.last, bool)
+        if reset.all():
+            phys = self.physics.init(*self._initial_states(reset))
+            reward = jnp.zeros(self.shape, jnp.float32)
+        else:
+            phys, reward = self.physics.step(state.physics, action)
+            if reset.any():
+                fresh = self.physics.init(*self._initial_states(reset))
+                phys = self.physics.where(reset, fresh, phys)
+        step = np.where(reset, 0, state.step + 1)
+        # Snapshot the host distraction draws now: the next step_async mutates them.
+        self._distractor.step()
+        if reset.any():
+            self._distractor.reset(reset.reshape(-1))
+        return self._executor.submit(
+            self._finish,
+            phys,
+            reward,
+            reset,
+            step,
+            state.stack,
+            state.key,
+            self._distractor.perturb(),
+            self._distractor.background_index(),
+        )
+
+    def step(self, state: EnvState, action: jax.Array) -> tuple[EnvState, TimeStep]:
+        return self.step_async(state, action).result()
+
+    def _finish(self, phys, reward, first, step, stack, key, perturb, bg_index):
+        qpos = np.asarray(self.physics.qpos(phys)).reshape(self.batch, -1)
+        rgb, labels = self._pool.render(qpos, perturb=perturb)
+        h, w, _ = self.spec.frame_shape
+        video, frame_idx = bg_index
+        background = self._backgrounds[jnp.asarray(video), jnp.asarray(frame_idx)]
+        key, mask_key = jax.random.split(key)
+        last = step >= self.spec.episode_steps
+        stack, ts = self._post(
+            jnp.asarray(rgb).reshape(self.shape + (h, w, 3)),
+            jnp.asarray(labels).reshape(self.shape + (h, w)),
+            background.reshape(self.shape + (h, w, 3)),
+            stack,
+            jnp.asarray(reward),
+            jnp.asarray(first),
+            jnp.asarray(last),
+            mask_key,
+        )
+        state = EnvState(physics=phys, stack=stack, key=key, step=step, last=last)
+        return state, ts
+
+    def close(self) -> None:
+        self._executor.shutdown(wait=True)
+        self._pool.close()
+
+    def __enter__(self) -> Env:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,453 @@
+"""DeepMind Control Suite tasks: models, initial states, JAX rewards and render facts.
+
+This file owns everything task-specific about the DMC tasks: which XML of the installed
+`dm_control` package a task loads (found with `importlib.util.find_spec`, so dm_control's own
+heavy imports are never needed at run time, and its XMLs are never copied into this repo), the
+model edits a task makes, the episode-start randomisation (host side, CPU MuJoCo, the same rules
+as dm_control's `initialize_episode`), the reward as a pure `jnp` function of a `PhysicsView`
+(equal to dm_control's `get_reward`; `tests/test_envs.py` checks this against dm_control itself),
+and the render facts: camera, floor geoms, floor alpha and the agent geoms.
+
+Agent geoms (REFERENCE section 4). The rule is "the geoms of the bodies the agent actuates":
+- walker, cheetah: every geom of the body tree under `torso` (all geoms but the floor).
+- ball_in_cup: the cup's five capsules and the ball (the reference counts the ball).
+- finger: the geoms of the `proximal` and `distal` bodies (including the decoration cylinder at
+  the finger's base), not the spinner's.
+- cartpole: the cart and the pole (the rails are scenery).
+Tendons and sites are not geoms and never count as agent: the cup's string (a 3 mm wide tendon,
+well under a pixel at 84x84) and any visible site are labelled "other" by the render pool. Finger
+spin hides its `target` and `tip` sites (alpha 0, as dm_control's Spin task does) and the touch
+sites are in a hidden group, so no finger site is ever drawn.
+
+Episode-start randomisation runs on the host with CPU MuJoCo because two tasks reject states in
+contact (ball_in_cup, finger: `ncon > 0`) and cheetah settles for 200 physics steps; both are
+cheap on the CPU and exactly reproduce dm_control's distribution. The MJX backend uploads the
+result.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import importlib.util
+import os
+from collections.abc import Callable
+
+import flax.struct
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+# --------------------------------------------------------------------------------------------
+# The physics state a reward reads (one environment; the backends vmap over (S, E)).
+
+
+@flax.struct.dataclass
+class PhysicsView:
+    """Position- and velocity-stage quantities after a control step (dm_control's
+    `mj_step1`-synchronised data). Shapes are for one environment."""
+
+    qpos: jnp.ndarray  # [nq]
+    qvel: jnp.ndarray  # [nv]
+    ctrl: jnp.ndarray  # [nu]
+    xpos: jnp.ndarray  # [nbody, 3]
+    xmat: jnp.ndarray  # [nbody, 3, 3]
+    site_xpos: jnp.ndarray  # [nsite, 3]
+    sensordata: jnp.ndarray  # [nsensordata]
+
+
+def view_from_mjdata(data: mujoco.MjData) -> PhysicsView:
+    """Host copy of the fields a reward reads (numpy leaves)."""
+    return PhysicsView(
+        qpos=data.qpos.copy(),
+        qvel=data.qvel.copy(),
+        ctrl=data.ctrl.copy(),
+        xpos=data.xpos.copy(),
+        xmat=data.xmat.reshape(-1, 3, 3).copy(),
+        site_xpos=data.site_xpos.copy(),
+        sensordata=data.sensordata.copy(),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# dm_control's `rewards.tolerance`, in jnp.
+
+
+def _sigmoid(x, value_at_margin, kind):
+    if kind == "gaussian":
+        scale = np.sqrt(-2 * np.log(value_at_margin))
+        return jnp.exp(-0.5 * (x * scale) ** 2)
+    if kind == "linear":
+        scaled = x * (1 - value_at_margin)
+        return jnp.where(jnp.abs(scaled) < 1, 1 - scaled, 0.0)
+    if kind == "quadratic":
+        scaled = x * np.sqrt(1 - value_at_margin)
+        return jnp.where(jnp.abs(scaled) < 1, 1 - scaled**2, 0.0)
+    raise ValueError(f"unknown sigmoid {kind!r}; valid: gaussian, linear, quadratic")
+
+
+def tolerance(x, bounds=(0.0, 0.0), margin=0.0, sigmoid="gaussian", value_at_margin=0.1):
+    """1 inside `bounds`, decaying by `sigmoid` to `value_at_margin` at distance `margin`."""
+    lower, upper = bounds
+    in_bounds = (lower <= x) & (x <= upper)
+    if margin == 0:
+        return jnp.where(in_bounds, 1.0, 0.0)
+    # The branch not taken may hold inf (one-sided bounds); `where` discards it.
+    distance = jnp.where(x < lower, lower - x, x - upper) / margin
+    return jnp.where(in_bounds, 1.0, _sigmoid(distance, value_at_margin, sigmoid))
+
+
+# --------------------------------------------------------------------------------------------
+# Model loading.
+
+
+@functools.lru_cache(maxsize=1)
+def suite_dir() -> str:
+    """The `suite` folder of the installed dm_control package (its XMLs and common assets)."""
+    spec = importlib.util.find_spec("dm_control")
+    if spec is None or not spec.submodule_search_locations:
+        raise ModuleNotFoundError(
+            "dm_control is not installed; the DMC tasks load their XML models from it "
+            "(pip install dm-control==1.0.50)"
+        )
+    for root in spec.submodule_search_locations:
+        path = os.path.join(root, "suite")
+        if os.path.isdir(path):
+            return path
+    raise FileNotFoundError(f"no suite/ folder in dm_control at {spec.submodule_search_locations}")
+
+
+def load_model(xml_file: str) -> mujoco.MjModel:
+    """Compile a suite XML; its `./common/*.xml` includes resolve next to the file."""
+    return mujoco.MjModel.from_xml_path(os.path.join(suite_dir(), xml_file))
+
+
+# --------------------------------------------------------------------------------------------
+# Episode-start randomisation (dm_control's randomizers, numpy RandomState).
+
+
+def _randomize_limited_and_rotational_joints(model, data, rng: np.random.RandomState) -> None:
+    """dm_control `randomize_limited_and_rotational_joints` (hinge/slide/ball/free joints)."""
+    for j in range(model.njnt):
+        kind = model.jnt_type[j]
+        adr = model.jnt_qposadr[j]
+        lo, hi = model.jnt_range[j]
+        if model.jnt_limited[j]:
+            if kind in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+                data.qpos[adr] = rng.uniform(lo, hi)
+            elif kind == mujoco.mjtJoint.mjJNT_BALL:
+                axis = rng.randn(3)
+                axis /= np.linalg.norm(axis)
+                angle = rng.rand() * hi
+                quat = np.zeros(4)
+                mujoco.mju_axisAngle2Quat(quat, axis, angle)
+                data.qpos[adr : adr + 4] = quat
+        else:
+            if kind == mujoco.mjtJoint.mjJNT_HINGE:
+                data.qpos[adr] = rng.uniform(-np.pi, np.pi)
+            elif kind == mujoco.mjtJoint.mjJNT_BALL:
+                quat = rng.randn(4)
+                data.qpos[adr : adr + 4] = quat / np.linalg.norm(quat)
+            elif kind == mujoco.mjtJoint.mjJNT_FREE:
+                quat = rng.randn(4)
+                data.qpos[adr + 3 : adr + 7] = quat / np.linalg.norm(quat)
+
+
+def _init_walker(model, data, rng):
+    _randomize_limited_and_rotational_joints(model, data, rng)
+
+
+def _init_cheetah(model, data, rng):
+    limited = model.jnt_limited == 1
+    lower, upper = model.jnt_range[limited].T
+    data.qpos[limited] = rng.uniform(lower, upper)
+    mujoco.mj_forward(model, data)
+    # dm_control settles the model for 200 physics steps and then zeroes the clock.
+    mujoco.mj_step(model, data, 200)
+    data.time = 0.0
+
+
+def _init_ball_in_cup(model, data, rng):
+    x, z = model.joint("ball_x").qposadr[0], model.joint("ball_z").qposadr[0]
+    while True:
+        data.qpos[x] = rng.uniform(-0.2, 0.2)
+        data.qpos[z] = rng.uniform(0.2, 0.5)
+        mujoco.mj_forward(model, data)
+        if data.ncon == 0:
+            return
+
+
+def _init_finger(model, data, rng):
+    for _ in range(1000):
+        _randomize_limited_and_rotational_joints(model, data, rng)
+        mujoco.mj_forward(model, data)
+        if data.ncon == 0:
+            return
+    raise RuntimeError("finger: no collision-free state after 1000 attempts")
+
+
+def _init_cartpole_swingup(model, data, rng):
+    slider, hinge = model.joint("slider").qposadr[0], model.joint("hinge_1").qposadr[0]
+    data.qpos[slider] = 0.01 * rng.randn()
+    data.qpos[hinge] = np.pi + 0.01 * rng.randn()
+    data.qpos[2:] = 0.1 * rng.randn(model.nv - 2)
+    data.qvel[:] = 0.01 * rng.randn(model.nv)
+
+
+# --------------------------------------------------------------------------------------------
+# Rewards: `make_reward(model)` resolves names to indices once and returns `view -> scalar`.
+
+
+def _walker_reward(move_speed: float):
+    stand_height = 1.2
+
+    def make(model):
+        torso = model.body("torso").id
+        vel = model.sensor("torso_subtreelinvel").adr[0]
+
+        def reward(v: PhysicsView):
+            height = v.xpos[torso, 2]
+            upright = (1 + v.xmat[torso, 2, 2]) / 2
+            standing = tolerance(height, (stand_height, np.inf), margin=stand_height / 2)
+            stand = (3 * standing + upright) / 4
+            if move_speed == 0:
+                return stand
+            move = tolerance(
+                v.sensordata[vel],
+                (move_speed, np.inf),
+                margin=move_speed / 2,
+                value_at_margin=0.5,
+                sigmoid="linear",
+            )
+            return stand * (5 * move + 1) / 6
+
+        return reward
+
+    return make
+
+
+def _ball_in_cup_reward(model):
+    target = model.site("target").id
+    ball = model.body("ball").id
+    target_size = model.site_size[target][[0, 2]].copy()
+    ball_size = float(model.geom_size[model.geom("ball").id][0])
+
+    def reward(v: PhysicsView):
+        to_target = v.site_xpos[target][jnp.array([0, 2])] - v.xpos[ball][jnp.array([0, 2])]
+        return jnp.all(jnp.abs(to_target) < target_size - ball_size).astype(jnp.float32)
+
+    return reward
+
+
+def _finger_spin_reward(model):
+    vel = model.sensor("hinge_velocity").adr[0]
+
+    def reward(v: PhysicsView):
+        return (v.sensordata[vel] <= -15.0).astype(jnp.float32)
+
+    return reward
+
+
+def _cheetah_run_reward(model):
+    vel = model.sensor("torso_subtreelinvel").adr[0]
+
+    def reward(v: PhysicsView):
+        return tolerance(
+            v.sensordata[vel], (10.0, np.inf), margin=10.0, value_at_margin=0, sigmoid="linear"
+        )
+
+    return reward
+
+
+def _cartpole_swingup_reward(model):
+    slider = model.joint("slider").qposadr[0]
+
+    def reward(v: PhysicsView):
+        upright = (v.xmat[2:, 2, 2] + 1) / 2
+        centered = (1 + tolerance(v.qpos[slider], margin=2)) / 2
+        small_control = tolerance(v.ctrl, margin=1, value_at_margin=0, sigmoid="quadratic")[0]
+        small_control = (4 + small_control) / 5
+        small_velocity = (1 + tolerance(v.qvel[1:], margin=5).min()) / 2
+        return upright.mean() * small_control * small_velocity * centered
+
+    return reward
+
+
+# --------------------------------------------------------------------------------------------
+# Model edits.
+
+
+def _finger_spin_physics(model):
+    # dm_control's Spin sets this every episode; it is a constant, so set it once.
+    model.dof_damping[model.joint("hinge").dofadr[0]] = 0.03
+
+
+def _finger_spin_render(model):
+    _finger_spin_physics(model)
+    model.site_rgba[model.site("target").id, 3] = 0
+    model.site_rgba[model.site("tip").id, 3] = 0
+
+
+def _cartpole_physics(model):
+    # MJX has no energy computation; energy never feeds back into the dynamics.
+    model.opt.enableflags &= ~int(mujoco.mjtEnableBit.mjENBL_ENERGY)
+
+
+# --------------------------------------------------------------------------------------------
+# Task table.
+
+
+@dataclasses.dataclass(frozen=True)
+class DmcTask:
+    """Everything the env needs to know about one DMC task."""
+
+    name: str  # registry name, "domain-task"
+    xml_file: str  # file in dm_control/suite
+    time_limit: float  # seconds per episode (1000 control steps for every task here)
+    control_timestep: float | None  # None: one physics step per control step
+    make_reward: Callable[[mujoco.MjModel], Callable[[PhysicsView], jnp.ndarray]]
+    init_episode: Callable[[mujoco.MjModel, mujoco.MjData, np.random.RandomState], None]
+    agent_bodies: tuple[str, ...]  # agent geoms = geoms of these bodies and their subtrees
+    floor_geoms: tuple[str, ...]
+    floor_alpha: float  # Distracting Control's ground-plane alpha
+    camera: int = 0  # DrQ-v2's camera (0 for every task but quadruped)
+    reward_range: tuple[float, float] = (0.0, 1.0)  # per control step
+    edit_physics: Callable[[mujoco.MjModel], None] | None = None
+    edit_render: Callable[[mujoco.MjModel], None] | None = None
+
+    @property
+    def domain(self) -> str:
+        return self.name.split("-")[0]
+
+    def physics_model(self) -> mujoco.MjModel:
+        """The model the physics steps (dm_control's options, task edits applied)."""
+        model = load_model(self.xml_file)
+        if self.edit_physics is not None:
+            self.edit_physics(model)
+        return model
+
+    def render_model(self) -> mujoco.MjModel:
+        """The model the render workers draw (physics edits plus visual ones)."""
+        model = load_model(self.xml_file)
+        edit = self.edit_render or self.edit_physics
+        if edit is not None:
+            edit(model)
+        return model
+
+    def n_sub_steps(self, model: mujoco.MjModel) -> int:
+        if self.control_timestep is None:
+            return 1
+        n = self.control_timestep / model.opt.timestep
+        if abs(n - round(n)) > 1e-6:
+            raise ValueError(f"{self.name}: control timestep is not a multiple of the timestep")
+        return int(round(n))
+
+    def frames_per_episode(self, model: mujoco.MjModel) -> int:
+        step = self.control_timestep or model.opt.timestep
+        return int(round(self.time_limit / step))
+
+    def agent_geom_ids(self, model: mujoco.MjModel) -> tuple[int, ...]:
+        roots = {model.body(b).id for b in self.agent_bodies}
+        ids = []
+        for g in range(model.ngeom):
+            body = model.geom_bodyid[g]
+            while body != 0 and body not in roots:
+                body = model.body_parentid[body]
+            if body in roots:
+                ids.append(g)
+        return tuple(ids)
+
+    def floor_geom_ids(self, model: mujoco.MjModel) -> tuple[int, ...]:
+        return tuple(model.geom(name).id for name in self.floor_geoms)
+
+
+def render_model_fn(task_name: str) -> mujoco.MjModel:
+    """Picklable model factory for render workers: `functools.partial(render_model_fn, name)`."""
+    return TASKS[task_name].render_model()
+
+
+TASKS: dict[str, DmcTask] = {
+    t.name: t
+    for t in [
+        DmcTask(
+            name="walker-walk",
+            xml_file="walker.xml",
+            time_limit=25.0,
+            control_timestep=0.025,
+            make_reward=_walker_reward(1.0),
+            init_episode=_init_walker,
+            agent_bodies=("torso",),
+            floor_geoms=("floor",),
+            floor_alpha=1.0,
+        ),
+        DmcTask(
+            name="walker-stand",
+            xml_file="walker.xml",
+            time_limit=25.0,
+            control_timestep=0.025,
+            make_reward=_walker_reward(0.0),
+            init_episode=_init_walker,
+            agent_bodies=("torso",),
+            floor_geoms=("floor",),
+            floor_alpha=1.0,
+        ),
+        DmcTask(
+            name="walker-run",
+            xml_file="walker.xml",
+            time_limit=25.0,
+            control_timestep=0.025,
+            make_reward=_walker_reward(8.0),
+            init_episode=_init_walker,
+            agent_bodies=("torso",),
+            floor_geoms=("floor",),
+            floor_alpha=1.0,
+        ),
+        DmcTask(
+            name="ball_in_cup-catch",
+            xml_file="ball_in_cup.xml",
+            time_limit=20.0,
+            control_timestep=0.02,
+            make_reward=_ball_in_cup_reward,
+            init_episode=_init_ball_in_cup,
+            agent_bodies=("cup", "ball"),
+            floor_geoms=("ground",),
+            floor_alpha=0.3,
+        ),
+        DmcTask(
+            name="finger-spin",
+            xml_file="finger.xml",
+            time_limit=20.0,
+            control_timestep=0.02,
+            make_reward=_finger_spin_reward,
+            init_episode=_init_finger,
+            agent_bodies=("proximal",),
+            floor_geoms=("ground",),
+            floor_alpha=0.3,
+            edit_physics=_finger_spin_physics,
+            edit_render=_finger_spin_render,
+        ),
+        DmcTask(
+            name="cheetah-run",
+            xml_file="cheetah.xml",
+            time_limit=10.0,
+            control_timestep=None,
+            make_reward=_cheetah_run_reward,
+            init_episode=_init_cheetah,
+            agent_bodies=("torso",),
+            floor_geoms=("ground",),
+            floor_alpha=1.0,
+        ),
+        DmcTask(
+            name="cartpole-swingup",
+            xml_file="cartpole.xml",
+            time_limit=10.0,
+            control_timestep=None,
+            make_reward=_cartpole_swingup_reward,
+            init_episode=_init_cartpole_swingup,
+            agent_bodies=("cart",),
+            floor_geoms=("floor",),
+            floor_alpha=1.0,
+            edit_physics=_cartpole_physics,
+        ),
+    ]
+}

@@ -1,0 +1,278 @@
+"""Batched physics backends: MJX on the accelerator and CPU MuJoCo, behind one interface.
+
+Both step a batch of environments shaped (S, E) = (seeds, envs per seed) through one agent step:
+`action_repeat` control steps ("frames"), each `n_sub_steps` physics steps with the action held,
+summing the task reward after every control step (as dm_control plus DrQ-v2's action-repeat
+wrapper do). Episode starts are computed on the host (`envs/dmc.py`) and handed in as qpos/qvel.
+
+Interface (both backends):
+    state = backend.init(qpos, qvel)          # [S,E,nq], [S,E,nv] numpy -> backend state
+    state, reward = backend.step(state, action)   # action f32 [S,E,A]; reward f32 [S,E]
+    state = backend.where(reset, new, old)    # per-env select, reset: bool [S,E] numpy
+    backend.qpos(state)                       # [S,E,nq] (device array or numpy)
+
+MJX solver settings (`SolverSettings`) are the speed knob. dm_control's XMLs use MuJoCo's
+defaults (Newton, 100 iterations, 50 line-search iterations; finger 200): on a GPU MJX runs
+every iteration of a `while_loop` with a host round trip, which made one walker agent step cost
+72 ms. We default to `iterations=1` (one Newton step from the warm start: no `while_loop` in the
+solver at all) and `ls_iterations=4`; `tests/test_physics.py` shows that with these settings a
+scripted MJX rollout stays close to CPU MuJoCo with dm_control's own options (rewards and
+states; tolerances stated there). `None` keeps the model's own value.
+
+CPU MuJoCo steps exactly as dm_control's legacy stepping does (`mj_step2`, `mj_step` x (n-1),
+`mj_step1`, so position/velocity fields match the new state when the reward is read). The MJX
+backend uses `mjx.step` x n and then recomputes the position- and velocity-stage quantities a
+reward reads (kinematics, centre-of-mass, sensors), which is the same state.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from envs.dmc import PhysicsView, view_from_mjdata
+
+BACKENDS = ("mjx", "cpu", "auto")
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverSettings:
+    """MJX solver options (the CPU backend always uses the model's own)."""
+
+    iterations: int | None = 1  # Newton iterations per physics step; None: the XML's (100)
+    ls_iterations: int | None = 4  # line-search iterations; None: the XML's (50)
+    unroll: int = 1  # unroll of the scan over physics steps (GPU: fewer loop round trips)
+
+
+def resolve_backend(backend: str) -> str:
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown physics backend {backend!r}; valid: {', '.join(BACKENDS)}")
+    if backend == "auto":
+        return "mjx" if jax.default_backend() != "cpu" else "cpu"
+    return backend
+
+
+def _vmap2(fn):
+    """vmap over the (S, E) leading axes."""
+    return jax.vmap(jax.vmap(fn))
+
+
+# --------------------------------------------------------------------------------------------
+# MJX
+
+
+def _reward_view(m: mjx.Model, d: mjx.Data) -> PhysicsView:
+    """Position/velocity-stage fields for the current qpos/qvel, without collision or solver."""
+    d = mjx.kinematics(m, d)
+    d = mjx.com_pos(m, d)
+    d = mjx.sensor_pos(m, d)
+    d = mjx.com_vel(m, d)
+    d = mjx.sensor_vel(m, d)
+    return PhysicsView(
+        qpos=d.qpos,
+        qvel=d.qvel,
+        ctrl=d.ctrl,
+        xpos=d.xpos,
+        xmat=d.xmat,
+        site_xpos=d.site_xpos,
+        sensordata=d.sensordata,
+    )
+
+
+class MjxPhysics:
+    """MJX physics, vmapped over (S, E); one jitted function per agent step."""
+
+    name = "mjx"
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        reward_fn,
+        *,
+        n_sub_steps: int,
+        action_repeat: int,
+        solver: SolverSettings = SolverSettings(),
+    ):
+        model = _copy_model(model)
+        if solver.iterations is not None:
+            model.opt.iterations = solver.iterations
+        if solver.ls_iterations is not None:
+            model.opt.ls_iterations = solver.ls_iterations
+        self.mj_model = model
+        self.solver = solver
+        self.n_sub_steps = n_sub_steps
+        self.action_repeat = action_repeat
+        self._m = mjx.put_model(model, impl="jax")
+        self._reward_fn = reward_fn
+        self._step = jax.jit(_vmap2(self._step_one))
+        self._init = jax.jit(_vmap2(self._init_one))
+        self._where = jax.jit(
+            lambda reset, new, old: jax.tree.map(
+                lambda a, b: jnp.where(reset.reshape(reset.shape + (1,) * (a.ndim - 2)), a, b),
+                new,
+                old,
+            )
+        )
+
+    def _init_one(self, qpos, qvel):
+        d = mjx.make_data(self._m)
+        d = d.replace(qpos=qpos.astype(d.qpos.dtype), qvel=qvel.astype(d.qvel.dtype))
+        return mjx.forward(self._m, d)
+
+    def _step_one(self, d: mjx.Data, action: jax.Array):
+        m = self._m
+        d = d.replace(ctrl=action.astype(d.ctrl.dtype))
+
+        def physics_step(d, _):
+            return mjx.step(m, d), None
+
+        def control_step(d, _):
+            d, _ = jax.lax.scan(
+                physics_step, d, None, length=self.n_sub_steps, unroll=self.solver.unroll
+            )
+            return d, self._reward_fn(_reward_view(m, d))
+
+        d, rewards = jax.lax.scan(control_step, d, None, length=self.action_repeat)
+        return d, rewards.sum().astype(jnp.float32)
+
+    def init(self, qpos: np.ndarray, qvel: np.ndarray) -> mjx.Data:
+        return self._init(jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32))
+
+    def step(self, state: mjx.Data, action: jax.Array):
+        return self._step(state, action)
+
+    def where(self, reset: np.ndarray, new: mjx.Data, old: mjx.Data) -> mjx.Data:
+        return self._where(jnp.asarray(reset), new, old)
+
+    def qpos(self, state: mjx.Data) -> jax.Array:
+        return state.qpos
+
+
+# --------------------------------------------------------------------------------------------
+# CPU MuJoCo
+
+
+@dataclasses.dataclass(frozen=True)
+class CpuState:
+    """Host state of a batch; enough to resume dm_control's legacy stepping exactly."""
+
+    qpos: np.ndarray  # f64 [S,E,nq]
+    qvel: np.ndarray  # f64 [S,E,nv]
+    act: np.ndarray  # f64 [S,E,na]
+    qacc_warmstart: np.ndarray  # f64 [S,E,nv]
+    time: np.ndarray  # f64 [S,E]
+
+
+class CpuPhysics:
+    """CPU MuJoCo with dm_control's stepping; a Python loop over the batch."""
+
+    name = "cpu"
+
+    def __init__(self, model: mujoco.MjModel, reward_fn, *, n_sub_steps: int, action_repeat: int):
+        self.mj_model = model
+        self.n_sub_steps = n_sub_steps
+        self.action_repeat = action_repeat
+        self._data = mujoco.MjData(model)
+        self._reward = jax.jit(_vmap2(jax.vmap(reward_fn)))
+        self._cpu = jax.devices("cpu")[0]
+
+    def _load(self, state: CpuState, idx) -> mujoco.MjData:
+        d = self._data
+        d.qpos[:] = state.qpos[idx]
+        d.qvel[:] = state.qvel[idx]
+        d.act[:] = state.act[idx]
+        d.qacc_warmstart[:] = state.qacc_warmstart[idx]
+        d.time = state.time[idx]
+        return d
+
+    def init(self, qpos: np.ndarray, qvel: np.ndarray) -> CpuState:
+        shape = qpos.shape[:2]
+        m = self.mj_model
+        return CpuState(
+            qpos=np.asarray(qpos, np.float64).copy(),
+            qvel=np.asarray(qvel, np.float64).copy(),
+            act=np.zeros(shape + (m.na,)),
+            qacc_warmstart=np.zeros(shape + (m.nv,)),
+            time=np.zeros(shape),
+        )
+
+    def _control_step(self, d: mujoco.MjData) -> None:
+        m = self.mj_model
+        if m.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4:
+            mujoco.mj_step(m, d, self.n_sub_steps)
+        else:
+            mujoco.mj_step2(m, d)
+            if self.n_sub_steps > 1:
+                mujoco.mj_step(m, d, self.n_sub_steps - 1)
+        mujoco.mj_step1(m, d)
+
+    def step(self, state: CpuState, action) -> tuple[CpuState, np.ndarray]:
+        action = np.asarray(action, np.float64)
+        num_s, num_e = state.qpos.shape[:2]
+        new = {k: np.copy(v) for k, v in dataclasses.asdict(state).items()}
+        views = []  # [S*E] lists of `action_repeat` views
+        for s in range(num_s):
+            for e in range(num_e):
+                d = self._load(state, (s, e))
+                # step1 refreshes the position/velocity stage for the loaded state: dm_control's
+                # data sits right after its previous control step's mj_step1.
+                mujoco.mj_step1(self.mj_model, d)
+                d.ctrl[:] = action[s, e]
+                env_views = []
+                for _ in range(self.action_repeat):
+                    self._control_step(d)
+                    env_views.append(view_from_mjdata(d))
+                views.append(env_views)
+                for k in new:
+                    new[k][s, e] = getattr(d, k)
+        stacked = jax.tree.map(
+            lambda *xs: np.stack(xs).reshape((num_s, num_e, self.action_repeat) + xs[0].shape),
+            *[v for env_views in views for v in env_views],
+        )
+        with jax.default_device(self._cpu):
+            per_frame = np.asarray(self._reward(stacked), np.float32)  # [S,E,R]
+        return CpuState(**new), per_frame.sum(-1, dtype=np.float32)
+
+    def where(self, reset: np.ndarray, new: CpuState, old: CpuState) -> CpuState:
+        reset = np.asarray(reset)
+        return jax.tree.map(
+            lambda a, b: np.where(reset.reshape(reset.shape + (1,) * (a.ndim - 2)), a, b),
+            new,
+            old,
+        )
+
+    def qpos(self, state: CpuState) -> np.ndarray:
+        return state.qpos
+
+
+jax.tree_util.register_dataclass(
+    CpuState, data_fields=["qpos", "qvel", "act", "qacc_warmstart", "time"], meta_fields=[]
+)
+
+
+def _copy_model(model: mujoco.MjModel) -> mujoco.MjModel:
+    return copy.copy(model)
+
+
+def make_physics(
+    backend: str,
+    model: mujoco.MjModel,
+    reward_fn,
+    *,
+    n_sub_steps: int,
+    action_repeat: int,
+    solver: SolverSettings = SolverSettings(),
+):
+    """Build the named backend ("mjx", "cpu" or "auto")."""
+    backend = resolve_backend(backend)
+    if backend == "mjx":
+        return MjxPhysics(
+            model, reward_fn, n_sub_steps=n_sub_steps, action_repeat=action_repeat, solver=solver
+        )
+    return CpuPhysics(model, reward_fn, n_sub_steps=n_sub_steps, action_repeat=action_repeat)

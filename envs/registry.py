@@ -1,0 +1,40 @@
+"""Task registry: name -> builder of an `Env`; `make` raises on unknown names, listing valid ones."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from envs import dmc
+
+_REGISTRY: dict[str, Callable[..., object]] = {}
+
+
+def register(name: str, builder: Callable[..., object]) -> None:
+    """Register `builder(**kwargs) -> Env` under `name` (e.g. "walker-walk")."""
+    if name in _REGISTRY:
+        raise ValueError(f"task {name!r} is already registered")
+    _REGISTRY[name] = builder
+
+
+def names() -> tuple[str, ...]:
+    return tuple(sorted(_REGISTRY))
+
+
+def make(name: str, **kwargs):
+    """Build the env registered as `name`; see envs.base.Env for the keyword arguments."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown task {name!r}; valid tasks: {', '.join(names())}")
+    return _REGISTRY[name](**kwargs)
+
+
+def _dmc_builder(task: dmc.DmcTask):
+    def build(**kwargs):
+        from envs.base import Env
+
+        return Env(task, **kwargs)
+
+    return build
+
+
+for _task in dmc.TASKS.values():
+    register(_task.name, _dmc_builder(_task))

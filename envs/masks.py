@@ -21,8 +21,10 @@ within one pixel (8-neighbourhood) of a true-mask pixel. Proof: after the blur (
 carries a bilinear weight >= 4/9, so if that sample were 0 the value would be <= 5/9. Pixels
 outside the true mask do appear where the mask bends within a 3x3 grid cell (a concave corner, a
 gap between two limbs narrower than the grid): on rendered walker masks about 0.6% of the
-approximate mask's pixels (tests/test_masks.py measures it and checks the bound). For
-axis-aligned rectangles the result is a strict subset.
+approximate mask's pixels, a few % on the thin cup (tests/test_masks.py measures it and checks
+the bound). The image border adds a second case: pixel 0 copies grid sample 1 (and pixel 83
+sample 82), so a mask reaching row or column 1 spills onto row or column 0. Axis-aligned
+rectangles that keep two pixels from the border give a strict subset.
 """
 
 from __future__ import annotations

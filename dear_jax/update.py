@@ -7,7 +7,8 @@ numbers that may differ between seeds (loss weights, schedules), so a sweep is o
      L = L_critic + alpha * L_mask + beta * L_dis (+ SEAR's reconstruction, TED's classifier);
   2. the actor step on stopped features against the updated critic;
   3. the target critic's EMA.
-`jax.jit(jax.vmap(update, in_axes=(0, 0, 0, hp_axes)))` runs S seeds in one call.
+`jax.jit(jax.vmap(partial(update, cfg=cfg)))(states, batches, keys, hp.for_seeds(S))` runs S
+seeds in one call.
 """
 
 from __future__ import annotations
@@ -74,6 +75,10 @@ class HParams:
     std_final: float = 0.1
     std_steps: float = 500_000.0  # agent steps of the linear std decay
     explore_steps: float = 2000.0  # agent steps of uniform random actions
+
+    def for_seeds(self, num_seeds: int) -> HParams:
+        """Every field as a float32 [num_seeds] array (scalars broadcast), ready for vmap axis 0."""
+        return jax.tree.map(lambda x: jnp.broadcast_to(jnp.float32(x), (num_seeds,)), self)
 
 
 @struct.dataclass

@@ -1,0 +1,178 @@
+"""The learner: where gradients flow, acting, and the vmapped update over seeds."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dear_jax import losses, update
+from dear_jax.replay import Batch
+
+# Narrow widths keep CPU compile and init cheap; the structure is the reference's.
+SMALL = dict(action_dim=2, latent_dim=64, hidden_dim=32, feature_dim=8)
+B = 4
+
+
+def _batch(key, far=False):
+    k = jax.random.split(key, 6)
+    img = lambda kk: jax.random.randint(kk, (B, 84, 84, 9), 0, 256).astype(jnp.uint8)  # noqa: E731
+    return Batch(
+        obs=img(k[0]),
+        action=jax.random.uniform(k[1], (B, 2), minval=-1, maxval=1),
+        reward=jax.random.uniform(k[2], (B,)),
+        discount=jnp.full((B,), 0.99),
+        next_obs=img(k[3]),
+        mask=(jax.random.uniform(k[4], (B, 84, 84, 3)) > 0.7).astype(jnp.uint8),
+        far_obs=img(k[5]) if far else None,
+        far_valid=jnp.ones(B) if far else None,
+    )
+
+
+def test_mask_loss_reaches_only_the_agent_half():
+    cfg = update.AgentConfig(method="dear", **SMALL)
+    nets = update.make_networks(cfg)
+    params = update.init_params(cfg, jax.random.key(0))
+    mask = (jax.random.uniform(jax.random.key(1), (B, 84, 84, 3)) > 0.5).astype(jnp.uint8)
+
+    def loss(z):
+        _, z_agent = losses.split_latent(z)
+        logits = nets.mask_decoder.apply({"params": params["mask_decoder"]}, z_agent)
+        return losses.mask_loss(logits, mask)
+
+    g = np.asarray(jax.grad(loss)(jax.random.normal(jax.random.key(2), (B, 64))))
+    assert np.all(g[:, :32] == 0.0)
+    assert np.abs(g[:, 32:]).sum() > 0
+
+
+@pytest.fixture(scope="module")
+def dear():
+    cfg = update.AgentConfig(method="dear", **SMALL)
+    return cfg, update.init(cfg, jax.random.key(0))
+
+
+def test_actor_loss_reaches_no_encoder_parameter(dear):
+    cfg, state = dear
+    batch = _batch(jax.random.key(3))
+    learner = {k: v for k, v in state.params.items() if k != "actor"}
+    hp = update.HParams()
+
+    def actor_loss_of_encoder(encoder_params, stop):
+        ps = {**learner, "encoder": encoder_params}
+        if stop:  # the latent the update hands to the actor step
+            _, (_, z) = update.learner_loss(
+                ps,
+                state.params["actor"],
+                state.target_critic,
+                batch,
+                jax.random.key(4),
+                hp,
+                jnp.float32(0.5),
+                cfg=cfg,
+            )
+        else:  # what the actor step would see without DrQ-v2's detach
+            z = update.make_networks(cfg).encoder.apply({"params": encoder_params}, batch.obs)
+        return update.actor_loss(
+            state.params["actor"], learner["critic"], z, jax.random.key(5), hp, 0.5, cfg=cfg
+        )[0]
+
+    g_stop = jax.grad(actor_loss_of_encoder)(learner["encoder"], True)
+    g_free = jax.grad(actor_loss_of_encoder)(learner["encoder"], False)
+    assert all(np.all(np.asarray(x) == 0.0) for x in jax.tree.leaves(g_stop))
+    assert sum(float(jnp.abs(x).sum()) for x in jax.tree.leaves(g_free)) > 0
+
+
+def test_encoder_learns_from_critic_and_aux_losses(dear):
+    cfg, state = dear
+    learner = {k: v for k, v in state.params.items() if k != "actor"}
+    grads, (metrics, _) = jax.grad(update.learner_loss, has_aux=True)(
+        learner,
+        state.params["actor"],
+        state.target_critic,
+        _batch(jax.random.key(6)),
+        jax.random.key(7),
+        update.HParams(),
+        jnp.float32(0.5),
+        cfg=cfg,
+    )
+    for name in ("encoder", "critic", "mask_decoder"):
+        assert sum(float(jnp.abs(x).sum()) for x in jax.tree.leaves(grads[name])) > 0, name
+    expected = metrics["critic_loss"] + 0.25 * metrics["mask_loss"] + 100.0 * metrics["ortho_loss"]
+    np.testing.assert_allclose(metrics["loss"], expected, rtol=1e-5)
+
+
+def test_one_update_moves_params_and_target_is_ema(dear):
+    cfg, state = dear
+    hp = update.HParams(tau=0.25)
+    new, metrics = jax.jit(functools.partial(update.update, cfg=cfg))(
+        state, _batch(jax.random.key(8)), jax.random.key(9), hp
+    )
+    for name in ("encoder", "actor", "critic", "mask_decoder"):
+        moved = jax.tree.map(
+            lambda a, b: bool(jnp.any(a != b)), state.params[name], new.params[name]
+        )
+        assert any(jax.tree.leaves(moved)), name
+    ema = jax.tree.map(lambda t, c: 0.75 * t + 0.25 * c, state.target_critic, new.params["critic"])
+    for a, b in zip(jax.tree.leaves(ema), jax.tree.leaves(new.target_critic)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+    assert int(new.updates) == 1 and all(np.isfinite(float(v)) for v in metrics.values())
+
+
+def test_acting_phases_and_schedule(dear):
+    cfg, state = dear
+    obs = jax.random.randint(jax.random.key(10), (8, 84, 84, 9), 0, 256).astype(jnp.uint8)
+    hp = update.HParams(explore_steps=16.0, std_steps=100.0, std_init=1.0, std_final=0.1)
+    act = jax.jit(functools.partial(update.act, cfg), static_argnames="explore")
+    mean, same = act(state, obs, jax.random.key(11), hp, explore=False)
+    assert int(same.steps) == 0
+    a1, s1 = act(state, obs, jax.random.key(12), hp, explore=True)
+    assert int(s1.steps) == 8
+    # During exploration actions are uniform, independent of the policy mean.
+    assert not np.allclose(a1, mean, atol=0.3) and np.all(np.abs(np.asarray(a1)) <= 1.0)
+    late = s1.replace(steps=jnp.int32(10_000))
+    a2, _ = act(late, obs, jax.random.key(13), hp, explore=True)
+    # After the decay, std = 0.1: actions stay near the mean.
+    assert np.abs(np.asarray(a2 - mean)).max() < 0.6
+    np.testing.assert_allclose(update.std_schedule(jnp.float32(50.0), hp), 0.55, rtol=1e-6)
+    np.testing.assert_allclose(update.std_schedule(jnp.float32(500.0), hp), 0.1, rtol=1e-6)
+
+
+def test_sample_action_clips_noise_and_passes_gradient_through_clamp():
+    mean = jnp.array([0.0, 0.999])
+    a = update.sample_action(mean, 10.0, jax.random.key(0), clip=0.3)
+    assert np.all(np.abs(np.asarray(a - mean)) <= 0.3 + 1e-6) and np.all(np.abs(np.asarray(a)) < 1)
+    g = jax.grad(lambda m: update.sample_action(m, 10.0, jax.random.key(0), 0.3).sum())(mean)
+    np.testing.assert_allclose(g, [1.0, 1.0])
+
+
+@pytest.mark.parametrize("method", update.METHODS)
+def test_vmapped_seeds_every_method(method):
+    cfg = update.AgentConfig(method=method, **SMALL)
+    seeds = 2
+    states = jax.vmap(functools.partial(update.init, cfg))(
+        jax.random.split(jax.random.key(0), seeds)
+    )
+    enc = states.params["encoder"]["Dense_0"]["kernel"]
+    assert not np.array_equal(enc[0], enc[1])  # different seeds, different parameters
+    batches = jax.vmap(lambda k: _batch(k, far=method == "ted"))(
+        jax.random.split(jax.random.key(1), seeds)
+    )
+    # Loss weights may differ across the vmapped seeds.
+    hp = update.HParams(alpha=jnp.array([0.25, 1.0]), beta=jnp.array([100.0, 1.0])).for_seeds(seeds)
+    step = jax.jit(jax.vmap(functools.partial(update.update, cfg=cfg)))
+    keys = jax.random.split(jax.random.key(2), seeds)
+    new, metrics = step(states, batches, keys, hp)
+    for name, value in metrics.items():
+        assert value.shape == (seeds,) and np.all(np.isfinite(np.asarray(value))), name
+    again, _ = step(states, batches, keys, hp)  # same seed -> bit-identical result
+    for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(again)):
+        np.testing.assert_array_equal(a, b)
+    if method == "dear":
+        np.testing.assert_allclose(
+            metrics["loss"],
+            metrics["critic_loss"]
+            + hp.alpha * metrics["mask_loss"]
+            + hp.beta * metrics["ortho_loss"],
+            rtol=1e-5,
+        )

@@ -19,7 +19,10 @@ Drawing: each worker renders its samples into "tile sheets": sample k's RGB imag
 segmentation image go to two viewports of one large offscreen buffer, one `mjv_updateScene` per
 sample serves both, and one `mjr_readPixels` per sheet reads everything back (per-frame readback
 is what limits throughput, DESIGN.md). Results return through one shared-memory block; only the
-small inputs (qpos, perturbations) are pickled.
+small inputs (qpos, perturbations) are pickled. Measured (benchmarks/results/render_h100.json,
+H100 + 16 cores, walker, 84x84, batch 1024): 64 tiles per sheet 8.1k obs/s with 1 worker and
+24.7k with 16; one tile per sheet 6.4k with 1 worker and ~4.8k with 4-16 (readback contention).
+On Mesa llvmpipe one tile per sheet is faster, and that is the automatic choice there.
 """
 
 from __future__ import annotations
@@ -271,7 +274,14 @@ class TileRenderer:
             d.mocap_quat[:] = mocap_quat[i]
         kinematics(m, d)
         if "cam_sphere" in perturb:
-            lookat = perturb["cam_lookat"][i] if "cam_lookat" in perturb else np.zeros(3)
+            if "cam_lookat" in perturb:
+                lookat = perturb["cam_lookat"][i]
+            elif m.cam_mode[self.cam_id] == mujoco.mjtCamLight.mjCAMLIGHT_FIXED:
+                raise ValueError(
+                    "a fixed camera's perturbation needs 'cam_lookat' with 'cam_sphere'"
+                )
+            else:
+                lookat = None  # tracking cameras look along their own axis
             pos, xmat = perturbed_camera_pose(m, d, self.cam_id, perturb["cam_sphere"][i], lookat)
             d.cam_xpos[self.cam_id] = pos
             d.cam_xmat[self.cam_id] = xmat.reshape(-1)

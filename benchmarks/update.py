@@ -1,0 +1,90 @@
+"""Time the jitted, seed-vmapped learner update (encoder + heads + critic, actor, target EMA).
+
+python benchmarks/update.py [--methods dear drqv2] [--seeds 1 5] [--batch 256] [--iters 20]
+Prints a table and writes JSON to benchmarks/results/update_<platform>.json (or --out).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+
+from dear_jax import update
+from dear_jax.replay import Batch
+
+
+def random_batch(key, batch, action_dim, far):
+    k = jax.random.split(key, 5)
+    img = lambda kk: jax.random.randint(kk, (batch, 84, 84, 9), 0, 256).astype(jnp.uint8)  # noqa: E731
+    return Batch(
+        obs=img(k[0]),
+        action=jax.random.uniform(k[1], (batch, action_dim), minval=-1, maxval=1),
+        reward=jax.random.uniform(k[2], (batch,)),
+        discount=jnp.full((batch,), 0.99),
+        next_obs=img(k[3]),
+        mask=(jax.random.uniform(k[4], (batch, 84, 84, 3)) > 0.8).astype(jnp.uint8),
+        far_obs=img(k[0]) if far else None,
+        far_valid=jnp.ones(batch) if far else None,
+    )
+
+
+def time_update(method: str, seeds: int, batch: int, iters: int, action_dim: int = 6) -> dict:
+    cfg = update.AgentConfig(action_dim=action_dim, method=method)
+    states = jax.jit(jax.vmap(functools.partial(update.init, cfg)))(
+        jax.random.split(jax.random.key(0), seeds)
+    )
+    batches = jax.vmap(lambda k: random_batch(k, batch, action_dim, method == "ted"))(
+        jax.random.split(jax.random.key(1), seeds)
+    )
+    hp = update.HParams().for_seeds(seeds)
+    step = jax.jit(jax.vmap(functools.partial(update.update, cfg=cfg)), donate_argnums=0)
+    keys = jax.random.split(jax.random.key(2), (iters + 1, seeds))
+    t0 = time.perf_counter()
+    states, metrics = step(states, batches, keys[0], hp)
+    jax.block_until_ready(metrics)
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for i in range(iters):
+        states, metrics = step(states, batches, keys[i + 1], hp)
+    jax.block_until_ready(metrics)
+    ms = (time.perf_counter() - t0) / iters * 1e3
+    return dict(
+        method=method, seeds=seeds, batch=batch, ms_per_call=ms, ms_per_seed_update=ms / seeds,
+        compile_s=compile_s,
+    )
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--methods", nargs="+", default=["dear"], choices=update.METHODS)
+    parser.add_argument("--seeds", nargs="+", type=int, default=[1, 5])
+    parser.add_argument("--batch", type=int, default=256)
+    parser.add_argument("--iters", type=int, default=20)
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args()
+    device = jax.devices()[0]
+    rows = [
+        time_update(m, s, args.batch, args.iters) for m in args.methods for s in args.seeds
+    ]
+    print(f"device: {device.device_kind} ({device.platform}), jax {jax.__version__}")
+    print("| method | seeds | batch | ms per call | ms per seed-update | compile s |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['method']} | {r['seeds']} | {r['batch']} | {r['ms_per_call']:.2f} | "
+            f"{r['ms_per_seed_update']:.2f} | {r['compile_s']:.1f} |"
+        )
+    out = pathlib.Path(args.out or f"benchmarks/results/update_{device.platform}.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(dict(device=device.device_kind, jax=jax.__version__, rows=rows), indent=1))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

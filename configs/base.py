@@ -1,0 +1,87 @@
+"""Base configuration: DEAR on walker-walk, the hyperparameters of REFERENCE.md.
+
+Experiment files import `get_config` from here and override a few fields; every field can also be
+overridden on the command line: `python run.py --config configs/walker_dear.py --config.seeds=5`.
+"""
+
+from ml_collections import ConfigDict
+
+TASK_SHORT_NAMES = {"walker": "walker-walk", "cup": "ball_in_cup-catch", "finger": "finger-spin"}
+
+
+def get_config() -> ConfigDict:
+    c = ConfigDict()
+    c.seed = 0  # base seed; seed i of the run uses fold_in(key(seed), i)
+    c.seeds = 3  # seeds trained together in one process (a vmapped axis)
+    c.envs_per_seed = 8  # parallel environments per seed; E / update_every_steps updates per step
+    c.total_frames = 1_000_000  # environment frames per seed (frames = agent steps x action repeat)
+    c.eval_every_frames = 10_000  # per seed
+    c.num_eval_episodes = 10  # per seed, run in parallel
+    c.log_every_frames = 5_000  # per seed: train metrics to CSV / TensorBoard
+    c.checkpoint_every_frames = 100_000  # per seed; 0 disables periodic checkpoints
+    c.keep_checkpoints = 3
+    c.save_replay = False  # put the replay buffers in checkpoints (large: GBs per seed)
+    c.save_video = True  # eval video of env 0 per seed: RGB | true mask | predicted mask
+    c.progress = True  # tqdm progress bar
+
+    c.env = ConfigDict()
+    c.env.task = "walker-walk"  # python -c "import envs; print(envs.names())" lists them
+    c.env.backend = "auto"  # "mjx" | "cpu" | "auto" (MJX when an accelerator is present)
+    c.env.distraction = "none"  # "none" | "easy" | "medium" | "hard" (Distracting Control Suite)
+    c.env.dynamic = False  # distractions move during the episode
+    c.env.background_dir = ""  # DAVIS-2017 root; "" = built-in procedural videos (logged)
+    c.env.mask = "true"  # training mask: "true" | "noisy" | "approximate" (ablations)
+    c.env.mask_drop_prob = 0.8  # for mask="noisy"
+    c.env.action_repeat = 2
+    c.env.episode_frames = 0  # 0 = the task's own length (1000 frames for DMC)
+    c.env.render = ConfigDict()
+    c.env.render.shadows = False
+    c.env.render.reflections = False
+    c.env.render.skybox = False
+    c.env.render.msaa_samples = 0
+    c.env.render.num_workers = 0  # 0 = min(cores, 8) per environment batch
+
+    c.agent = ConfigDict()
+    c.agent.method = "dear"  # "drqv2" | "dear" | "sear" | "ted"
+    c.agent.encoder = "pool"  # "pool" | "plain" (DrQ-v2's flattened encoder; drqv2 only)
+    c.agent.latent_dim = 4096
+    c.agent.feature_dim = 50
+    c.agent.hidden_dim = 1024
+    c.agent.lr = 1e-4
+    c.agent.ted_lr = 1e-3
+    c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
+    c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)
+    c.agent.beta = 100.0  # orthogonality loss weight (DEAR)
+    c.agent.recon_weight = 1.0  # SEAR
+    c.agent.ted_weight = 100.0  # TED
+    c.agent.ted_far_max = 50  # TED's same-episode negatives: 2..ted_far_max steps away
+    c.agent.tau = 0.01
+    c.agent.stddev_clip = 0.3
+    c.agent.std_init = 1.0
+    c.agent.std_final = 0.1
+    c.agent.std_steps = 500_000  # agent steps of the linear std decay
+    c.agent.explore_steps = 2000  # agent steps of uniform random actions per seed
+    c.agent.batch_size = 256
+    c.agent.nstep = 3
+    c.agent.discount = 0.99
+    c.agent.update_every_steps = 2  # one update per this many agent steps per seed
+
+    c.replay = ConfigDict()
+    c.replay.capacity = (
+        250_000  # entries per seed (DEAR's; DrQ-v2 used 1M, which does not fit 5 seeds)
+    )
+    c.replay.seed_frames = 4000  # frames per seed collected before the first update
+    return c
+
+
+def make(task: str, method: str, distracting: bool) -> ConfigDict:
+    """The config of one experiment of the paper's grid (task short name, method, distraction)."""
+    c = get_config()
+    c.env.task = TASK_SHORT_NAMES[task]
+    c.agent.method = method
+    if task == "walker":  # DrQ-v2's walker settings
+        c.agent.nstep = 1
+        c.agent.batch_size = 512
+    if distracting:
+        c.env.distraction = "medium"
+    return c

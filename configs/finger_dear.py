@@ -1,0 +1,7 @@
+"""DEAR on finger-spin, no distraction."""
+
+import functools
+
+from configs.base import make
+
+get_config = functools.partial(make, "finger", "dear", distracting=False)

@@ -1,0 +1,7 @@
+"""SEAR on finger-spin, no distraction."""
+
+import functools
+
+from configs.base import make
+
+get_config = functools.partial(make, "finger", "sear", distracting=False)

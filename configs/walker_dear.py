@@ -1,0 +1,7 @@
+"""DEAR on walker-walk, no distraction."""
+
+import functools
+
+from configs.base import make
+
+get_config = functools.partial(make, "walker", "dear", distracting=False)

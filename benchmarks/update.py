@@ -34,8 +34,10 @@ def random_batch(key, batch, action_dim, far):
     )
 
 
-def time_update(method: str, seeds: int, batch: int, iters: int, action_dim: int = 6) -> dict:
-    cfg = update.AgentConfig(action_dim=action_dim, method=method)
+def time_update(
+    method: str, seeds: int, batch: int, iters: int, dtype: str = "float32", action_dim: int = 6
+) -> dict:
+    cfg = update.AgentConfig(action_dim=action_dim, method=method, compute_dtype=dtype)
     states = jax.jit(jax.vmap(functools.partial(update.init, cfg)))(
         jax.random.split(jax.random.key(0), seeds)
     )
@@ -55,7 +57,13 @@ def time_update(method: str, seeds: int, batch: int, iters: int, action_dim: int
     jax.block_until_ready(metrics)
     ms = (time.perf_counter() - t0) / iters * 1e3
     return dict(
-        method=method, seeds=seeds, batch=batch, ms_per_call=ms, ms_per_seed_update=ms / seeds,
+        dtype=dtype,
+        precision=str(jax.config.jax_default_matmul_precision),
+        method=method,
+        seeds=seeds,
+        batch=batch,
+        ms_per_call=ms,
+        ms_per_seed_update=ms / seeds,
         compile_s=compile_s,
     )
 
@@ -66,23 +74,40 @@ def main():
     parser.add_argument("--seeds", nargs="+", type=int, default=[1, 5])
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--iters", type=int, default=20)
+    parser.add_argument("--dtypes", nargs="+", default=["float32"], choices=["float32", "bfloat16"])
+    parser.add_argument(
+        "--precision",
+        default=None,
+        choices=["default", "tensorfloat32", "float32", "highest"],
+        help="jax_default_matmul_precision for float32 matmuls and convolutions",
+    )
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
+    if args.precision:
+        jax.config.update("jax_default_matmul_precision", args.precision)
     device = jax.devices()[0]
     rows = [
-        time_update(m, s, args.batch, args.iters) for m in args.methods for s in args.seeds
+        time_update(m, s, args.batch, args.iters, d)
+        for d in args.dtypes
+        for m in args.methods
+        for s in args.seeds
     ]
     print(f"device: {device.device_kind} ({device.platform}), jax {jax.__version__}")
-    print("| method | seeds | batch | ms per call | ms per seed-update | compile s |")
-    print("|---|---|---|---|---|---|")
+    print(
+        "| method | dtype | precision | seeds | batch | ms per call | ms per seed-update | compile s |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
-            f"| {r['method']} | {r['seeds']} | {r['batch']} | {r['ms_per_call']:.2f} | "
+            f"| {r['method']} | {r['dtype']} | {r['precision']} | {r['seeds']} | {r['batch']} | "
+            f"{r['ms_per_call']:.2f} | "
             f"{r['ms_per_seed_update']:.2f} | {r['compile_s']:.1f} |"
         )
     out = pathlib.Path(args.out or f"benchmarks/results/update_{device.platform}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(dict(device=device.device_kind, jax=jax.__version__, rows=rows), indent=1))
+    out.write_text(
+        json.dumps(dict(device=device.device_kind, jax=jax.__version__, rows=rows), indent=1)
+    )
     print(f"wrote {out}")
 
 

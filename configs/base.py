@@ -49,6 +49,7 @@ def get_config() -> ConfigDict:
     c.agent.hidden_dim = 1024
     c.agent.lr = 1e-4
     c.agent.ted_lr = 1e-3
+    c.agent.compute_dtype = "float32"  # "bfloat16": encoder/decoder convolutions in bf16
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
     c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)
     c.agent.beta = 100.0  # orthogonality loss weight (DEAR)

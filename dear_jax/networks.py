@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import flax.linen as nn
 import jax
@@ -19,11 +20,11 @@ CONV_INIT = nn.initializers.orthogonal(math.sqrt(2.0))
 ZEROS = nn.initializers.zeros
 
 
-def _dense(features: int, name: str | None = None) -> nn.Dense:
-    return nn.Dense(features, kernel_init=LINEAR_INIT, bias_init=ZEROS, name=name)
+def _dense(features: int, name: str | None = None, dtype=jnp.float32) -> nn.Dense:
+    return nn.Dense(features, kernel_init=LINEAR_INIT, bias_init=ZEROS, name=name, dtype=dtype)
 
 
-def _conv(features: int, stride: int) -> nn.Conv:
+def _conv(features: int, stride: int, dtype=jnp.float32) -> nn.Conv:
     return nn.Conv(
         features,
         (3, 3),
@@ -31,10 +32,13 @@ def _conv(features: int, stride: int) -> nn.Conv:
         padding="VALID",
         kernel_init=CONV_INIT,
         bias_init=ZEROS,
+        dtype=dtype,
     )
 
 
-def _conv_transpose(features: int, kernel: int, stride: int = 1, output_padding: int = 0):
+def _conv_transpose(
+    features: int, kernel: int, stride: int = 1, output_padding: int = 0, dtype=jnp.float32
+):
     # lax.conv_transpose with explicit (k-1, k-1+op) padding gives PyTorch's ConvTranspose2d size
     # (in-1)*stride + kernel + output_padding, which the reference decoder's shapes rely on.
     pad = (kernel - 1, kernel - 1 + output_padding)
@@ -45,6 +49,7 @@ def _conv_transpose(features: int, kernel: int, stride: int = 1, output_padding:
         padding=(pad, pad),
         kernel_init=CONV_INIT,
         bias_init=ZEROS,
+        dtype=dtype,
     )
 
 
@@ -56,12 +61,14 @@ def preprocess(obs: jax.Array) -> jax.Array:
 class ConvTrunk(nn.Module):
     """The four DrQ-v2 convolutions: 84 -> 41 -> 39 -> 37 -> 35, 32 channels, ReLU after each."""
 
+    dtype: Any = jnp.float32  # computation dtype (parameters stay float32)
+
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
-        x = preprocess(obs)
-        x = nn.relu(_conv(32, 2)(x))
+        x = preprocess(obs).astype(self.dtype)
+        x = nn.relu(_conv(32, 2, self.dtype)(x))
         for _ in range(3):
-            x = nn.relu(_conv(32, 1)(x))
+            x = nn.relu(_conv(32, 1, self.dtype)(x))
         return x
 
 
@@ -69,29 +76,32 @@ class PoolEncoder(nn.Module):
     """DEAR's encoder: conv trunk, 4x4 average pool (35 -> 8), Linear(2048 -> latent_dim)."""
 
     latent_dim: int = 4096
+    dtype: Any = jnp.float32
 
     @nn.compact
-    def __call__(self, obs: jax.Array) -> jax.Array:  # uint8 [..., 84, 84, 9] -> [..., latent]
-        x = ConvTrunk()(obs)
+    def __call__(self, obs: jax.Array) -> jax.Array:  # uint8 [..., 84, 84, 9] -> f32 [..., latent]
+        x = ConvTrunk(self.dtype)(obs)
         x = nn.avg_pool(x, (4, 4), strides=(4, 4), padding="VALID")
         x = x.reshape(*x.shape[:-3], -1)
-        return _dense(self.latent_dim)(x)
+        return _dense(self.latent_dim, dtype=self.dtype)(x).astype(jnp.float32)
 
 
 class PlainEncoder(nn.Module):
     """DrQ-v2's encoder: conv trunk flattened (35*35*32 = 39200), no projection."""
 
+    dtype: Any = jnp.float32
+
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
-        x = ConvTrunk()(obs)
-        return x.reshape(*x.shape[:-3], -1)
+        x = ConvTrunk(self.dtype)(obs)
+        return x.reshape(*x.shape[:-3], -1).astype(jnp.float32)
 
 
-def encoder_module(kind: str, latent_dim: int) -> nn.Module:
+def encoder_module(kind: str, latent_dim: int, dtype: Any = jnp.float32) -> nn.Module:
     if kind == "pool":
-        return PoolEncoder(latent_dim)
+        return PoolEncoder(latent_dim, dtype)
     if kind == "plain":
-        return PlainEncoder()
+        return PlainEncoder(dtype)
     raise ValueError(f"unknown encoder {kind!r}; valid: 'pool', 'plain'")
 
 
@@ -153,15 +163,18 @@ class PoolDecoder(nn.Module):
     """
 
     out_channels: int
+    dtype: Any = jnp.float32
 
     @nn.compact
     def __call__(self, z: jax.Array) -> jax.Array:
-        x = nn.relu(_dense(16 * 8 * 8)(z))
+        dt = self.dtype
+        x = nn.relu(_dense(16 * 8 * 8, dtype=dt)(z))
         x = x.reshape(*x.shape[:-1], 8, 8, 16)
-        x = nn.relu(_conv_transpose(16, 4, stride=4, output_padding=3)(x))
+        x = nn.relu(_conv_transpose(16, 4, stride=4, output_padding=3, dtype=dt)(x))
         for features in (32, 32, 32):
-            x = nn.relu(_conv_transpose(features, 3)(x))
-        return _conv_transpose(self.out_channels, 3, stride=2, output_padding=1)(x)
+            x = nn.relu(_conv_transpose(features, 3, dtype=dt)(x))
+        out = _conv_transpose(self.out_channels, 3, stride=2, output_padding=1, dtype=dt)(x)
+        return out.astype(jnp.float32)
 
 
 class TEDClassifier(nn.Module):

@@ -102,6 +102,7 @@ def agent_config(config: ConfigDict, action_dim: int) -> update.AgentConfig:
         lr=a.lr,
         ted_lr=a.ted_lr,
         ortho_form=a.ortho_form,
+        compute_dtype=a.compute_dtype,
     )
 
 

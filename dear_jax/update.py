@@ -43,6 +43,7 @@ class AgentConfig:
     obs_shape: tuple[int, int, int] = (84, 84, 9)
     frame_stack: int = 3
     augment_pad: int = 4
+    compute_dtype: str = "float32"  # "bfloat16": convolutions of encoder and decoders in bf16
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -50,6 +51,10 @@ class AgentConfig:
         if self.ortho_form not in losses.ORTHOGONALITY_FORMS:
             raise ValueError(
                 f"unknown ortho_form {self.ortho_form!r}; valid: {losses.ORTHOGONALITY_FORMS}"
+            )
+        if self.compute_dtype not in ("float32", "bfloat16"):
+            raise ValueError(
+                f"unknown compute_dtype {self.compute_dtype!r}; valid: 'float32', 'bfloat16'"
             )
         if self.method != "drqv2" and self.encoder != "pool":
             raise ValueError(
@@ -102,12 +107,15 @@ class Networks:
 
 
 def make_networks(cfg: AgentConfig) -> Networks:
+    dtype = jnp.dtype(cfg.compute_dtype)
     return Networks(
-        encoder=networks.encoder_module(cfg.encoder, cfg.latent_dim),
+        encoder=networks.encoder_module(cfg.encoder, cfg.latent_dim, dtype),
         actor=networks.Actor(cfg.action_dim, cfg.feature_dim, cfg.hidden_dim),
         critic=networks.Critic(cfg.feature_dim, cfg.hidden_dim),
-        mask_decoder=networks.PoolDecoder(cfg.frame_stack) if cfg.uses_mask else None,
-        recon_decoder=networks.PoolDecoder(cfg.obs_shape[-1]) if cfg.method == "sear" else None,
+        mask_decoder=networks.PoolDecoder(cfg.frame_stack, dtype) if cfg.uses_mask else None,
+        recon_decoder=(
+            networks.PoolDecoder(cfg.obs_shape[-1], dtype) if cfg.method == "sear" else None
+        ),
         ted=networks.TEDClassifier() if cfg.method == "ted" else None,
     )
 

@@ -1,0 +1,203 @@
+"""End-to-end training throughput, and where an iteration's time goes.
+
+    python benchmarks/train.py --config configs/walker_dear.py --seeds 5 --envs 8 --frames 20000
+
+1. Throughput: the real `dear_jax.train.train` loop (rendering overlapped with updates) runs
+   `--warmup-frames` + `--frames` frames per seed; aggregate env frames/s is read from its train
+   log over the intervals after warm-up (updates compiled and running).
+2. Split: the stages of one iteration timed one by one, each synchronised (so their sum is what
+   the loop would cost without overlap): physics (dispatch + compute), physics-state transfer to
+   the host, render (RGB + labels), upload + compositing/masks/stack, the E/update_every updates
+   per seed, and acting + replay insertion ("other").
+Prints tables and writes JSON to benchmarks/results/train_<device>.json (or --out).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import runpy
+import tempfile
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dear_jax import replay, train, update
+from dear_jax.logger import format_table, read_csv
+
+PYTORCH_ANCHOR_FPS = (
+    262.0  # DESIGN.md: PyTorch pipeline of the reference's shape, 5 processes, H100
+)
+
+
+def bench_config(args):
+    c = runpy.run_path(args.config)["get_config"]()
+    c.seeds, c.envs_per_seed = args.seeds, args.envs
+    c.replay.seed_frames = args.warmup_frames // 2
+    c.total_frames = args.warmup_frames + args.frames
+    c.log_every_frames = args.log_every
+    c.eval_every_frames = 10**9  # only the closing evaluation
+    c.num_eval_episodes = 1
+    c.env.episode_frames = 0
+    c.checkpoint_every_frames = 0
+    c.save_video = False
+    c.progress = False
+    c.replay.capacity = min(c.replay.capacity, args.capacity)
+    c.agent.compute_dtype = args.dtype
+    return c
+
+
+def throughput(config, warmup_frames) -> dict:
+    with tempfile.TemporaryDirectory() as workdir:
+        t0 = time.perf_counter()
+        summary = train.train(config, workdir)
+        total_s = time.perf_counter() - t0
+        logs = [read_csv(p) for p in sorted(pathlib.Path(workdir).glob("seed_0/train.csv"))][0]
+    frames, fps = logs["frame"], logs["fps"]
+    after = frames > warmup_frames + config.log_every_frames  # skip the interval with the compile
+    return dict(
+        aggregate_fps=float(np.mean(fps[after])) if after.any() else float("nan"),
+        fps_rows=fps[after].tolist(),
+        total_s=total_s,
+        updates_per_seed=summary["updates_per_seed"],
+    )
+
+
+def _timed(fn, reps):
+    out = fn()
+    jax.block_until_ready(out)
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        out = fn()
+        jax.block_until_ready(out)
+    return (time.perf_counter() - t0) / reps * 1e3, out
+
+
+def stage_split(config, reps) -> dict:
+    """Milliseconds per loop iteration, each stage synchronised on its own."""
+    num_seeds, num_envs = config.seeds, config.envs_per_seed
+    env = train.make_env(config, envs_per_seed=num_envs, split="train", seed=0)
+    try:
+        spec = env.spec
+        acfg = train.agent_config(config, spec.action_dim)
+        hp = train.hparams(config).for_seeds(num_seeds)
+        programs = train.build_programs(acfg, hp, config)
+        agent = jax.jit(jax.vmap(lambda k: update.init(acfg, k)))(
+            jax.random.split(jax.random.key(0), num_seeds)
+        )
+        buffer = replay.init(
+            config.replay.capacity,
+            num_envs,
+            spec.frame_shape,
+            spec.action_dim,
+            leading=(num_seeds,),
+        )
+        state, ts = env.reset(jax.random.key(1))
+        action = jnp.zeros((num_seeds, num_envs, spec.action_dim))
+        buffer = programs.add(buffer, ts, action)
+        for _ in range(8):  # a few rows so that sampling has transitions
+            state, ts = env.step(state, action)
+            buffer = programs.add(buffer, ts, action)
+        n_updates = max(1, num_envs // config.agent.update_every_steps)
+        key = jax.random.key(2)
+        ms = {}
+        ms["physics"], (phys, _) = _timed(lambda: env.physics.step(state.physics, action), reps)
+        ms["transfer to host"], qpos = _timed(
+            lambda: np.asarray(env.physics.qpos(phys)).reshape(env.batch, -1), reps
+        )
+        perturb = env._distractor.perturb()
+        ms["render"], _ = _timed(lambda: env._pool.render(qpos, perturb=perturb), reps)
+        env_ms, _ = _timed(lambda: env.step(state, action)[1], reps)
+        ms["upload + composite + masks"] = max(
+            env_ms - ms["physics"] - ms["transfer to host"] - ms["render"], 0.0
+        )
+        # The loop's programs donate their first argument: thread it through the repetitions.
+        held = {"agent": agent, "buffer": buffer}
+
+        def learn():
+            held["agent"], metrics = programs.learn(held["agent"], held["buffer"], key, n_updates)
+            return metrics
+
+        def act():
+            out, held["agent"] = programs.act(held["agent"], ts.obs, key)
+            return out
+
+        def add():
+            held["buffer"] = programs.add(held["buffer"], ts, action)
+            return held["buffer"].pos
+
+        ms["update"], _ = _timed(learn, reps)
+        ms["other (act + replay add)"] = _timed(act, reps)[0] + _timed(add, reps)[0]
+        return dict(
+            ms=ms,
+            n_updates=n_updates,
+            frames_per_iteration=num_seeds * num_envs * spec.action_repeat,
+        )
+    finally:
+        env.close()
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--config", default="configs/walker_dear.py")
+    p.add_argument("--seeds", type=int, default=5)
+    p.add_argument("--envs", type=int, default=8)
+    p.add_argument("--frames", type=int, default=20_000, help="measured frames per seed")
+    p.add_argument("--warmup-frames", type=int, default=4000)
+    p.add_argument("--log-every", type=int, default=2000)
+    p.add_argument("--capacity", type=int, default=100_000)
+    p.add_argument("--dtype", default="float32", choices=["float32", "bfloat16"])
+    p.add_argument("--reps", type=int, default=10)
+    p.add_argument("--skip", nargs="*", default=[], choices=["throughput", "split"])
+    p.add_argument("--out", default=None)
+    args = p.parse_args()
+    config = bench_config(args)
+    device = jax.devices()[0]
+    result = dict(
+        device=device.device_kind,
+        platform=device.platform,
+        config=args.config,
+        seeds=args.seeds,
+        envs_per_seed=args.envs,
+        dtype=args.dtype,
+        batch_size=config.agent.batch_size,
+        method=config.agent.method,
+        task=config.env.task,
+    )
+    if "split" not in args.skip:
+        split = stage_split(config, args.reps)
+        result["split"] = split
+        total = sum(split["ms"].values())
+        rows = [[k, f"{v:.1f}", f"{100 * v / total:.0f}%"] for k, v in split["ms"].items()]
+        rows.append(
+            [
+                "sum (no overlap)",
+                f"{total:.1f}",
+                f"{split['frames_per_iteration'] / total * 1e3:.0f} frames/s",
+            ]
+        )
+        print(
+            f"\nOne iteration: {args.seeds} seeds x {args.envs} envs, "
+            f"{split['n_updates']} updates per seed ({device.device_kind})"
+        )
+        print(format_table(["stage", "ms", "share"], rows))
+    if "throughput" not in args.skip:
+        tp = throughput(config, args.warmup_frames)
+        result["throughput"] = tp
+        print(
+            f"\nEnd to end ({device.device_kind}): {tp['aggregate_fps']:.0f} env frames/s in all "
+            f"({args.seeds} seeds x {args.envs} envs, {config.agent.method}, "
+            f"{config.env.task}); {tp['aggregate_fps'] / PYTORCH_ANCHOR_FPS:.1f}x the PyTorch "
+            f"pipeline's {PYTORCH_ANCHOR_FPS:.0f} frames/s (DESIGN.md)"
+        )
+    out = pathlib.Path(args.out or f"benchmarks/results/train_{device.platform}.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -11,6 +11,7 @@ a few scalars for the logs.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import json
@@ -26,7 +27,7 @@ from ml_collections import ConfigDict
 import envs
 from dear_jax import losses, replay, update
 from dear_jax.checkpoint import Checkpointer
-from dear_jax.logger import RunLogger, format_table
+from dear_jax.logger import RunLogger, format_table, read_csv
 from dear_jax.video import side_by_side, write_video
 
 log = logging.getLogger("dear_jax")
@@ -142,6 +143,7 @@ class Programs:
     add: callable  # (replay, ts, action) -> replay
     evaluate_step: callable  # (agent, obs) -> (actions, cos [S], predicted mask of env 0 [S,H,W])
     accumulate: callable  # (returns [S,E], ts) -> returns
+    add_metrics: callable  # (metrics, metrics) -> elementwise sum
 
 
 def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigDict) -> Programs:
@@ -205,6 +207,7 @@ def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigD
         add=jax.jit(add, donate_argnums=0),
         evaluate_step=jax.jit(evaluate_step),
         accumulate=jax.jit(accumulate),
+        add_metrics=jax.jit(lambda a, b: jax.tree.map(jnp.add, a, b)),
     )
 
 
@@ -258,175 +261,198 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
     validate(config)
     workdir = pathlib.Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    num_seeds, num_envs = config.seeds, config.envs_per_seed
-    a = config.agent
-
-    env = make_env(config, envs_per_seed=num_envs, split="train", seed=config.seed)
-    spec = env.spec
-    replay.check_fits(num_seeds, config.replay.capacity, spec.frame_shape, spec.action_dim)
-    acfg = agent_config(config, spec.action_dim)
-    hp = hparams(config).for_seeds(num_seeds)
-    programs = build_programs(acfg, hp, config)
-
-    root = jax.random.key(config.seed)
-    seed_keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.arange(num_seeds))
-    agent = jax.jit(jax.vmap(functools.partial(update.init, acfg)))(seed_keys)
-    buffer = replay.init(
-        config.replay.capacity, num_envs, spec.frame_shape, spec.action_dim, leading=(num_seeds,)
-    )
-    key = jax.random.fold_in(root, 1_000_003)
-    counters = {"frame": 0, "iteration": 0, "episode": 0, "updates": 0, "wall_s": 0.0}
-
-    ckpt = Checkpointer(
-        workdir / "checkpoints", fingerprint=_fingerprint(config), keep=config.keep_checkpoints
-    )
-    resumed_from = None
-    if ckpt.latest_step() is not None:
-        template = {"agent": agent, "key": jax.random.key_data(key)}
-        if config.save_replay:
-            template["replay"] = buffer
-        step, restored, counters = ckpt.restore(template)
-        agent, key = restored["agent"], jax.random.wrap_key_data(restored["key"])
-        buffer = restored.get("replay", buffer)
-        resumed_from = counters["frame"]
-        log.info("resumed from frame %d (checkpoint %d)", resumed_from, step)
-    (workdir / "config.json").write_text(config.to_json(indent=1))
-
-    logger = RunLogger(workdir, num_seeds, resume_frame=resumed_from)
-    eval_env = make_env(
-        config, envs_per_seed=config.num_eval_episodes, split="val", seed=config.seed + 1
-    )
-    frames_per_row = spec.action_repeat  # frames per seed per env step of one env
-    seed_frames = config.replay.seed_frames
-    if resumed_from is not None and not config.save_replay:
-        seed_frames = resumed_from + config.replay.seed_frames  # refill an empty replay first
-    next_eval = (counters["frame"] // config.eval_every_frames + 1) * config.eval_every_frames
-    next_log = counters["frame"] + config.log_every_frames
-    ckpt_every = config.checkpoint_every_frames
-    next_ckpt = (counters["frame"] // ckpt_every + 1) * ckpt_every if ckpt_every else None
-
-    eval_history = []
-    key, k_reset = jax.random.split(key)
-    state, ts = env.reset(k_reset)
-    buffer = programs.add(buffer, ts, jnp.zeros((num_seeds, num_envs, spec.action_dim)))
-    returns = jnp.zeros((num_seeds, num_envs))
-    metric_sum, metric_count = None, 0
-    episode_returns = []
-    pbar = _pbar(config, config.total_frames, counters["frame"])
-    steps_owed = 0.0  # agent steps per seed not yet matched by updates
-    t_start, wall0 = time.perf_counter(), counters["wall_s"]
-    last_log_t, last_log_frame = t_start, counters["frame"]
-
-    def save(frame):
-        tree = {"agent": agent, "key": jax.random.key_data(key)}
-        if config.save_replay:
-            tree["replay"] = buffer
-        counters["wall_s"] = wall0 + time.perf_counter() - t_start
-        ckpt.save(frame, tree, extra=dict(counters))
-
-    try:
-        while counters["frame"] < config.total_frames:
-            key, k_act, k_learn = jax.random.split(key, 3)
-            action, agent = programs.act(agent, ts.obs, k_act)
-            reset = np.asarray(state.last)
-            future = env.step_async(state, action)
-            if counters["frame"] >= seed_frames:
-                steps_owed += num_envs / a.update_every_steps
-                n = int(steps_owed)
-                if n:
-                    steps_owed -= n
-                    agent, metrics = programs.learn(agent, buffer, k_learn, n)
-                    counters["updates"] += n
-                    metric_sum = (
-                        metrics
-                        if metric_sum is None
-                        else jax.tree.map(jnp.add, metric_sum, metrics)
-                    )
-                    metric_count += 1
-            state, ts = future.result()
-            buffer = programs.add(buffer, ts, action)
-            returns = programs.accumulate(returns, ts)
-            counters["iteration"] += 1
-            if not reset.all():
-                counters["frame"] += frames_per_row
-                if pbar is not None:
-                    pbar.update(frames_per_row)
-            if state.last.all():
-                counters["episode"] += 1
-                episode_returns.append(np.asarray(returns).mean(1))
-
-            frame = counters["frame"]
-            if frame >= next_log and (metric_count or episode_returns):
-                now = time.perf_counter()
-                fps = (frame - last_log_frame) * num_seeds / max(now - last_log_t, 1e-9)
-                row = {
-                    "episode": counters["episode"],
-                    "updates": counters["updates"],
-                    "fps": fps,
-                    "buffer_size": float(np.asarray(buffer.size[0])) * num_envs,
-                }
-                if metric_count:
-                    row.update({k: np.asarray(v) / metric_count for k, v in metric_sum.items()})
-                    metric_sum, metric_count = None, 0
-                if episode_returns:
-                    row["episode_return"] = np.mean(episode_returns, 0)
-                    episode_returns = []
-                logger.write("train", frame, row)
-                if pbar is not None:
-                    pbar.set_postfix(
-                        fps=f"{fps:.0f}", ret=f"{np.mean(row.get('episode_return', np.nan)):.1f}"
-                    )
-                last_log_t, last_log_frame = now, frame
-                next_log = frame + config.log_every_frames
-            if frame >= next_eval or frame >= config.total_frames:
-                key, k_eval = jax.random.split(key)
-                t_eval = time.perf_counter()
-                metrics, clips = evaluate(
-                    eval_env, programs, agent, k_eval, video=config.save_video
-                )
-                wall = wall0 + time.perf_counter() - t_start
-                metrics.update(
-                    wall_s=wall,
-                    eval_s=time.perf_counter() - t_eval,
-                    fps=frame * num_seeds / max(wall, 1e-9),
-                    sec_per_1000_frames=1000.0 / max(frame / max(wall, 1e-9), 1e-9),
-                )
-                logger.write("eval", frame, metrics)
-                eval_history.append((frame, metrics))
-                for s, clip in clips.items():
-                    write_video(workdir / "videos" / f"eval_{frame}_seed{s}.mp4", clip, fps=30)
-                if pbar is not None:
-                    pbar.write(
-                        f"eval @ {frame} frames: return per seed "
-                        f"{np.round(metrics['episode_return'], 1).tolist()}"
-                    )
-                next_eval = (frame // config.eval_every_frames + 1) * config.eval_every_frames
-            if next_ckpt is not None and frame >= next_ckpt:
-                save(frame)
-                next_ckpt = (frame // ckpt_every + 1) * ckpt_every
-        save(counters["frame"])
-    finally:
-        if pbar is not None:
-            pbar.close()
-        logger.close()
-        ckpt.close()
-        env.close()
-        eval_env.close()
-    return write_summary(workdir, config, spec, counters, eval_history)
+    with contextlib.ExitStack() as stack:
+        env = stack.enter_context(
+            make_env(config, envs_per_seed=config.envs_per_seed, split="train", seed=config.seed)
+        )
+        spec = env.spec
+        replay.check_fits(config.seeds, config.replay.capacity, spec.frame_shape, spec.action_dim)
+        ckpt = Checkpointer(
+            workdir / "checkpoints", fingerprint=_fingerprint(config), keep=config.keep_checkpoints
+        )
+        stack.callback(ckpt.close)
+        run = _Run(config, spec, ckpt)
+        (workdir / "config.json").write_text(config.to_json(indent=1))
+        logger = RunLogger(workdir, config.seeds, resume_frame=run.resumed_from)
+        stack.callback(logger.close)
+        eval_env = stack.enter_context(
+            make_env(
+                config, envs_per_seed=config.num_eval_episodes, split="val", seed=config.seed + 1
+            )
+        )
+        run.loop(env, eval_env, logger, workdir)
+    return write_summary(workdir, config, spec, run.counters)
 
 
-def write_summary(workdir, config, spec, counters, eval_history) -> dict:
-    """Summary table per seed (printed, and saved as summary.md / summary.json)."""
+class _Run:
+    """The mutable state of one training run on the host side: agent, replay, keys, counters."""
+
+    def __init__(self, config: ConfigDict, spec: envs.EnvSpec, ckpt: Checkpointer):
+        self.config, self.spec, self.ckpt = config, spec, ckpt
+        num_seeds = config.seeds
+        self.acfg = agent_config(config, spec.action_dim)
+        self.programs = build_programs(self.acfg, hparams(config).for_seeds(num_seeds), config)
+        root = jax.random.key(config.seed)
+        seed_keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.arange(num_seeds))
+        self.agent = jax.jit(jax.vmap(functools.partial(update.init, self.acfg)))(seed_keys)
+        self.buffer = replay.init(
+            config.replay.capacity,
+            config.envs_per_seed,
+            spec.frame_shape,
+            spec.action_dim,
+            leading=(num_seeds,),
+        )
+        self.key = jax.random.fold_in(root, 1_000_003)
+        self.counters = {"frame": 0, "iteration": 0, "episode": 0, "updates": 0, "wall_s": 0.0}
+        self.resumed_from = None
+        if ckpt.latest_step() is not None:
+            step, restored, self.counters = ckpt.restore(self._tree())
+            self.agent = restored["agent"]
+            self.key = jax.random.wrap_key_data(restored["key"])
+            self.buffer = restored.get("replay", self.buffer)
+            self.resumed_from = self.counters["frame"]
+            log.info("resumed from frame %d (checkpoint %d)", self.resumed_from, step)
+
+    def _tree(self) -> dict:
+        tree = {"agent": self.agent, "key": jax.random.key_data(self.key)}
+        if self.config.save_replay:
+            tree["replay"] = self.buffer
+        return tree
+
+    def save(self, wall_s: float) -> None:
+        self.counters["wall_s"] = wall_s
+        self.ckpt.save(self.counters["frame"], self._tree(), extra=dict(self.counters))
+
+    def loop(self, env: envs.Env, eval_env: envs.Env, logger: RunLogger, workdir) -> None:
+        config, spec, programs, counters = self.config, self.spec, self.programs, self.counters
+        num_seeds, num_envs = config.seeds, config.envs_per_seed
+        seed_frames = config.replay.seed_frames
+        if self.resumed_from is not None and not config.save_replay:
+            seed_frames += self.resumed_from  # refill the empty replay before updating again
+        every = lambda n: (counters["frame"] // n + 1) * n  # noqa: E731
+        next_eval = every(config.eval_every_frames)
+        next_log = counters["frame"] + config.log_every_frames
+        ckpt_every = config.checkpoint_every_frames
+        next_ckpt = every(ckpt_every) if ckpt_every else None
+
+        self.key, k_reset = jax.random.split(self.key)
+        state, ts = env.reset(k_reset)
+        self.buffer = programs.add(
+            self.buffer, ts, jnp.zeros((num_seeds, num_envs, spec.action_dim))
+        )
+        returns = jnp.zeros((num_seeds, num_envs))
+        metric_sum, metric_count, episode_returns = None, 0, []
+        steps_owed = 0.0  # agent steps per seed not yet matched by updates
+        pbar = _pbar(config, config.total_frames, counters["frame"])
+        t_start, wall0 = time.perf_counter(), counters["wall_s"]
+        last_log_t, last_log_frame = t_start, counters["frame"]
+        wall = lambda: wall0 + time.perf_counter() - t_start  # noqa: E731
+        try:
+            while counters["frame"] < config.total_frames:
+                self.key, k_act, k_learn = jax.random.split(self.key, 3)
+                action, self.agent = programs.act(self.agent, ts.obs, k_act)
+                reset = np.asarray(state.last)
+                future = env.step_async(state, action)
+                # Updates are dispatched while the env thread renders the next observations.
+                if counters["frame"] >= seed_frames:
+                    steps_owed += num_envs / config.agent.update_every_steps
+                    if n := int(steps_owed):
+                        steps_owed -= n
+                        self.agent, metrics = programs.learn(self.agent, self.buffer, k_learn, n)
+                        counters["updates"] += n
+                        metric_sum = (
+                            metrics
+                            if metric_sum is None
+                            else programs.add_metrics(metric_sum, metrics)
+                        )
+                        metric_count += 1
+                state, ts = future.result()
+                self.buffer = programs.add(self.buffer, ts, action)
+                returns = programs.accumulate(returns, ts)
+                counters["iteration"] += 1
+                if not reset.all():
+                    counters["frame"] += spec.action_repeat
+                    if pbar is not None:
+                        pbar.update(spec.action_repeat)
+                if state.last.all():
+                    counters["episode"] += 1
+                    episode_returns.append(np.asarray(returns).mean(1))
+
+                frame = counters["frame"]
+                if frame >= next_log and (metric_count or episode_returns):
+                    now = time.perf_counter()
+                    row = {
+                        "episode": counters["episode"],
+                        "updates": counters["updates"],
+                        "fps": (frame - last_log_frame) * num_seeds / max(now - last_log_t, 1e-9),
+                    }
+                    if metric_count:
+                        row.update({k: np.asarray(v) / metric_count for k, v in metric_sum.items()})
+                        metric_sum, metric_count = None, 0
+                    if episode_returns:
+                        row["episode_return"] = np.mean(episode_returns, 0)
+                        episode_returns = []
+                    logger.write("train", frame, row)
+                    if pbar is not None:
+                        pbar.set_postfix(fps=f"{row['fps']:.0f}")
+                    last_log_t, last_log_frame = now, frame
+                    next_log = frame + config.log_every_frames
+                if frame >= next_eval or frame >= config.total_frames:
+                    self._evaluate(eval_env, logger, workdir, frame, wall(), pbar)
+                    next_eval = every(config.eval_every_frames)
+                if next_ckpt is not None and frame >= next_ckpt:
+                    self.save(wall())
+                    next_ckpt = every(ckpt_every)
+            if self.ckpt.latest_step() != counters["frame"]:
+                self.save(wall())
+            counters["wall_s"] = wall()
+        finally:
+            if pbar is not None:
+                pbar.close()
+
+    def _evaluate(self, eval_env, logger, workdir, frame, wall_s, pbar) -> None:
+        config = self.config
+        self.key, k_eval = jax.random.split(self.key)
+        t0 = time.perf_counter()
+        metrics, clips = evaluate(
+            eval_env, self.programs, self.agent, k_eval, video=config.save_video
+        )
+        fps_per_seed = frame / max(wall_s, 1e-9)
+        metrics.update(
+            wall_s=wall_s,
+            eval_s=time.perf_counter() - t0,
+            fps=fps_per_seed * config.seeds,
+            sec_per_1000_frames=1000.0 / max(fps_per_seed, 1e-9),
+        )
+        logger.write("eval", frame, metrics)
+        for s, clip in clips.items():
+            write_video(workdir / "videos" / f"eval_{frame}_seed{s}.mp4", clip, fps=30)
+        message = (
+            f"eval @ {frame:,} frames: return per seed "
+            f"{np.round(metrics['episode_return'], 1).tolist()}"
+        )
+        (pbar.write if pbar is not None else log.info)(message)
+
+
+def write_summary(workdir, config, spec, counters) -> dict:
+    """Summary per seed from the eval logs (printed, and saved as summary.md / summary.json)."""
     wall = counters["wall_s"]
     fps = counters["frame"] * config.seeds / max(wall, 1e-9)
     rows, per_seed = [], []
     for s in range(config.seeds):
-        returns = [float(m["episode_return"][s]) for _, m in eval_history]
-        final = returns[-1] if returns else float("nan")
-        best = max(returns) if returns else float("nan")
-        cos = float(eval_history[-1][1]["cos_agent_env"][s]) if eval_history else float("nan")
-        per_seed.append(dict(seed=s, final_return=final, best_return=best, cos_agent_env=cos))
-        rows.append([s, f"{final:.1f}", f"{best:.1f}", f"{cos:.2e}"])
+        path = workdir / f"seed_{s}" / "eval.csv"
+        evals = read_csv(path) if path.exists() else {}
+        returns = evals.get("episode_return", np.array([np.nan]))
+        cos = evals.get("cos_agent_env", np.array([np.nan]))
+        per_seed.append(
+            dict(
+                seed=s,
+                final_return=float(returns[-1]),
+                best_return=float(np.nanmax(returns)),
+                cos_agent_env=float(cos[-1]),
+            )
+        )
+        rows.append([s, f"{returns[-1]:.1f}", f"{np.nanmax(returns):.1f}", f"{cos[-1]:.2e}"])
     finals = np.array([p["final_return"] for p in per_seed])
     rows.append(["mean", f"{finals.mean():.1f} ± {finals.std():.1f}", "", ""])
     summary = {
@@ -447,7 +473,7 @@ def write_summary(workdir, config, spec, counters, eval_history) -> dict:
     table = format_table(["seed", "final eval return", "best eval return", "cos(z_A, z_E)"], rows)
     text = (
         f"# {config.agent.method} on {config.env.task}\n\n"
-        f"{counters['frame']:,} frames per seed x {config.seeds} seeds in {wall:.0f} s "
+        f"{counters['frame']:,} frames per seed x {config.seeds} seeds, {wall:.0f} s of training "
         f"({fps:.0f} frames/s in all) on {summary['device']} ({spec.backend} physics); "
         f"render settings {summary['render']}\n\n{table}\n"
     )

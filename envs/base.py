@@ -134,11 +134,14 @@ class Env:
         split: str = "train",
         mask: str = "true",
         mask_drop_prob: float = 0.8,
-        render: RenderSettings = RenderSettings(),
+        render: RenderSettings | None = None,
         seed: int = 0,
         action_repeat: int = 2,
-        solver: SolverSettings = SolverSettings(),
+        solver: SolverSettings | None = None,
+        episode_frames: int | None = None,
     ):
+        render = render or RenderSettings()
+        solver = solver or SolverSettings()
         if mask not in MASK_KINDS:
             raise ValueError(f"unknown mask {mask!r}; valid: {', '.join(MASK_KINDS)}")
         distractions.check_difficulty(distraction)
@@ -153,7 +156,8 @@ class Env:
         self._model = task.physics_model()
         self._data = mujoco.MjData(self._model)
         n_sub = task.n_sub_steps(self._model)
-        frames = task.frames_per_episode(self._model)
+        # episode_frames shortens (or lengthens) episodes, e.g. for smoke runs and tests.
+        frames = int(episode_frames) if episode_frames else task.frames_per_episode(self._model)
         if frames % action_repeat:
             raise ValueError(f"{frames} frames per episode not divisible by {action_repeat}")
         backend = resolve_backend(backend)

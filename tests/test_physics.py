@@ -107,3 +107,51 @@ def test_solver_settings_reach_the_model():
 def test_backend_names():
     with pytest.raises(ValueError, match="valid: mjx, cpu, auto"):
         make_physics("gpu", None, None, n_sub_steps=1, action_repeat=1)
+
+
+# ---------------------------------------------------------------------------------------------
+# The Env on the MJX backend (compiled on the CPU here) against the Env on CPU MuJoCo.
+
+
+def test_env_mjx_backend_matches_cpu_and_resets_per_env():
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    import envs
+
+    def run(backend):
+        with envs.make(
+            "finger-spin",
+            num_seeds=1,
+            envs_per_seed=2,
+            backend=backend,
+            render=envs.RenderSettings(num_workers=1),
+        ) as env:
+            assert env.spec.backend == backend
+            state, ts = env.reset(jax.random.key(5))
+            out = [(np.asarray(state.physics.qpos), ts)]
+            action = jnp.asarray([[[0.8, -0.5], [-0.3, 0.9]]], jnp.float32)
+            for _ in range(3):
+                state, ts = env.step(state, action)
+                out.append((np.asarray(state.physics.qpos), ts))
+            # Env 0 ends its episode now, env 1 does not (a kitchen-style terminal).
+            state = dataclasses.replace(state, last=np.array([[True, False]]))
+            state, ts = env.step(state, action)
+            out.append((np.asarray(state.physics.qpos), ts))
+        return out
+
+    cpu, mjx_ = run("cpu"), run("mjx")
+    for (q_cpu, ts_cpu), (q_mjx, ts_mjx) in zip(cpu, mjx_, strict=True):
+        np.testing.assert_allclose(q_mjx, q_cpu, atol=2e-3)
+        np.testing.assert_allclose(np.asarray(ts_mjx.reward), np.asarray(ts_cpu.reward), atol=1e-6)
+        diff = np.abs(np.asarray(ts_mjx.frame, int) - np.asarray(ts_cpu.frame, int))
+        assert diff.mean() < 1.0
+    (q_before, _), (q_after, ts) = mjx_[-2], mjx_[-1]
+    np.testing.assert_array_equal(np.asarray(ts.first), [[True, False]])
+    assert float(ts.reward[0, 0]) == 0.0
+    assert not np.allclose(q_after[0, 0], q_before[0, 0])  # env 0 restarted
+    obs = np.asarray(ts.obs)
+    np.testing.assert_array_equal(obs[0, 0, ..., 0:3], obs[0, 0, ..., 6:9])
+    assert not np.array_equal(obs[0, 1, ..., 0:3], obs[0, 1, ..., 6:9])  # env 1 kept stacking

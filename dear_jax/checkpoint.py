@@ -1,0 +1,245 @@
+"""Checkpoints of a run: orbax `CheckpointManager`, atomic, the last k kept, guarded by a fingerprint.
+
+Each checkpoint step holds two orbax items:
+  state  the pytree of arrays (agent states vmapped over seeds, RNG key data, optionally replay);
+  meta   json: {"fingerprint": the config fields a resume must match, "extra": host counters}.
+
+Atomicity is orbax's: a step is written into `<step>.orbax-checkpoint-tmp*` and renamed to
+`<step>` only after every file is on disk, so a process killed mid-save leaves the earlier steps
+untouched; the stale temporary folder is ignored by `latest_step` and deleted the next time a
+`Checkpointer` opens the folder.
+
+Typed JAX PRNG keys (`jax.random.key`) are stored as their uint32 key data and re-wrapped on
+restore with the template's key implementation, so callers may pass either form.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import orbax.checkpoint as ocp
+
+log = logging.getLogger(__name__)
+
+_STATE, _META = "state", "meta"
+
+
+class IncompatibleCheckpointError(ValueError):
+    """The checkpoint was written by a run whose fingerprint (config) differs from this one."""
+
+
+def _jsonable(value: Any, what: str) -> Any:
+    """`value` as json would give it back (tuples -> lists), so saved and current compare equal."""
+    try:
+        return json.loads(json.dumps(value))
+    except (TypeError, ValueError) as e:
+        raise TypeError(
+            f"{what} must be json-serialisable (numbers, strings, lists, dicts): {e}"
+        ) from e
+
+
+def _is_key(x: Any) -> bool:
+    return isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
+def _to_storable(x: Any) -> Any:
+    if _is_key(x):
+        return jax.random.key_data(x)
+    if isinstance(x, jax.Array):
+        return x
+    return np.asarray(x)  # python / numpy scalars become 0-d arrays, so every leaf is an array
+
+
+def _abstract(x: Any) -> jax.ShapeDtypeStruct:
+    """What orbax should restore a template leaf as: same shape and dtype, same device(s)."""
+    if _is_key(x):
+        x = jax.random.key_data(x)
+    if isinstance(x, jax.Array):
+        sharding = x.sharding
+    else:
+        x = np.asarray(x)
+        sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
+
+
+def _key_name(entry) -> str:
+    for attr in ("key", "name", "idx"):  # DictKey, GetAttrKey, SequenceKey / FlattenedIndexKey
+        if hasattr(entry, attr):
+            return str(getattr(entry, attr))
+    return str(entry)
+
+
+def _named_leaves(tree: Any) -> list[tuple[str, Any]]:
+    """Leaves with orbax's names ("agent.opt_state.0.mu.encoder.kernel")."""
+    flat, _ = jax.tree_util.tree_flatten_with_path(tree)
+    return [(".".join(_key_name(e) for e in path), leaf) for path, leaf in flat]
+
+
+def fingerprint_diff(saved: Mapping, now: Mapping) -> list[str]:
+    """Lines "key: saved=..., now=..." for every key whose value differs (or is on one side)."""
+    missing = "<absent>"
+    lines = []
+    for key in sorted(set(saved) | set(now), key=str):
+        a, b = saved.get(key, missing), now.get(key, missing)
+        if a != b:
+            lines.append(f"{key}: saved={a!r}, now={b!r}")
+    return lines
+
+
+class Checkpointer:
+    """Save / restore (state pytree, json extra) per step in `directory`, keeping the last `keep`.
+
+    `save` blocks until the step is committed unless `asynchronous=True`; then it returns once the
+    arrays are copied off the accelerator and the files are written in the background (`wait()`
+    blocks; the next save, restore and close wait first).
+    """
+
+    def __init__(
+        self,
+        directory: str | os.PathLike,
+        *,
+        fingerprint: dict,
+        keep: int = 3,
+        asynchronous: bool = False,
+    ):
+        if keep < 1:
+            raise ValueError(f"keep must be >= 1, got {keep}")
+        self.directory = os.path.abspath(os.fspath(directory))
+        self.fingerprint = _jsonable(dict(fingerprint), "fingerprint")
+        options = ocp.CheckpointManagerOptions(
+            max_to_keep=keep,
+            create=True,
+            cleanup_tmp_directories=True,  # a save killed half way left one behind
+            enable_async_checkpointing=asynchronous,
+        )
+        self._manager = ocp.CheckpointManager(
+            self.directory, options=options, item_names=(_STATE, _META)
+        )
+
+    def all_steps(self) -> list[int]:
+        return sorted(self._manager.all_steps())
+
+    def latest_step(self) -> int | None:
+        return self._manager.latest_step()
+
+    def wait(self) -> None:
+        """Block until an asynchronous save has been committed."""
+        self._manager.wait_until_finished()
+
+    def save(self, step: int, state: Any, *, extra: dict | None = None) -> bool:
+        """Write `state` (pytree of arrays) and `extra` (json) as checkpoint `step`.
+
+        Returns False (and writes nothing) if `step` is already saved: the loop may ask for the
+        final frame's checkpoint right after a periodic one at the same frame.
+        """
+        step = int(step)
+        self.wait()
+        if step in self._manager.all_steps():
+            log.info("checkpoint %d already exists in %s; not rewritten", step, self.directory)
+            return False
+        meta = {"fingerprint": self.fingerprint, "extra": _jsonable(extra or {}, "extra")}
+        saved = self._manager.save(
+            step,
+            args=ocp.args.Composite(
+                **{
+                    _STATE: ocp.args.StandardSave(jax.tree.map(_to_storable, state)),
+                    _META: ocp.args.JsonSave(meta),
+                }
+            ),
+        )
+        return bool(saved)
+
+    def read_meta(self, step: int | None = None) -> tuple[int, dict, dict]:
+        """(step, stored fingerprint, extra) without reading any array."""
+        step = self._resolve(step)
+        meta = self._manager.restore(
+            step, args=ocp.args.Composite(**{_META: ocp.args.JsonRestore()})
+        )[_META]
+        return step, meta["fingerprint"], meta["extra"]
+
+    def restore(self, template: Any, step: int | None = None) -> tuple[int, Any, dict]:
+        """(step, state shaped like `template`, extra) of `step` (default: the latest).
+
+        Raises IncompatibleCheckpointError before reading arrays if the stored fingerprint differs,
+        and ValueError if the stored arrays do not match the template's structure/shapes/dtypes.
+        """
+        self.wait()
+        step, saved_fp, extra = self.read_meta(step)
+        diff = fingerprint_diff(saved_fp, self.fingerprint)
+        if diff:
+            raise IncompatibleCheckpointError(
+                f"checkpoint {step} in {self.directory} was written by a different "
+                "configuration:\n  "
+                + "\n  ".join(diff)
+                + "\nResume with the original config, or start this one in a new --workdir."
+            )
+        abstract = jax.tree.map(_abstract, template)
+        self._check_dtypes(step, abstract)
+        try:
+            restored = self._manager.restore(
+                step,
+                args=ocp.args.Composite(**{_STATE: ocp.args.StandardRestore(abstract)}),
+            )[_STATE]
+        except ValueError as e:
+            raise ValueError(
+                f"checkpoint {step} in {self.directory} does not match the state template "
+                f"(a code change of the agent or replay layout?): {e}"
+            ) from e
+        restored = jax.tree.map(
+            lambda t, r: (
+                jax.random.wrap_key_data(r, impl=jax.random.key_impl(t)) if _is_key(t) else r
+            ),
+            template,
+            restored,
+        )
+        return step, restored, extra
+
+    def _resolve(self, step: int | None) -> int:
+        steps = self.all_steps()
+        if not steps:
+            raise FileNotFoundError(f"no checkpoint in {self.directory}")
+        if step is None:
+            return steps[-1]
+        if int(step) not in steps:
+            raise FileNotFoundError(
+                f"no checkpoint {step} in {self.directory}; available steps: {steps}"
+            )
+        return int(step)
+
+    def _check_dtypes(self, step: int, abstract: Any) -> None:
+        # orbax casts silently to the requested dtype; a changed dtype means a changed program.
+        stored = self._manager.item_metadata(step)[_STATE]
+        if stored is None:
+            return
+        stored_dtypes = {
+            m.name: np.dtype(m.dtype)
+            for m in jax.tree.leaves(getattr(stored, "tree", stored))
+            if hasattr(m, "name") and getattr(m, "dtype", None) is not None
+        }
+        wrong = [
+            f"{name}: saved {stored_dtypes[name]}, template {leaf.dtype}"
+            for name, leaf in _named_leaves(abstract)
+            if name in stored_dtypes and stored_dtypes[name] != np.dtype(leaf.dtype)
+        ]
+        if wrong:
+            raise ValueError(
+                f"checkpoint {step} in {self.directory} has other dtypes than the template: "
+                + "; ".join(wrong)
+            )
+
+    def close(self) -> None:
+        self._manager.wait_until_finished()
+        self._manager.close()
+
+    def __enter__(self) -> Checkpointer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

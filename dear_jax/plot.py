@@ -1,0 +1,152 @@
+"""Learning curves from run workdirs: `python -m dear_jax.plot WORKDIR [WORKDIR ...]`.
+
+Reads WORKDIR/config.json (agent.method, env.task) and every WORKDIR/seed_*/eval.csv, and draws
+the mean over seeds of one eval metric against frames, with a shaded band (min..max over seeds, or
+mean ± std), one line per workdir and one subplot per task.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import re
+import warnings
+from collections.abc import Sequence
+
+import numpy as np
+
+from dear_jax.logger import read_csv
+
+BANDS = ("minmax", "std")
+_BAND_TEXT = {"minmax": "shaded: min..max over seeds", "std": "shaded: mean ± std over seeds"}
+
+
+class Curve:
+    """One workdir's metric per seed on a shared x grid."""
+
+    def __init__(self, workdir: pathlib.Path, task: str, method: str, x: np.ndarray, y: np.ndarray):
+        self.workdir, self.task, self.method = workdir, task, method
+        self.x = x  # [N] sorted union of the seeds' x values
+        self.y = y  # [S, N], NaN where a seed has no row at that x
+        self.label = method
+
+
+def _seed_index(path: pathlib.Path) -> int:
+    match = re.fullmatch(r"seed_(\d+)", path.parent.name)
+    return int(match.group(1)) if match else -1
+
+
+def load_curve(workdir: str | os.PathLike, metric: str, x: str = "frame") -> Curve:
+    workdir = pathlib.Path(workdir)
+    config_path = workdir / "config.json"
+    if not config_path.is_file():
+        raise FileNotFoundError(f"{config_path} not found: is {workdir} a run's workdir?")
+    config = json.loads(config_path.read_text())
+    method = config.get("agent", {}).get("method", "?")
+    task = config.get("env", {}).get("task", "?")
+    paths = sorted(workdir.glob("seed_*/eval.csv"), key=_seed_index)
+    if not paths:
+        raise FileNotFoundError(
+            f"no eval logs in {workdir}: expected {workdir / 'seed_0' / 'eval.csv'} "
+            "(written after the first evaluation)"
+        )
+    series = []
+    for path in paths:
+        cols = read_csv(path)
+        for name in (x, metric):
+            if name not in cols:
+                raise KeyError(f"{path} has no column {name!r}; columns: {', '.join(cols)}")
+        series.append((cols[x], cols[metric]))
+    grid = np.unique(np.concatenate([xs[np.isfinite(xs)] for xs, _ in series]))
+    y = np.full((len(series), len(grid)), np.nan)
+    for s, (xs, ys) in enumerate(series):
+        ok = np.isfinite(xs)
+        y[s, np.searchsorted(grid, xs[ok])] = ys[ok]
+    return Curve(workdir, task, method, grid, y)
+
+
+def _set_labels(curves: list[Curve]) -> None:
+    several_tasks = len({c.task for c in curves}) > 1
+    for c in curves:
+        c.label = f"{c.task} {c.method}" if several_tasks else c.method
+    counts = {}
+    for c in curves:
+        counts[c.label] = counts.get(c.label, 0) + 1
+    for c in curves:
+        if counts[c.label] > 1:
+            c.label = f"{c.label} ({c.workdir.resolve().name})"
+
+
+def plot(
+    workdirs: Sequence[str | os.PathLike],
+    out: str | os.PathLike | None = None,
+    *,
+    metric: str = "episode_return",
+    x: str = "frame",
+    band: str = "minmax",
+) -> pathlib.Path:
+    """Draw the curves of `workdirs` into a PNG; returns its path."""
+    if not workdirs:
+        raise ValueError("give at least one workdir")
+    if band not in BANDS:
+        raise ValueError(f"unknown band {band!r}; valid: {', '.join(BANDS)}")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    curves = [load_curve(w, metric, x) for w in workdirs]
+    _set_labels(curves)
+    if out is None:
+        out = pathlib.Path(workdirs[0]) / "curves.png" if len(workdirs) == 1 else "curves.png"
+    out = pathlib.Path(out)
+    tasks = list(dict.fromkeys(c.task for c in curves))
+    fig, axes = plt.subplots(
+        1, len(tasks), figsize=(5.5 * len(tasks), 4), squeeze=False, constrained_layout=True
+    )
+    for ax, task in zip(axes[0], tasks):
+        for c in (c for c in curves if c.task == task):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # a seed without a row at some x
+                mean = np.nanmean(c.y, 0)
+                if band == "minmax":
+                    lo, hi = np.nanmin(c.y, 0), np.nanmax(c.y, 0)
+                else:
+                    std = np.nanstd(c.y, 0)
+                    lo, hi = mean - std, mean + std
+            (line,) = ax.plot(c.x, mean, label=f"{c.label} (n={c.y.shape[0]})")
+            ax.fill_between(c.x, lo, hi, color=line.get_color(), alpha=0.2, linewidth=0)
+        ax.set_title(task)
+        ax.set_xlabel(f"{x}s per seed" if x == "frame" else x)
+        ax.set_ylabel(metric)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize="small")
+    fig.suptitle(f"{metric}: mean over seeds; {_BAND_TEXT[band]}", fontsize="medium")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> pathlib.Path:
+    parser = argparse.ArgumentParser(prog="python -m dear_jax.plot", description=__doc__)
+    parser.add_argument("workdirs", nargs="+", help="run workdirs (with config.json, seed_*/)")
+    parser.add_argument(
+        "--out", default=None, help="PNG path (default: WORKDIR/curves.png, ./curves.png if many)"
+    )
+    parser.add_argument("--metric", default="episode_return", help="eval.csv column to plot")
+    parser.add_argument("--x", default="frame", help="eval.csv column for the x axis")
+    parser.add_argument("--band", default="minmax", choices=BANDS, help="shaded band")
+    args = parser.parse_args(argv)
+    try:
+        path = plot(args.workdirs, args.out, metric=args.metric, x=args.x, band=args.band)
+    except (FileNotFoundError, KeyError, ValueError) as e:
+        parser.error(e.args[0] if e.args else str(e))
+    print(path)
+    return path
+
+
+if __name__ == "__main__":
+    main()

@@ -14,6 +14,7 @@ Prints a table and writes JSON (`--out`) with the device and GL renderer names.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -83,9 +84,7 @@ def bench_physics(task, backend, seeds, num_envs, solver, steps):
         seeds=seeds,
         envs=num_envs,
         backend=phys.name,
-        solver=dict(
-            iterations=solver.iterations, ls_iterations=solver.ls_iterations, unroll=solver.unroll
-        ),
+        solver=dataclasses.asdict(solver),
         compile_s=round(compile_s, 2),
         ms_per_step=round(synced_ms, 3),
         ms_per_step_chained=round(chained_ms, 3),
@@ -198,6 +197,8 @@ def main(argv=None):
     p.add_argument("--iterations", type=int, default=SolverSettings.iterations)
     p.add_argument("--ls-iterations", type=int, default=SolverSettings.ls_iterations)
     p.add_argument("--unroll", type=int, default=SolverSettings.unroll)
+    p.add_argument("--solver", default=None, choices=["newton", "cg"])
+    p.add_argument("--no-euler-damping", action="store_true")
     p.add_argument("--workers", type=int, nargs="+", default=[0])
     p.add_argument("--steps", type=int, default=50)
     p.add_argument("--calls", type=int, default=50)
@@ -207,7 +208,13 @@ def main(argv=None):
     args = p.parse_args(argv)
 
     task = dmc.TASKS[args.task]
-    solver = SolverSettings(args.iterations, args.ls_iterations, args.unroll)
+    solver = SolverSettings(
+        args.iterations,
+        args.ls_iterations,
+        args.unroll,
+        solver=args.solver,
+        euler_damping=False if args.no_euler_damping else None,
+    )
     result = dict(
         task=args.task,
         label=args.label,

@@ -14,14 +14,20 @@ Interface (both backends):
 MJX solver settings (`SolverSettings`) are the speed knob. dm_control's XMLs use MuJoCo's
 defaults (Newton, 100 iterations, 50 line-search iterations; finger 200). Measured on CPU for
 walker-walk with a fixed sinusoidal action sequence (4 envs, 25 agent steps, against CPU MuJoCo
-with dm_control's options; tests/test_physics.py keeps the default honest):
-    (iterations, ls_iterations) = (6, 10): identical to 4 decimals; (4, 5): max |qpos| error
-    0.01 after 5 agent steps, 0.15 after 25 (the walker is chaotic once it touches the floor),
-    per-step rewards within 0.085, episode sums within 2%; (2, 5) and (2, 50): qpos off by 1.5
-    after 10 steps, reward sums off by 30%; (1, *): NaN (MJX's single-iteration path).
-So the default is (4, 5): the fewest iterations that keep dm_control's behaviour. On an H100 it
-costs ~25 ms per walker agent step (20 physics steps) at 5 x 8 envs, (6, 10) ~38 ms
-(benchmarks/results/envs_h100.json). `None` keeps the model's own value.
+with dm_control's options; tests/test_physics.py keeps the default honest), as
+(iterations, ls_iterations):
+    (6, 10): identical to 4 decimals.
+    (4, 3) = (4, 5): max |qpos| error 0.01 after 5 agent steps, 0.15 after 25 (the walker is
+        chaotic once it touches the floor), per-step rewards within 0.085, returns within 2%.
+    (4, 5) without Euler damping: 0.005 / 0.16, rewards within 0.057, returns within 1%.
+    (3, 5): returns off by 9%. (2, 5), (2, 50): qpos off by 1.5 after 10 steps, returns by 30%.
+    (4, 5) CG: qpos off by 0.34 after 10 steps. (1, *): NaN (MJX's single-iteration path).
+H100, 5 x 8 envs, ms per walker agent step (20 physics steps; benchmarks/results/envs_h100.json):
+    (4, 5) 24.9, (4, 3) 19.2, (3, 5) 18.3, (4, 5) no Euler damping 22.1, (3, 3) no Euler
+    damping 16.8, (4, 5) CG 20.4, (6, 10) 38.0; unrolling the substep scan or XLA command
+    buffers for while loops did not help (30.3 and 26.6 ms).
+Default: (4, 3), the fastest measured setting that keeps dm_control's behaviour. `None` keeps
+the model's own value.
 
 CPU MuJoCo steps exactly as dm_control's legacy stepping does (`mj_step2`, `mj_step` x (n-1),
 `mj_step1`, so position/velocity fields match the new state when the reward is read). The MJX
@@ -50,8 +56,10 @@ class SolverSettings:
     """MJX solver options (the CPU backend always uses the model's own)."""
 
     iterations: int | None = 4  # Newton iterations per physics step; None: the XML's (100)
-    ls_iterations: int | None = 5  # line-search iterations; None: the XML's (50)
+    ls_iterations: int | None = 3  # line-search iterations; None: the XML's (50)
     unroll: int = 1  # unroll of the scan over physics steps (GPU: fewer loop round trips)
+    solver: str | None = None  # "newton" | "cg"; None: the XML's (Newton)
+    euler_damping: bool | None = None  # implicit joint damping in Euler; None: the XML's (on)
 
 
 def resolve_backend(backend: str) -> str:
@@ -108,6 +116,17 @@ class MjxPhysics:
             model.opt.iterations = solver.iterations
         if solver.ls_iterations is not None:
             model.opt.ls_iterations = solver.ls_iterations
+        if solver.solver is not None:
+            kinds = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
+            if solver.solver not in kinds:
+                raise ValueError(f"unknown solver {solver.solver!r}; valid: newton, cg")
+            model.opt.solver = kinds[solver.solver]
+        if solver.euler_damping is not None:
+            bit = int(mujoco.mjtDisableBit.mjDSBL_EULERDAMP)
+            if solver.euler_damping:
+                model.opt.disableflags &= ~bit
+            else:
+                model.opt.disableflags |= bit
         self.mj_model = model
         self.solver = solver
         self.n_sub_steps = n_sub_steps

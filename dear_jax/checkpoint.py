@@ -9,6 +9,9 @@ Atomicity is orbax's: a step is written into `<step>.orbax-checkpoint-tmp*` and 
 untouched; the stale temporary folder is ignored by `latest_step` and deleted the next time a
 `Checkpointer` opens the folder.
 
+Leaves come back as jax arrays placed like the template's (numpy leaves: on the default device);
+without jax_enable_x64, 64-bit numpy leaves come back as 32-bit, as jax.numpy would make them.
+
 Typed JAX PRNG keys (`jax.random.key`) are stored as their uint32 key data and re-wrapped on
 restore with the template's key implementation, so callers may pass either form.
 """
@@ -29,6 +32,11 @@ import orbax.checkpoint as ocp
 log = logging.getLogger(__name__)
 
 _STATE, _META = "state", "meta"
+
+
+def _skip_unrequested_item(record: logging.LogRecord) -> bool:
+    # Reading only the json item makes orbax warn that the array item was not restored.
+    return "could not be restored" not in record.getMessage()
 
 
 class IncompatibleCheckpointError(ValueError):
@@ -159,9 +167,14 @@ class Checkpointer:
     def read_meta(self, step: int | None = None) -> tuple[int, dict, dict]:
         """(step, stored fingerprint, extra) without reading any array."""
         step = self._resolve(step)
-        meta = self._manager.restore(
-            step, args=ocp.args.Composite(**{_META: ocp.args.JsonRestore()})
-        )[_META]
+        absl_log = logging.getLogger("absl")
+        absl_log.addFilter(_skip_unrequested_item)
+        try:
+            meta = self._manager.restore(
+                step, args=ocp.args.Composite(**{_META: ocp.args.JsonRestore()})
+            )[_META]
+        finally:
+            absl_log.removeFilter(_skip_unrequested_item)
         return step, meta["fingerprint"], meta["extra"]
 
     def restore(self, template: Any, step: int | None = None) -> tuple[int, Any, dict]:
@@ -181,7 +194,7 @@ class Checkpointer:
                 + "\nResume with the original config, or start this one in a new --workdir."
             )
         abstract = jax.tree.map(_abstract, template)
-        self._check_dtypes(step, abstract)
+        self._check_template(step, abstract)
         try:
             restored = self._manager.restore(
                 step,
@@ -213,25 +226,37 @@ class Checkpointer:
             )
         return int(step)
 
-    def _check_dtypes(self, step: int, abstract: Any) -> None:
-        # orbax casts silently to the requested dtype; a changed dtype means a changed program.
-        stored = self._manager.item_metadata(step)[_STATE]
-        if stored is None:
-            return
-        stored_dtypes = {
-            m.name: np.dtype(m.dtype)
-            for m in jax.tree.leaves(getattr(stored, "tree", stored))
-            if hasattr(m, "name") and getattr(m, "dtype", None) is not None
+    def _check_template(self, step: int, abstract: Any) -> None:
+        """Compare names, shapes and dtypes with the stored array metadata before reading.
+
+        orbax would cast a different dtype silently (a changed dtype means a changed program), and
+        its own shape and structure errors leave half-started reads behind.
+        """
+        stored_tree = self._manager.item_metadata(step)[_STATE]
+        stored = {
+            m.name: m
+            for m in jax.tree.leaves(getattr(stored_tree, "tree", stored_tree))
+            if hasattr(m, "name") and hasattr(m, "shape")
         }
-        wrong = [
-            f"{name}: saved {stored_dtypes[name]}, template {leaf.dtype}"
-            for name, leaf in _named_leaves(abstract)
-            if name in stored_dtypes and stored_dtypes[name] != np.dtype(leaf.dtype)
-        ]
-        if wrong:
+        if not stored:
+            return  # no metadata to compare with: orbax checks what it can
+        wanted = dict(_named_leaves(abstract))
+        problems = [f"{n}: not in the template" for n in sorted(set(stored) - set(wanted))]
+        problems += [f"{n}: not in the checkpoint" for n in sorted(set(wanted) - set(stored))]
+        for name in sorted(set(stored) & set(wanted)):
+            m, t = stored[name], wanted[name]
+            if tuple(m.shape) != tuple(t.shape) or np.dtype(m.dtype) != np.dtype(t.dtype):
+                problems.append(
+                    f"{name}: saved {np.dtype(m.dtype)}{list(m.shape)}, "
+                    f"template {np.dtype(t.dtype)}{list(t.shape)}"
+                )
+        if problems:
+            shown = problems[:20] + (
+                [f"... {len(problems) - 20} more"] if len(problems) > 20 else []
+            )
             raise ValueError(
-                f"checkpoint {step} in {self.directory} has other dtypes than the template: "
-                + "; ".join(wrong)
+                f"checkpoint {step} in {self.directory} does not match the state template "
+                "(a code change of the agent or replay layout?):\n  " + "\n  ".join(shown)
             )
 
     def close(self) -> None:

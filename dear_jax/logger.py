@@ -6,7 +6,7 @@ Layout under a run's workdir:
 
 Every write is flushed, so a killed run keeps its logs. A resumed run (`resume_frame`) keeps the
 rows up to the checkpoint's frame and drops the later ones, which the resumed run will log again;
-TensorBoard is told the same through `purge_step`. A fresh run (`resume_frame=None`) starts new
+TensorBoard is told the same through a purge step (SessionLog START). A fresh run (`resume_frame=None`) starts new
 files in place of any left by an earlier run in that workdir.
 """
 
@@ -16,6 +16,7 @@ import csv
 import math
 import os
 import pathlib
+import time
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -57,6 +58,42 @@ def _frame_of(row: dict) -> float:
         return math.nan
 
 
+class _EventWriter:
+    """TensorBoard event file written synchronously.
+
+    tensorboardX's SummaryWriter hands events to a background thread whose queue `flush()` does
+    not drain, so a run killed right after a log call could lose it; here each call is on disk
+    when it returns. Records are tensorboardX's protobufs in its TFRecord writer.
+    """
+
+    def __init__(self, logdir: pathlib.Path, *, purge_step: int | None = None):
+        from tensorboardX.event_file_writer import EventsWriter
+        from tensorboardX.proto import event_pb2, summary_pb2
+
+        self._pb, self._summary_pb = event_pb2, summary_pb2
+        logdir.mkdir(parents=True, exist_ok=True)
+        # The pid keeps two writers started in the same second from sharing a file name.
+        self._writer = EventsWriter(str(logdir / "events"), f".{os.getpid()}")
+        if purge_step is not None:
+            # TensorBoard hides the earlier events at steps >= purge_step: a resumed run's.
+            start = event_pb2.SessionLog(status=event_pb2.SessionLog.START)
+            self._write(event_pb2.Event(step=purge_step, session_log=start))
+
+    def _write(self, event) -> None:
+        event.wall_time = time.time()
+        self._writer.write_event(event)
+        self._writer.flush()
+
+    def scalars(self, step: int, values: Mapping[str, float]) -> None:
+        summary = self._summary_pb.Summary(
+            value=[self._summary_pb.Summary.Value(tag=t, simple_value=x) for t, x in values.items()]
+        )
+        self._write(self._pb.Event(step=step, summary=summary))
+
+    def close(self) -> None:
+        self._writer.close()
+
+
 class RunLogger:
     """CSV + TensorBoard logs of `num_seeds` seeds trained together."""
 
@@ -92,18 +129,13 @@ class RunLogger:
                 if columns:
                     self._columns[(kind, seed)] = columns
         if tensorboard:
-            from tensorboardX import SummaryWriter
-
             for seed in range(num_seeds):
                 tb_dir = self.seed_dir(seed) / "tb"
                 if resume_frame is None and tb_dir.is_dir():
                     for old in tb_dir.glob("events.out.tfevents.*"):
                         old.unlink()
-                # purge_step: TensorBoard hides the old run's events from this frame on.
                 purge = None if resume_frame is None else int(resume_frame) + 1
-                self._writers.append(
-                    SummaryWriter(logdir=str(tb_dir), purge_step=purge, flush_secs=10)
-                )
+                self._writers.append(_EventWriter(tb_dir, purge_step=purge))
 
     def seed_dir(self, seed: int) -> pathlib.Path:
         return self.workdir / f"seed_{seed}"
@@ -137,9 +169,9 @@ class RunLogger:
             self._append(kind, seed, row)
             if self._writers:
                 writer = self._writers[seed]
-                for name, v in values.items():
-                    writer.add_scalar(f"{kind}/{name}", float(v[seed]), global_step=frame)
-                writer.flush()
+                writer.scalars(
+                    frame, {f"{kind}/{name}": float(v[seed]) for name, v in values.items()}
+                )
 
     def _append(self, kind: str, seed: int, row: dict) -> None:
         path = self.csv_path(kind, seed)

@@ -1,0 +1,419 @@
+"""Run outputs: per-seed CSV + TensorBoard logs, orbax checkpoints, eval videos, learning curves."""
+
+import json
+import os
+import pathlib
+import struct
+import subprocess
+import sys
+import textwrap
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from tensorboardX.proto import event_pb2
+
+from dear_jax import plot, update
+from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
+from dear_jax.logger import RunLogger, format_table, read_csv
+from dear_jax.video import SEPARATOR_RGB, side_by_side, write_video
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+
+
+# ---------------------------------------------------------------- logger
+
+
+def test_csv_rows_per_seed_and_scalar_broadcast(tmp_path):
+    with RunLogger(tmp_path, 3, tensorboard=False) as log:
+        log.write("train", 100, {"loss": np.array([0.5, 1.5, 2.5]), "episode": 4, "fps": 12.25})
+        log.write("train", 200, {"loss": np.array([0.25, 1.25, 2.25]), "episode": 8, "fps": 3.0})
+    for seed in range(3):
+        cols = read_csv(tmp_path / f"seed_{seed}" / "train.csv")
+        assert list(cols) == ["frame", "loss", "episode", "fps"]
+        np.testing.assert_array_equal(cols["frame"], [100, 200])
+        np.testing.assert_array_equal(cols["loss"], [0.5 + seed, 0.25 + seed])
+        np.testing.assert_array_equal(cols["episode"], [4, 8])
+        np.testing.assert_array_equal(cols["fps"], [12.25, 3.0])
+    assert not (tmp_path / "seed_3").exists()
+
+
+def test_csv_keeps_full_float_precision_and_nan(tmp_path):
+    value = np.float32(0.1)  # not exactly representable: a short format would change it
+    with RunLogger(tmp_path, 2, tensorboard=False) as log:
+        log.write("eval", 10, {"x": np.array([value, np.nan], np.float32)})
+    assert read_csv(tmp_path / "seed_0" / "eval.csv")["x"][0] == float(value)
+    assert np.isnan(read_csv(tmp_path / "seed_1" / "eval.csv")["x"][0])
+
+
+def test_csv_header_is_the_union_of_metrics(tmp_path):
+    with RunLogger(tmp_path, 2, tensorboard=False) as log:
+        log.write("eval", 10, {"episode_return": np.array([1.0, 2.0])})
+        log.write("eval", 20, {"episode_return": np.array([3.0, 4.0]), "success": 1.0})
+        log.write("eval", 30, {"success": np.array([0.0, 0.5])})
+    path = tmp_path / "seed_1" / "eval.csv"
+    assert path.read_text().splitlines()[0] == "frame,episode_return,success"
+    cols = read_csv(path)
+    np.testing.assert_array_equal(cols["frame"], [10, 20, 30])
+    np.testing.assert_array_equal(cols["episode_return"], [2.0, 4.0, np.nan])
+    np.testing.assert_array_equal(cols["success"], [np.nan, 1.0, 0.5])
+    assert not list(tmp_path.rglob("*.tmp"))
+
+
+def test_write_rejects_bad_kind_and_shape(tmp_path):
+    with RunLogger(tmp_path, 2, tensorboard=False) as log:
+        with pytest.raises(ValueError, match="valid: train, eval"):
+            log.write("test", 0, {"a": 1.0})
+        with pytest.raises(ValueError, match=r"'a' has shape \(3,\).*\(2,\)"):
+            log.write("train", 0, {"a": np.zeros(3)})
+
+
+def test_resume_drops_rows_after_the_checkpoint_frame(tmp_path):
+    with RunLogger(tmp_path, 2, tensorboard=False) as log:
+        for frame in (10, 20, 30, 40):
+            log.write("train", frame, {"r": np.array([frame, -frame])})
+        log.write("eval", 20, {"r": 1.0})
+        log.write("eval", 40, {"r": 2.0})
+    with RunLogger(tmp_path, 2, tensorboard=False, resume_frame=20) as log:
+        np.testing.assert_array_equal(read_csv(tmp_path / "seed_1/train.csv")["r"], [-10, -20])
+        np.testing.assert_array_equal(read_csv(tmp_path / "seed_0/eval.csv")["frame"], [20])
+        log.write("train", 30, {"r": np.array([300, -300])})
+    cols = read_csv(tmp_path / "seed_0" / "train.csv")
+    np.testing.assert_array_equal(cols["frame"], [10, 20, 30])
+    np.testing.assert_array_equal(cols["r"], [10, 20, 300])
+    assert (tmp_path / "seed_0" / "train.csv").read_text().count("frame") == 1
+    # A fresh run in the same workdir starts new files.
+    with RunLogger(tmp_path, 2, tensorboard=False) as log:
+        log.write("train", 5, {"r": 1.0})
+    np.testing.assert_array_equal(read_csv(tmp_path / "seed_0/train.csv")["frame"], [5])
+    assert not (tmp_path / "seed_0" / "eval.csv").exists()
+
+
+def _tfrecords(path):
+    """Records of a TFRecord file: u64 length, u32 crc, payload, u32 crc."""
+    data, pos = path.read_bytes(), 0
+    while pos < len(data):
+        (length,) = struct.unpack("<Q", data[pos : pos + 8])
+        yield data[pos + 12 : pos + 12 + length]
+        pos += 12 + length + 4
+
+
+def _scalars(tb_dir):
+    out = {}
+    for path in sorted(tb_dir.glob("events.out.tfevents.*")):
+        for record in _tfrecords(path):
+            event = event_pb2.Event.FromString(record)
+            for value in event.summary.value:
+                out.setdefault(value.tag, []).append((event.step, value.simple_value))
+    return out
+
+
+def test_tensorboard_scalars_read_back(tmp_path):
+    log = RunLogger(tmp_path, 2)
+    log.write("train", 100, {"loss": np.array([0.5, 1.5]), "fps": 7.0})
+    log.write("eval", 200, {"episode_return": np.array([10.0, 20.0])})
+    # Flushed after each write: readable before close (a killed run keeps its logs).
+    seed1 = _scalars(tmp_path / "seed_1" / "tb")
+    assert seed1 == {
+        "train/loss": [(100, 1.5)],
+        "train/fps": [(100, 7.0)],
+        "eval/episode_return": [(200, 20.0)],
+    }
+    log.close()
+    assert _scalars(tmp_path / "seed_0" / "tb")["train/loss"] == [(100, 0.5)]
+
+
+def test_format_table():
+    table = format_table(["seed", "return", "note"], [[0, "812.5", "ok"], [11, "7.25", ""]])
+    assert table == (
+        "| seed | return | note |\n"
+        "|-----:|-------:|------|\n"
+        "|    0 |  812.5 | ok   |\n"
+        "|   11 |   7.25 |      |"
+    )
+    with pytest.raises(ValueError, match="row 0 has 1 cells; the header has 2"):
+        format_table(["a", "b"], [[1]])
+
+
+# ---------------------------------------------------------------- checkpoints
+
+FINGERPRINT = {"env.task": "walker-walk", "agent.method": "dear", "seeds": 2, "widths": (64, 32)}
+
+
+@pytest.fixture(scope="module")
+def agent_state():
+    """A small AgentState with a leading seed axis of 2 and different values per seed."""
+    cfg = update.AgentConfig(action_dim=2, latent_dim=64, hidden_dim=32, feature_dim=8)
+    one = update.init(cfg, jax.random.key(0))
+    return jax.tree.map(lambda x: jnp.stack([x, x * 3 + 1]), one)
+
+
+def _state(agent, i=0):
+    return {
+        "agent": jax.tree.map(lambda x: x + i, agent),
+        "key": jax.random.key_data(jax.random.split(jax.random.key(7 + i), 2)),
+        "typed_key": jax.random.key(11 + i),
+        "counters": {"updates": np.int32(5 + i), "frame": jnp.int32(1000 * i)},
+    }
+
+
+def _assert_identical(a, b):
+    assert jax.tree.structure(a) == jax.tree.structure(b)
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
+            x, y = jax.random.key_data(x), jax.random.key_data(y)
+        x, y = np.asarray(x), np.asarray(y)
+        assert x.dtype == y.dtype and x.shape == y.shape
+        assert x.tobytes() == y.tobytes()
+
+
+def test_checkpoint_round_trip_is_bit_identical(tmp_path, agent_state):
+    state = _state(agent_state, 1)
+    # Values that survive only if nothing is cast or rounded on the way.
+    state["agent"] = state["agent"].replace(steps=jnp.array([2**31 - 1, -7], jnp.int32))
+    with Checkpointer(tmp_path / "ck", fingerprint=FINGERPRINT) as ckpt:
+        assert ckpt.latest_step() is None
+        ckpt.save(1000, state, extra={"frame": 1000, "wall_s": 12.5, "episode": [1, 2]})
+    template = _state(agent_state, 0)
+    with Checkpointer(tmp_path / "ck", fingerprint=dict(FINGERPRINT)) as ckpt:
+        assert ckpt.latest_step() == 1000
+        step, restored, extra = ckpt.restore(template)
+    assert step == 1000 and extra == {"frame": 1000, "wall_s": 12.5, "episode": [1, 2]}
+    assert isinstance(restored["agent"], update.AgentState)
+    _assert_identical(restored, state)
+    for leaf in jax.tree.leaves(restored):
+        assert isinstance(leaf, jax.Array) and leaf.devices() == {jax.devices()[0]}
+    assert jax.random.key_impl(restored["typed_key"]) == jax.random.key_impl(state["typed_key"])
+    # The restored key draws the same numbers as the saved one.
+    np.testing.assert_array_equal(
+        jax.random.uniform(restored["typed_key"], (3,)),
+        jax.random.uniform(state["typed_key"], (3,)),
+    )
+
+
+def test_keep_last_k_and_same_step(tmp_path, agent_state):
+    with Checkpointer(tmp_path, fingerprint=FINGERPRINT, keep=2) as ckpt:
+        for step in (10, 20, 30):
+            assert ckpt.save(step, _state(agent_state, step), extra={"frame": step})
+        assert ckpt.all_steps() == [20, 30]
+        assert not ckpt.save(30, _state(agent_state, 99))  # already saved: left as it was
+        _, restored, extra = ckpt.restore(_state(agent_state), step=20)
+        assert extra == {"frame": 20}
+        _assert_identical(restored, _state(agent_state, 20))
+        _, restored, _ = ckpt.restore(_state(agent_state))
+        _assert_identical(restored, _state(agent_state, 30))
+        with pytest.raises(FileNotFoundError, match=r"available steps: \[20, 30\]"):
+            ckpt.restore(_state(agent_state), step=10)
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.isdigit()) == ["20", "30"]
+
+
+def test_asynchronous_save(tmp_path, agent_state):
+    with Checkpointer(tmp_path, fingerprint=FINGERPRINT, asynchronous=True) as ckpt:
+        ckpt.save(1, _state(agent_state, 1))
+        ckpt.wait()
+        assert ckpt.latest_step() == 1
+        _, restored, _ = ckpt.restore(_state(agent_state))
+    _assert_identical(restored, _state(agent_state, 1))
+
+
+def test_fingerprint_mismatch_names_every_key(tmp_path):
+    state = {"w": jnp.arange(3.0)}
+    with Checkpointer(tmp_path, fingerprint=FINGERPRINT) as ckpt:
+        ckpt.save(1, state)
+    now = dict(FINGERPRINT, seeds=5, **{"agent.method": "drqv2", "replay.capacity": 100})
+    with Checkpointer(tmp_path, fingerprint=now) as ckpt:
+        with pytest.raises(IncompatibleCheckpointError) as err:
+            ckpt.restore(state)
+    msg = str(err.value)
+    assert "seeds: saved=2, now=5" in msg
+    assert "agent.method: saved='dear', now='drqv2'" in msg
+    assert "replay.capacity: saved='<absent>', now=100" in msg
+    assert "env.task" not in msg and "widths" not in msg  # equal keys are not listed
+    assert "new --workdir" in msg
+
+
+def test_template_mismatch_is_a_clear_error(tmp_path):
+    with Checkpointer(tmp_path, fingerprint=FINGERPRINT) as ckpt:
+        ckpt.save(1, {"w": jnp.arange(3.0), "n": jnp.int32(1)})
+        with pytest.raises(ValueError, match=r"w: saved float32\[3\], template float32\[4\]"):
+            ckpt.restore({"w": jnp.arange(4.0), "n": jnp.int32(1)})
+        with pytest.raises(ValueError, match=r"n: saved int32\[\], template float32\[\]"):
+            ckpt.restore({"w": jnp.arange(3.0), "n": jnp.float32(1)})
+        with pytest.raises(ValueError, match="m: not in the checkpoint") as err:
+            ckpt.restore({"w": jnp.arange(3.0), "m": jnp.int32(1)})
+        assert "n: not in the template" in str(err.value)
+
+
+CRASH_SCRIPT = textwrap.dedent(
+    """
+    import os, sys
+    import jax.numpy as jnp
+    from orbax.checkpoint._src.path import atomicity
+    from dear_jax.checkpoint import Checkpointer
+
+    ckpt = Checkpointer(sys.argv[1], fingerprint={"a": 1})
+    ckpt.save(1, {"w": jnp.arange(1000.0), "n": jnp.int32(1)}, extra={"frame": 1})
+
+    async def die(self):
+        os._exit(17)  # killed after the arrays are written, before the step is committed
+
+    atomicity.AtomicRenameTemporaryPath.finalize = die
+    ckpt.save(2, {"w": jnp.zeros(1000), "n": jnp.int32(2)}, extra={"frame": 2})
+    """
+)
+
+
+def test_crash_mid_save_keeps_previous_checkpoint(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO), JAX_PLATFORMS="cpu")
+    proc = subprocess.run(
+        [sys.executable, "-c", CRASH_SCRIPT, str(tmp_path)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 17, proc.stderr[-2000:]
+    leftovers = [p.name for p in tmp_path.iterdir() if "tmp" in p.name]
+    assert leftovers and all(name.startswith("2.") for name in leftovers)  # the half-written step
+    with Checkpointer(tmp_path, fingerprint={"a": 1}) as ckpt:
+        assert ckpt.latest_step() == 1
+        step, restored, extra = ckpt.restore({"w": jnp.zeros(1000), "n": jnp.int32(0)})
+        assert step == 1 and extra == {"frame": 1} and int(restored["n"]) == 1
+        np.testing.assert_array_equal(restored["w"], np.arange(1000.0))
+        assert not [p for p in tmp_path.iterdir() if "tmp" in p.name]  # cleaned on open
+        assert ckpt.save(2, {"w": jnp.ones(1000), "n": jnp.int32(2)})
+        assert ckpt.all_steps() == [1, 2]
+
+
+# ---------------------------------------------------------------- videos
+
+
+def _clip(t=5, h=12, w=16, seed=0):
+    rng = np.random.default_rng(seed)
+    rgb = rng.integers(0, 256, (t, h, w, 3), dtype=np.uint8)
+    true_mask = rng.integers(0, 2, (t, h, w)).astype(np.uint8)
+    pred = rng.random((t, h, w)).astype(np.float32)
+    return rgb, true_mask, pred
+
+
+def test_side_by_side_layout():
+    rgb, true_mask, pred = _clip()
+    out = side_by_side(rgb, true_mask, pred, upscale=2, separator=3)
+    assert out.dtype == np.uint8 and out.shape == (5, 24, 3 * 32 + 2 * 3, 3)
+    up = lambda x: x.repeat(2, axis=1).repeat(2, axis=2)
+    np.testing.assert_array_equal(out[:, :, :32], up(rgb))
+    np.testing.assert_array_equal(out[:, :, 32:35], np.broadcast_to(SEPARATOR_RGB, (5, 24, 3, 3)))
+    middle = out[:, :, 35:67]
+    np.testing.assert_array_equal(middle[..., 0], up(true_mask) * 255)
+    assert np.all(middle[..., 0] == middle[..., 2])  # grey
+    right = out[:, :, 70:]
+    np.testing.assert_array_equal(right[..., 1], up(np.rint(pred * 255).astype(np.uint8)))
+    assert side_by_side(rgb, true_mask, pred, upscale=1, separator=0).shape == (5, 12, 48, 3)
+
+
+def test_side_by_side_rejects_logits_and_bad_shapes():
+    rgb, true_mask, pred = _clip()
+    with pytest.raises(ValueError, match="pass probabilities, not logits"):
+        side_by_side(rgb, true_mask, pred * 10 - 5)
+    with pytest.raises(ValueError, match=r"masks must be \[T,H,W\]"):
+        side_by_side(rgb, true_mask[:, :-1], pred)
+
+
+def test_video_round_trip(tmp_path):
+    t, h, w = 7, 32, 48
+    yy, xx = np.mgrid[0:h, 0:w]
+    frames = np.stack(
+        [np.stack([xx * 5 + i * 10, yy * 7, np.full_like(xx, 200 - 20 * i)], -1) for i in range(t)]
+    ).astype(np.uint8)  # smooth, distinct frames: a lossy codec keeps them close
+    path = write_video(tmp_path / "videos" / "eval_100_seed0.mp4", frames, fps=15)
+    assert path == tmp_path / "videos" / "eval_100_seed0.mp4"
+    assert [p.name for p in path.parent.iterdir()] == [path.name]  # no temporary file left
+    cap = cv2.VideoCapture(str(path))
+    read = []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        read.append(frame[..., ::-1])  # BGR -> RGB
+    cap.release()
+    assert len(read) == t and read[0].shape == (h, w, 3)
+    error = np.abs(np.stack(read).astype(int) - frames.astype(int)).mean(axis=(1, 2, 3))
+    assert np.all(error < 8), error  # channel order and frame order survive
+    assert np.abs(read[0].astype(int) - frames[-1].astype(int)).mean() > 30
+
+
+def test_video_errors(tmp_path, monkeypatch):
+    frames = np.zeros((2, 8, 8, 3), np.uint8)
+    with pytest.raises(ValueError, match=r"uint8 \[T,H,W,3\]"):
+        write_video(tmp_path / "a.mp4", frames.astype(np.float32))
+
+    class Closed:
+        def __init__(self, *args):
+            pass
+
+        def isOpened(self):
+            return False
+
+    monkeypatch.setattr(cv2, "VideoWriter", Closed)
+    with pytest.raises(RuntimeError, match="OpenCV could not open an mp4v video writer"):
+        write_video(tmp_path / "b.mp4", frames)
+    assert not list(tmp_path.iterdir())
+
+
+# ---------------------------------------------------------------- plots
+
+
+def _fake_workdir(root, name, method, task="walker-walk", offset=0.0):
+    workdir = root / name
+    workdir.mkdir()
+    (workdir / "config.json").write_text(
+        json.dumps({"agent": {"method": method}, "env": {"task": task}})
+    )
+    with RunLogger(workdir, 3, tensorboard=False) as log:
+        for frame in (10_000, 20_000, 30_000):
+            returns = offset + frame / 100 + np.array([0.0, 10.0, 50.0])
+            log.write("eval", frame, {"episode_return": returns, "cos_agent_env": 0.01})
+    return workdir
+
+
+def test_plot_two_workdirs(tmp_path):
+    dear = _fake_workdir(tmp_path, "a", "dear")
+    drq = _fake_workdir(tmp_path, "b", "drqv2", offset=-50)
+    curve = plot.load_curve(dear, "episode_return")
+    np.testing.assert_array_equal(curve.x, [10_000, 20_000, 30_000])
+    np.testing.assert_array_equal(curve.y[:, 0], [100, 110, 150])  # seeds in rows
+    out = plot.main([str(dear), str(drq), "--out", str(tmp_path / "c.png")])
+    assert out == tmp_path / "c.png"
+    image = cv2.imread(str(out))
+    assert image is not None and image.shape[0] > 100 and image.std() > 0
+    # One workdir: the PNG goes into it by default.
+    assert plot.plot([dear], band="std") == dear / "curves.png"
+    assert (dear / "curves.png").stat().st_size > 1000
+
+
+def test_plot_labels():
+    curves = [
+        plot.Curve(pathlib.Path(p), task, m, np.zeros(1), np.zeros((1, 1)))
+        for p, task, m in [
+            ("r/x", "walker", "dear"),
+            ("r/y", "walker", "dear"),
+            ("r/z", "cup", "ted"),
+        ]
+    ]
+    plot._set_labels(curves)
+    assert [c.label for c in curves] == ["walker dear (x)", "walker dear (y)", "cup ted"]
+
+
+def test_plot_errors(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / "config.json").write_text("{}")
+    with pytest.raises(FileNotFoundError, match=r"expected .*seed_0.eval\.csv"):
+        plot.plot([empty])
+    with pytest.raises(FileNotFoundError, match="config.json not found"):
+        plot.plot([tmp_path / "nowhere"])
+    run = _fake_workdir(tmp_path, "run", "dear")
+    with pytest.raises(KeyError, match="no column 'success'; columns: frame, episode_return"):
+        plot.plot([run], metric="success")

@@ -72,8 +72,9 @@ class _EventWriter:
 
         self._pb, self._summary_pb = event_pb2, summary_pb2
         logdir.mkdir(parents=True, exist_ok=True)
-        # The pid keeps two writers started in the same second from sharing a file name.
-        self._writer = EventsWriter(str(logdir / "events"), f".{os.getpid()}")
+        # The name has whole seconds only; the suffix keeps a writer started in the same second
+        # (a quick resume) from truncating the previous file.
+        self._writer = EventsWriter(str(logdir / "events"), f".{time.time_ns()}")
         if purge_step is not None:
             # TensorBoard hides the earlier events at steps >= purge_step: a resumed run's.
             start = event_pb2.SessionLog(status=event_pb2.SessionLog.START)

@@ -103,6 +103,9 @@ def plot(
         out = pathlib.Path(workdirs[0]) / "curves.png" if len(workdirs) == 1 else "curves.png"
     out = pathlib.Path(out)
     tasks = list(dict.fromkeys(c.task for c in curves))
+    # One colour per method (or per workdir label without its task), the same in every subplot.
+    keys = list(dict.fromkeys(c.label.removeprefix(f"{c.task} ") for c in curves))
+    colour = {k: f"C{i % 10}" for i, k in enumerate(keys)}
     fig, axes = plt.subplots(
         1, len(tasks), figsize=(5.5 * len(tasks), 4), squeeze=False, constrained_layout=True
     )
@@ -116,8 +119,12 @@ def plot(
                 else:
                     std = np.nanstd(c.y, 0)
                     lo, hi = mean - std, mean + std
-            (line,) = ax.plot(c.x, mean, label=f"{c.label} (n={c.y.shape[0]})")
-            ax.fill_between(c.x, lo, hi, color=line.get_color(), alpha=0.2, linewidth=0)
+            col = colour[c.label.removeprefix(f"{c.task} ")]
+            marker = "o" if len(c.x) <= 40 else None
+            ax.plot(
+                c.x, mean, color=col, marker=marker, ms=3, label=f"{c.label} (n={c.y.shape[0]})"
+            )
+            ax.fill_between(c.x, lo, hi, color=col, alpha=0.2, linewidth=0)
         ax.set_title(task)
         ax.set_xlabel(f"{x}s per seed" if x == "frame" else x)
         ax.set_ylabel(metric)

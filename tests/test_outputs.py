@@ -125,6 +125,30 @@ def test_tensorboard_scalars_read_back(tmp_path):
     assert _scalars(tmp_path / "seed_0" / "tb")["train/loss"] == [(100, 0.5)]
 
 
+def _session_starts(tb_dir):
+    return [
+        event_pb2.Event.FromString(r).step
+        for path in sorted(tb_dir.glob("events.out.tfevents.*"))
+        for r in _tfrecords(path)
+        if event_pb2.Event.FromString(r).HasField("session_log")
+    ]
+
+
+def test_tensorboard_resume_purges_and_fresh_run_restarts(tmp_path):
+    with RunLogger(tmp_path, 1) as log:
+        log.write("train", 100, {"loss": 1.0})
+        log.write("train", 200, {"loss": 2.0})
+    with RunLogger(tmp_path, 1, resume_frame=100) as log:
+        log.write("train", 200, {"loss": 3.0})
+    tb = tmp_path / "seed_0" / "tb"
+    # TensorBoard drops the old run's events from step 101 on when it meets this marker.
+    assert _session_starts(tb) == [101]
+    assert _scalars(tb)["train/loss"] == [(100, 1.0), (200, 2.0), (200, 3.0)]
+    with RunLogger(tmp_path, 1) as log:
+        log.write("train", 50, {"loss": 5.0})
+    assert _scalars(tb) == {"train/loss": [(50, 5.0)]} and _session_starts(tb) == []
+
+
 def test_format_table():
     table = format_table(["seed", "return", "note"], [[0, "812.5", "ok"], [11, "7.25", ""]])
     assert table == (
@@ -406,7 +430,7 @@ def test_plot_labels():
     assert [c.label for c in curves] == ["walker dear (x)", "walker dear (y)", "cup ted"]
 
 
-def test_plot_errors(tmp_path):
+def test_plot_errors(tmp_path, capsys):
     empty = tmp_path / "empty"
     empty.mkdir()
     (empty / "config.json").write_text("{}")
@@ -414,6 +438,9 @@ def test_plot_errors(tmp_path):
         plot.plot([empty])
     with pytest.raises(FileNotFoundError, match="config.json not found"):
         plot.plot([tmp_path / "nowhere"])
+    with pytest.raises(SystemExit):
+        plot.main([str(empty)])
+    assert "seed_0/eval.csv" in capsys.readouterr().err
     run = _fake_workdir(tmp_path, "run", "dear")
     with pytest.raises(KeyError, match="no column 'success'; columns: frame, episode_return"):
         plot.plot([run], metric="success")

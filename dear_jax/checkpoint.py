@@ -1,4 +1,4 @@
-"""Checkpoints of a run: orbax `CheckpointManager`, atomic, the last k kept, guarded by a fingerprint.
+"""Checkpoints of a run: orbax `CheckpointManager`, atomic, last k kept, guarded by a fingerprint.
 
 Each checkpoint step holds two orbax items:
   state  the pytree of arrays (agent states vmapped over seeds, RNG key data, optionally replay);

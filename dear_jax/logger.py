@@ -6,8 +6,8 @@ Layout under a run's workdir:
 
 Every write is flushed, so a killed run keeps its logs. A resumed run (`resume_frame`) keeps the
 rows up to the checkpoint's frame and drops the later ones, which the resumed run will log again;
-TensorBoard is told the same through a purge step (SessionLog START). A fresh run (`resume_frame=None`) starts new
-files in place of any left by an earlier run in that workdir.
+TensorBoard is told the same by a purge marker (SessionLog START at resume_frame + 1). A fresh run
+(`resume_frame=None`) starts new files in place of any left by an earlier run in that workdir.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Evaluation videos: RGB | true agent mask | predicted mask, side by side, written as mp4 via OpenCV."""
+"""Eval videos: RGB | true agent mask | predicted mask side by side, as mp4 via OpenCV."""
 
 from __future__ import annotations
 

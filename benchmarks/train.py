@@ -15,6 +15,7 @@ Prints tables and writes JSON to benchmarks/results/train_<device>.json (or --ou
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import pathlib
 import runpy
@@ -85,7 +86,7 @@ def stage_split(config, reps) -> dict:
         acfg = train.agent_config(config, spec.action_dim)
         hp = train.hparams(config).for_seeds(num_seeds)
         programs = train.build_programs(acfg, hp, config)
-        agent = jax.jit(jax.vmap(lambda k: update.init(acfg, k)))(
+        agent = jax.jit(functools.partial(update.init_seeds, acfg))(
             jax.random.split(jax.random.key(0), num_seeds)
         )
         buffer = replay.init(

@@ -38,7 +38,7 @@ def time_update(
     method: str, seeds: int, batch: int, iters: int, dtype: str = "float32", action_dim: int = 6
 ) -> dict:
     cfg = update.AgentConfig(action_dim=action_dim, method=method, compute_dtype=dtype)
-    states = jax.jit(jax.vmap(functools.partial(update.init, cfg)))(
+    states = jax.jit(functools.partial(update.init_seeds, cfg))(
         jax.random.split(jax.random.key(0), seeds)
     )
     batches = jax.vmap(lambda k: random_batch(k, batch, action_dim, method == "ted"))(

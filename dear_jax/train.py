@@ -294,7 +294,7 @@ class _Run:
         self.programs = build_programs(self.acfg, hparams(config).for_seeds(num_seeds), config)
         root = jax.random.key(config.seed)
         seed_keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.arange(num_seeds))
-        self.agent = jax.jit(jax.vmap(functools.partial(update.init, self.acfg)))(seed_keys)
+        self.agent = jax.jit(functools.partial(update.init_seeds, self.acfg))(seed_keys)
         self.buffer = replay.init(
             config.replay.capacity,
             config.envs_per_seed,

@@ -14,6 +14,7 @@ seeds in one call.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import flax.linen as nn
 import jax
@@ -164,6 +165,16 @@ def init(cfg: AgentConfig, key: jax.Array) -> AgentState:
         steps=jnp.zeros((), jnp.int32),
         updates=jnp.zeros((), jnp.int32),
     )
+
+
+def init_seeds(cfg: AgentConfig, keys: jax.Array) -> AgentState:
+    """Fresh agents for S seeds from keys [S]: an AgentState whose leaves have a leading [S] axis.
+
+    Seeds are initialised one after another (`lax.map`), not vmapped: a vmapped orthogonal init
+    becomes several batched QR calls that XLA:CPU may run at once, and with as few threads as a
+    2-core machine has they deadlock (seen with jax 0.10.2). Initialising is a one-off cost.
+    """
+    return jax.lax.map(functools.partial(init, cfg), keys)
 
 
 def std_schedule(steps: jax.Array, hp: HParams) -> jax.Array:

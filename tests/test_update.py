@@ -150,11 +150,13 @@ def test_sample_action_clips_noise_and_passes_gradient_through_clamp():
 def test_vmapped_seeds_every_method(method):
     cfg = update.AgentConfig(method=method, **SMALL)
     seeds = 2
-    states = jax.vmap(functools.partial(update.init, cfg))(
-        jax.random.split(jax.random.key(0), seeds)
-    )
+    seed_keys = jax.random.split(jax.random.key(0), seeds)
+    states = jax.jit(functools.partial(update.init_seeds, cfg))(seed_keys)
     enc = states.params["encoder"]["Dense_0"]["kernel"]
     assert not np.array_equal(enc[0], enc[1])  # different seeds, different parameters
+    one = update.init(cfg, seed_keys[1])  # seed i of the batch is the agent init(key i) makes
+    for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(states)):
+        np.testing.assert_allclose(a, b[1], rtol=1e-6, atol=1e-7)
     batches = jax.vmap(lambda k: _batch(k, far=method == "ted"))(
         jax.random.split(jax.random.key(1), seeds)
     )

@@ -71,6 +71,29 @@ def test_decoder_and_actor_values():
     assert out.shape == (2, 84, 84, 3) and np.all(np.isfinite(np.asarray(out)))
 
 
+@pytest.mark.parametrize("stride, output_padding", [(1, 0), (2, 1), (4, 3)])
+def test_transposed_convolutions_follow_pytorch_sizes_and_lax(stride, output_padding):
+    """Each decoder layer is PyTorch's ConvTranspose2d: (in-1)*stride + k + output_padding.
+
+    The stride-1 layers are written as padded VALID convolutions; they must compute exactly
+    lax.conv_transpose with the same kernel.
+    """
+    k = 4 if stride == 4 else 3
+    x = jax.random.normal(jax.random.key(0), (2, 9, 9, 5))
+    layer = networks._conv_transpose(7, k, stride, output_padding)
+    params = layer.init(jax.random.key(1), x)
+    kernel, bias = jax.tree.leaves(params)[1], jax.tree.leaves(params)[0]
+    assert kernel.shape == (k, k, 5, 7)
+    pad = (k - 1, k - 1 + output_padding)
+    expected = jax.lax.conv_transpose(
+        x, kernel, (stride, stride), (pad, pad), dimension_numbers=("NHWC", "HWIO", "NHWC")
+    )
+    out = layer.apply(params, x)
+    size = (9 - 1) * stride + k + output_padding
+    assert out.shape == (2, size, size, 7)
+    np.testing.assert_allclose(out, expected + bias, rtol=1e-5, atol=1e-5)
+
+
 def test_initialisation_orthogonal_with_drqv2_gains_and_zero_bias():
     # Narrow widths keep the QR decompositions of the initialiser cheap on a CPU.
     cfg = AgentConfig(action_dim=6, method="dear", latent_dim=256, hidden_dim=64)
@@ -79,7 +102,7 @@ def test_initialisation_orthogonal_with_drqv2_gains_and_zero_bias():
     np.testing.assert_allclose(linear.T @ linear, np.eye(64), atol=1e-5)
     conv = np.asarray(params["encoder"]["ConvTrunk_0"]["Conv_1"]["kernel"]).reshape(-1, 32)
     np.testing.assert_allclose(conv.T @ conv, 2 * np.eye(32), atol=1e-4)  # gain sqrt(2)
-    deconv = np.asarray(params["mask_decoder"]["ConvTranspose_1"]["kernel"]).reshape(-1, 32)
+    deconv = np.asarray(params["mask_decoder"]["PaddedConv_1"]["Conv_0"]["kernel"]).reshape(-1, 32)
     np.testing.assert_allclose(deconv.T @ deconv, 2 * np.eye(32), atol=1e-4)
     for path, leaf in jax.tree_util.tree_leaves_with_path(params):
         if path[-1].key == "bias" and "LayerNorm" not in str(path):

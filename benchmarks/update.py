@@ -1,6 +1,7 @@
 """Time the jitted, seed-vmapped learner update (encoder + heads + critic, actor, target EMA).
 
 python benchmarks/update.py [--methods dear drqv2] [--seeds 1 5] [--batch 256] [--iters 20]
+    [--dtypes float32 bfloat16] [--seed-axis vmap loop]
 Prints a table and writes JSON to benchmarks/results/update_<platform>.json (or --out).
 """
 
@@ -18,6 +19,9 @@ import jax.numpy as jnp
 from dear_jax import update
 from dear_jax.replay import Batch
 
+# DESIGN.md: the PyTorch reference architecture's DEAR update, batch 256, TF32, on an H100.
+PYTORCH_ANCHOR_MS = 12.1
+
 
 def random_batch(key, batch, action_dim, far):
     k = jax.random.split(key, 5)
@@ -34,8 +38,31 @@ def random_batch(key, batch, action_dim, far):
     )
 
 
+def over_seeds(fn, how: str):
+    """fn vmapped over the leading seed axis, or (how="loop") one call per seed in one program.
+
+    The loop variant shows what vmap costs: a vmapped convolution with per-seed weights becomes
+    one grouped convolution, the loop S ordinary ones.
+    """
+    if how == "vmap":
+        return jax.vmap(fn)
+
+    def looped(*args):
+        num_seeds = jax.tree.leaves(args)[0].shape[0]
+        outs = [fn(*jax.tree.map(lambda x, i=i: x[i], args)) for i in range(num_seeds)]
+        return jax.tree.map(lambda *xs: jnp.stack(xs), *outs)
+
+    return looped
+
+
 def time_update(
-    method: str, seeds: int, batch: int, iters: int, dtype: str = "float32", action_dim: int = 6
+    method: str,
+    seeds: int,
+    batch: int,
+    iters: int,
+    dtype: str = "float32",
+    action_dim: int = 6,
+    seed_axis: str = "vmap",
 ) -> dict:
     cfg = update.AgentConfig(action_dim=action_dim, method=method, compute_dtype=dtype)
     states = jax.jit(functools.partial(update.init_seeds, cfg))(
@@ -45,7 +72,9 @@ def time_update(
         jax.random.split(jax.random.key(1), seeds)
     )
     hp = update.HParams().for_seeds(seeds)
-    step = jax.jit(jax.vmap(functools.partial(update.update, cfg=cfg)), donate_argnums=0)
+    step = jax.jit(
+        over_seeds(functools.partial(update.update, cfg=cfg), seed_axis), donate_argnums=0
+    )
     keys = jax.random.split(jax.random.key(2), (iters + 1, seeds))
     t0 = time.perf_counter()
     states, metrics = step(states, batches, keys[0], hp)
@@ -60,6 +89,7 @@ def time_update(
         dtype=dtype,
         precision=str(jax.config.jax_default_matmul_precision),
         method=method,
+        seed_axis=seed_axis,
         seeds=seeds,
         batch=batch,
         ms_per_call=ms,
@@ -74,6 +104,7 @@ def main():
     parser.add_argument("--seeds", nargs="+", type=int, default=[1, 5])
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--iters", type=int, default=20)
+    parser.add_argument("--seed-axis", nargs="+", default=["vmap"], choices=["vmap", "loop"])
     parser.add_argument("--dtypes", nargs="+", default=["float32"], choices=["float32", "bfloat16"])
     parser.add_argument(
         "--precision",
@@ -86,22 +117,27 @@ def main():
     if args.precision:
         jax.config.update("jax_default_matmul_precision", args.precision)
     device = jax.devices()[0]
-    rows = [
-        time_update(m, s, args.batch, args.iters, d)
-        for d in args.dtypes
-        for m in args.methods
-        for s in args.seeds
-    ]
+    rows = []
+    for d in args.dtypes:
+        for m in args.methods:
+            for s in args.seeds:
+                for how in args.seed_axis if s > 1 else ["vmap"]:
+                    rows.append(time_update(m, s, args.batch, args.iters, d, seed_axis=how))
+                    r = rows[-1]
+                    print(f"{m} {d} {how} seeds={s}: {r['ms_per_seed_update']:.2f} ms per seed")
     print(f"device: {device.device_kind} ({device.platform}), jax {jax.__version__}")
     print(
-        "| method | dtype | precision | seeds | batch | ms per call | ms per seed-update | compile s |"
+        "| method | dtype | precision | seed axis | seeds | batch | ms per call "
+        "| ms per seed-update | vs PyTorch 12.1 ms | compile s |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
-            f"| {r['method']} | {r['dtype']} | {r['precision']} | {r['seeds']} | {r['batch']} | "
+            f"| {r['method']} | {r['dtype']} | {r['precision']} | {r['seed_axis']} | {r['seeds']} "
+            f"| {r['batch']} | "
             f"{r['ms_per_call']:.2f} | "
-            f"{r['ms_per_seed_update']:.2f} | {r['compile_s']:.1f} |"
+            f"{r['ms_per_seed_update']:.2f} | {PYTORCH_ANCHOR_MS / r['ms_per_seed_update']:.2f}x "
+            f"| {r['compile_s']:.1f} |"
         )
     out = pathlib.Path(args.out or f"benchmarks/results/update_{device.platform}.json")
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# The GPU session of the trainer issue, in stages (bash benchmarks/train_device.sh STAGE...):
+#   gl        GL_RENDERER of the render workers (must be the GPU, not llvmpipe)
+#   update    benchmarks/update.py: DEAR/DrQ-v2 update, 1 and 5 seeds, vmap vs loop, f32 vs bf16
+#   train     benchmarks/train.py: DEAR walker-walk, 5 seeds x 8 envs, throughput + stage split
+#   learn     start DrQ-v2 and DEAR walker-walk (3 seeds each) detached, side by side on the GPU
+#   collect   pack the learning runs' logs (no checkpoints or videos) into $OUT/runs.tar.gz
+#   wait N    sleep N seconds (keeps the call, and so the machine, alive while runs train)
+# Results land in $OUT (or /tmp/out).
+set -u
+out=${OUT:-/tmp/out}
+runs=/tmp/runs
+mkdir -p "$out" "$runs"
+while [ $# -gt 0 ]; do
+  stage=$1; shift
+  echo "=== $stage $(date +%T)"
+  case $stage in
+    gl) bash benchmarks/envs_device.sh gl ;;
+    update)
+      timeout 240 python3 -m benchmarks.update --methods dear --seeds 1 5 --seed-axis vmap loop \
+        --iters 20 --out "$out/update_f32.json"
+      timeout 150 python3 -m benchmarks.update --methods dear drqv2 --seeds 5 --dtypes bfloat16 \
+        --iters 20 --out "$out/update_bf16.json" ;;
+    train)
+      timeout 330 python3 -m benchmarks.train --config configs/walker_dear.py --seeds 5 --envs 8 \
+        --warmup-frames 4000 --frames 6000 --log-every 2000 --out "$out/train.json" ;;
+    learn)
+      for method in drqv2 dear; do
+        XLA_PYTHON_CLIENT_MEM_FRACTION=0.45 setsid nohup python3 run.py \
+          --config "configs/walker_$method.py" --workdir "$runs/walker_$method" \
+          --config.seeds=3 --config.eval_every_frames=20000 --config.progress=False \
+          > "$runs/walker_$method.log" 2>&1 < /dev/null &
+      done
+      sleep 5; nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv ;;
+    collect)
+      for f in "$runs"/*.log; do echo "--- $f"; tail -n 4 "$f"; done
+      nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv
+      tar -C "$runs" --exclude=checkpoints --exclude=videos -czf "$out/runs.tar.gz" . ;;
+    wait) sleep "$1"; shift ;;
+  esac
+  echo "=== $stage done rc=$? $(date +%T)"
+done

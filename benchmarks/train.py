@@ -119,7 +119,8 @@ def stage_split(config, reps) -> dict:
         held = {"agent": agent, "buffer": buffer}
 
         def learn():
-            held["agent"], metrics = programs.learn(held["agent"], held["buffer"], key, n_updates)
+            for k in jax.random.split(key, n_updates):
+                held["agent"], metrics = programs.learn(held["agent"], held["buffer"], k)
             return metrics
 
         def act():
@@ -164,6 +165,7 @@ def main():
         seeds=args.seeds,
         envs_per_seed=args.envs,
         dtype=args.dtype,
+        seed_axis=config.agent.seed_axis,
         batch_size=config.agent.batch_size,
         method=config.agent.method,
         task=config.env.task,

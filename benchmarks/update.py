@@ -38,23 +38,6 @@ def random_batch(key, batch, action_dim, far):
     )
 
 
-def over_seeds(fn, how: str):
-    """fn vmapped over the leading seed axis, or (how="loop") one call per seed in one program.
-
-    The loop variant shows what vmap costs: a vmapped convolution with per-seed weights becomes
-    one grouped convolution, the loop S ordinary ones.
-    """
-    if how == "vmap":
-        return jax.vmap(fn)
-
-    def looped(*args):
-        num_seeds = jax.tree.leaves(args)[0].shape[0]
-        outs = [fn(*jax.tree.map(lambda x, i=i: x[i], args)) for i in range(num_seeds)]
-        return jax.tree.map(lambda *xs: jnp.stack(xs), *outs)
-
-    return looped
-
-
 def time_update(
     method: str,
     seeds: int,
@@ -73,7 +56,7 @@ def time_update(
     )
     hp = update.HParams().for_seeds(seeds)
     step = jax.jit(
-        over_seeds(functools.partial(update.update, cfg=cfg), seed_axis), donate_argnums=0
+        update.over_seeds(functools.partial(update.update, cfg=cfg), seed_axis), donate_argnums=0
     )
     keys = jax.random.split(jax.random.key(2), (iters + 1, seeds))
     t0 = time.perf_counter()

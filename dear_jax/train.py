@@ -62,6 +62,7 @@ def validate(config: ConfigDict) -> None:
         "agent.method": update.METHODS,
         "agent.encoder": ("pool", "plain"),
         "agent.ortho_form": losses.ORTHOGONALITY_FORMS,
+        "agent.seed_axis": update.SEED_AXES,
         "env.backend": ("auto", "mjx", "cpu"),
         "env.distraction": ("none", "easy", "medium", "hard"),
         "env.mask": ("true", "noisy", "approximate"),
@@ -139,7 +140,7 @@ class Programs:
     """The jitted functions of the loop, all vmapped over seeds."""
 
     act: callable  # (agent, obs [S,E,...], key) -> (actions [S,E,A], agent)
-    learn: callable  # (agent, replay, key, num_updates) -> (agent, metrics [S])
+    learn: callable  # (agent, replay, key) -> (agent, metrics [S]): one update per seed
     add: callable  # (replay, ts, action) -> replay
     evaluate_step: callable  # (agent, obs) -> (actions, cos [S], predicted mask of env 0 [S,H,W])
     accumulate: callable  # (returns [S,E], ts) -> returns
@@ -169,12 +170,12 @@ def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigD
         )
         return update.update(agent, batch, k_update, hp_seed, cfg=acfg)
 
-    def learn(agent, buffer, key, num_updates):
-        def body(agent, k):
-            return jax.vmap(learn_one)(agent, buffer, jax.random.split(k, num_seeds), hp)
-
-        agent, metrics = jax.lax.scan(body, agent, jax.random.split(key, num_updates))
-        return agent, jax.tree.map(lambda m: m.mean(0), metrics)
+    # One update per seed per call; the loop calls it E / update_every_steps times (dispatch is
+    # asynchronous). A lax.scan over the updates made each one 12x slower on CPU and ~1.8x
+    # slower on an H100 than the same update called on its own.
+    def learn(agent, buffer, key):
+        keys = jax.random.split(key, num_seeds)
+        return update.over_seeds(learn_one, a.seed_axis)(agent, buffer, keys, hp)
 
     def add(buffer, ts, action):
         return jax.vmap(replay.add)(
@@ -203,7 +204,7 @@ def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigD
 
     return Programs(
         act=jax.jit(act, donate_argnums=0),
-        learn=jax.jit(learn, static_argnums=3, donate_argnums=0),
+        learn=jax.jit(learn, donate_argnums=0),
         add=jax.jit(add, donate_argnums=0),
         evaluate_step=jax.jit(evaluate_step),
         accumulate=jax.jit(accumulate),
@@ -356,16 +357,17 @@ class _Run:
                 # Updates are dispatched while the env thread renders the next observations.
                 if counters["frame"] >= seed_frames:
                     steps_owed += num_envs / config.agent.update_every_steps
-                    if n := int(steps_owed):
-                        steps_owed -= n
-                        self.agent, metrics = programs.learn(self.agent, self.buffer, k_learn, n)
-                        counters["updates"] += n
+                    n = int(steps_owed)
+                    steps_owed -= n
+                    for k in jax.random.split(k_learn, n) if n else ():
+                        self.agent, metrics = programs.learn(self.agent, self.buffer, k)
                         metric_sum = (
                             metrics
                             if metric_sum is None
                             else programs.add_metrics(metric_sum, metrics)
                         )
                         metric_count += 1
+                    counters["updates"] += n
                 state, ts = future.result()
                 self.buffer = programs.add(self.buffer, ts, action)
                 returns = programs.accumulate(returns, ts)

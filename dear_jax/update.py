@@ -177,6 +177,30 @@ def init_seeds(cfg: AgentConfig, keys: jax.Array) -> AgentState:
     return jax.lax.map(functools.partial(init, cfg), keys)
 
 
+SEED_AXES = ("vmap", "loop")
+
+
+def over_seeds(fn, how: str = "vmap"):
+    """`fn` of one seed applied to every seed of a leading [S] axis, in one traced program.
+
+    how="vmap": `jax.vmap(fn)`. how="loop": one traced call per seed, results stacked. Both give
+    the same numbers; they differ in speed only. A vmapped convolution whose weights differ per
+    seed becomes one grouped convolution, which an H100 ran ~1.5x slower than S plain ones
+    (benchmarks/results/update_h100.json), so the trainer loops on GPUs.
+    """
+    if how == "vmap":
+        return jax.vmap(fn)
+    if how != "loop":
+        raise ValueError(f"unknown seed axis {how!r}; valid: {SEED_AXES}")
+
+    def looped(*args):
+        num_seeds = jax.tree.leaves(args)[0].shape[0]
+        outs = [fn(*jax.tree.map(lambda x, i=i: x[i], args)) for i in range(num_seeds)]
+        return jax.tree.map(lambda *xs: jnp.stack(xs), *outs)
+
+    return looped
+
+
 def std_schedule(steps: jax.Array, hp: HParams) -> jax.Array:
     """Linear exploration std from std_init to std_final over std_steps agent steps."""
     frac = jnp.clip(steps / hp.std_steps, 0.0, 1.0)

@@ -44,11 +44,14 @@ def tiny_config(**overrides):
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    """One run to 200 frames per seed, then the same workdir resumed to 280."""
+    """One run to 200 frames per seed, then the same workdir resumed to 280.
+
+    The replay goes into the checkpoints, so the resumed run updates from its first step.
+    """
     workdir = tmp_path_factory.mktemp("run")
-    first = train.train(tiny_config(), workdir)
+    first = train.train(tiny_config(save_replay=True), workdir)
     saved_step = Checkpointer(workdir / "checkpoints", fingerprint={}).latest_step()
-    resumed = train.train(tiny_config(total_frames=280, save_replay=False), workdir)
+    resumed = train.train(tiny_config(total_frames=280, save_replay=True), workdir)
     return workdir, first, resumed, saved_step
 
 
@@ -69,8 +72,8 @@ def test_outputs_exist_and_parse(run):
     ok, frame = cap.read()
     assert ok and frame.shape[1] >= 3 * frame.shape[0]  # RGB | true mask | predicted mask
     assert (workdir / "summary.md").read_text().startswith("# dear on walker-walk")
-    summary = json.loads((workdir / "summary.json").read_text())
-    assert summary["frames_per_seed"] == 200 and len(summary["per_seed"]) == 2
+    summary = json.loads((workdir / "summary.json").read_text())  # rewritten by the resume
+    assert summary["frames_per_seed"] == 280 and len(summary["per_seed"]) == 2
     assert first["frames_per_seed"] == 200
 
 

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The GPU session of the trainer issue, in stages (bash benchmarks/train_device.sh STAGE...):
 #   gl        GL_RENDERER of the render workers (must be the GPU, not llvmpipe)
-#   update    benchmarks/update.py: DEAR/DrQ-v2 update, 1 and 5 seeds, vmap vs loop, f32 vs bf16
+#   update    benchmarks/update.py: DEAR update at batch 256 (1 and 5 seeds, vmap vs loop), and
+#             DEAR / DrQ-v2 at walker's batch 512 (5 seeds, loop)
 #   train     benchmarks/train.py: DEAR walker-walk, 5 seeds x 8 envs, throughput + stage split
 #   learn     start DrQ-v2 and DEAR walker-walk (3 seeds each) detached, side by side on the GPU
 #   collect   pack the learning runs' logs (no checkpoints or videos) into $OUT/runs.tar.gz
@@ -17,18 +18,18 @@ while [ $# -gt 0 ]; do
   case $stage in
     gl) bash benchmarks/envs_device.sh gl ;;
     update)
-      timeout 240 python3 -m benchmarks.update --methods dear --seeds 1 5 --seed-axis vmap loop \
-        --iters 20 --out "$out/update_f32.json"
-      timeout 150 python3 -m benchmarks.update --methods dear drqv2 --seeds 5 --dtypes bfloat16 \
-        --iters 20 --out "$out/update_bf16.json" ;;
+      timeout 200 python3 -m benchmarks.update --methods dear --seeds 1 5 --seed-axis vmap loop \
+        --iters 20 --out "$out/update_256.json"
+      timeout 150 python3 -m benchmarks.update --methods dear drqv2 --seeds 5 --seed-axis loop \
+        --batch 512 --iters 10 --out "$out/update_512.json" ;;
     train)
       timeout 330 python3 -m benchmarks.train --config configs/walker_dear.py --seeds 5 --envs 8 \
-        --warmup-frames 4000 --frames 6000 --log-every 2000 --out "$out/train.json" ;;
+        --warmup-frames 4000 --frames 4000 --log-every 2000 --out "$out/train.json" ;;
     learn)
       for method in drqv2 dear; do
         XLA_PYTHON_CLIENT_MEM_FRACTION=0.45 setsid nohup python3 run.py \
           --config "configs/walker_$method.py" --workdir "$runs/walker_$method" \
-          --config.seeds=3 --config.eval_every_frames=20000 --config.progress=False \
+          --config.seeds=3 --config.progress=False \
           > "$runs/walker_$method.log" 2>&1 < /dev/null &
       done
       sleep 5; nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv ;;

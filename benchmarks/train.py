@@ -170,6 +170,13 @@ def main():
         method=config.agent.method,
         task=config.env.task,
     )
+    out = pathlib.Path(args.out or f"benchmarks/results/train_{device.platform}.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    def save():  # after every stage, so a run cut off in the next stage keeps this one
+        out.write_text(json.dumps(result, indent=1))
+        print(f"wrote {out}")
+
     if "split" not in args.skip:
         split = stage_split(config, args.reps)
         result["split"] = split
@@ -187,6 +194,7 @@ def main():
             f"{split['n_updates']} updates per seed ({device.device_kind})"
         )
         print(format_table(["stage", "ms", "share"], rows))
+        save()
     if "throughput" not in args.skip:
         tp = throughput(config, args.warmup_frames)
         result["throughput"] = tp
@@ -196,10 +204,7 @@ def main():
             f"{config.env.task}); {tp['aggregate_fps'] / PYTORCH_ANCHOR_FPS:.1f}x the PyTorch "
             f"pipeline's {PYTORCH_ANCHOR_FPS:.0f} frames/s (DESIGN.md)"
         )
-    out = pathlib.Path(args.out or f"benchmarks/results/train_{device.platform}.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1))
-    print(f"wrote {out}")
+        save()
 
 
 if __name__ == "__main__":

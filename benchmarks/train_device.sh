@@ -3,7 +3,7 @@
 #   gl        GL_RENDERER of the render workers (must be the GPU, not llvmpipe)
 #   update    benchmarks/update.py: DEAR update at batch 256 (1 and 5 seeds, vmap vs loop), and
 #             DEAR / DrQ-v2 at walker's batch 512 (5 seeds, loop)
-#   train     benchmarks/train.py: DEAR walker-walk, 5 seeds x 8 envs, throughput + stage split
+#   train     benchmarks/train.py: DEAR walker-walk, 5 seeds x 8 envs, stage split, then throughput
 #   learn     start DrQ-v2 and DEAR walker-walk (3 seeds each) detached, side by side on the GPU
 #   collect   pack the learning runs' logs (no checkpoints or videos) into $OUT/runs.tar.gz
 #   wait N    sleep N seconds (keeps the call, and so the machine, alive while runs train)
@@ -23,8 +23,12 @@ while [ $# -gt 0 ]; do
       timeout 150 python3 -m benchmarks.update --methods dear drqv2 --seeds 5 --seed-axis loop \
         --batch 512 --iters 10 --out "$out/update_512.json" ;;
     train)
-      timeout 330 python3 -m benchmarks.train --config configs/walker_dear.py --seeds 5 --envs 8 \
-        --warmup-frames 4000 --frames 4000 --log-every 2000 --out "$out/train.json" ;;
+      # Two processes, each with its own limit, so a slow stage cannot starve the other.
+      timeout 300 python3 -m benchmarks.train --config configs/walker_dear.py --seeds 5 --envs 8 \
+        --reps 5 --skip throughput --out "$out/train_split.json"
+      timeout 600 python3 -m benchmarks.train --config configs/walker_dear.py --seeds 5 --envs 8 \
+        --warmup-frames 2400 --frames 2400 --log-every 800 --skip split \
+        --out "$out/train_throughput.json" ;;
     learn)
       for method in drqv2 dear; do
         XLA_PYTHON_CLIENT_MEM_FRACTION=0.45 setsid nohup python3 run.py \

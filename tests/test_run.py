@@ -84,7 +84,9 @@ def test_resume_continues_from_saved_step(run):
     assert resumed["updates_per_seed"] > first["updates_per_seed"]
     frames = read_csv(workdir / "seed_0" / "eval.csv")["frame"]
     assert list(frames) == [120, 200, 240, 280]  # no frame evaluated twice, none lost
-    assert sorted(p.name for p in (workdir / "checkpoints").iterdir() if p.name.isdigit())[-1] == "280"
+    assert (
+        sorted(p.name for p in (workdir / "checkpoints").iterdir() if p.name.isdigit())[-1] == "280"
+    )
 
 
 def test_seeds_differ(run):
@@ -112,7 +114,10 @@ def test_incompatible_checkpoint_is_refused(run, tmp_path):
 def test_unknown_config_key_fails_with_valid_choices():
     out = subprocess.run(
         [sys.executable, "run.py", "--config", "configs/smoke.py", "--config.agent.alpah=1"],
-        cwd=ROOT, capture_output=True, text=True, timeout=120,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert out.returncode != 0
     assert "Did you mean 'agent.alpha'" in out.stderr and "batch_size" in out.stderr

@@ -82,7 +82,7 @@ def test_transposed_convolutions_follow_pytorch_sizes_and_lax(stride, output_pad
     x = jax.random.normal(jax.random.key(0), (2, 9, 9, 5))
     layer = networks._conv_transpose(7, k, stride, output_padding)
     params = layer.init(jax.random.key(1), x)
-    kernel, bias = jax.tree.leaves(params)[1], jax.tree.leaves(params)[0]
+    kernel = jax.tree.leaves(params)[1]  # leaves: bias, kernel
     assert kernel.shape == (k, k, 5, 7)
     pad = (k - 1, k - 1 + output_padding)
     expected = jax.lax.conv_transpose(
@@ -91,7 +91,7 @@ def test_transposed_convolutions_follow_pytorch_sizes_and_lax(stride, output_pad
     out = layer.apply(params, x)
     size = (9 - 1) * stride + k + output_padding
     assert out.shape == (2, size, size, 7)
-    np.testing.assert_allclose(out, expected + bias, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-5)  # the bias starts at zero
 
 
 def test_initialisation_orthogonal_with_drqv2_gains_and_zero_bias():

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The GPU session of the trainer issue, in stages (bash benchmarks/train_device.sh STAGE...):
 #   gl        GL_RENDERER of the render workers (must be the GPU, not llvmpipe)
+#   profile   benchmarks/profile_update.py (DEAR, DrQ-v2; batch 512) and benchmarks/decoder.py
 #   update    benchmarks/update.py: DEAR update at batch 256 (1 and 5 seeds, vmap vs loop), and
 #             DEAR / DrQ-v2 at walker's batch 512 (5 seeds, loop)
 #   train     benchmarks/train.py: DEAR walker-walk, 5 seeds x 8 envs, stage split, then throughput
@@ -17,6 +18,12 @@ while [ $# -gt 0 ]; do
   echo "=== $stage $(date +%T)"
   case $stage in
     gl) bash benchmarks/envs_device.sh gl ;;
+    profile)
+      for method in dear drqv2; do
+        timeout 150 python3 -m benchmarks.profile_update --method $method --batch 512 \
+          --out "$out/profile_$method.json"
+      done
+      timeout 120 python3 -m benchmarks.decoder --batch 512 --out "$out/decoder.json" ;;
     update)
       timeout 200 python3 -m benchmarks.update --methods dear --seeds 1 5 --seed-axis vmap loop \
         --iters 20 --out "$out/update_256.json"

@@ -36,52 +36,62 @@ def _conv(features: int, stride: int, dtype=jnp.float32) -> nn.Conv:
     )
 
 
-class PaddedConv(nn.Module):
-    """Explicit zero padding, then a VALID convolution (see `_conv_transpose` for why)."""
+class ConvTranspose(nn.Module):
+    """PyTorch's ConvTranspose2d(k, stride, output_padding), no padding: size (n-1)*s + k + op.
+
+    The same function as `lax.conv_transpose(x, kernel, (s, s), ((k-1, k-1+op),) * 2)`, computed
+    as a dense convolution per output phase ("sub-pixel" form): output pixel s*m + r only ever
+    meets kernel taps k-1-r, k-1-r-s, ..., so the s*s phases are one VALID convolution of the
+    zero-padded input with s*s*features output channels, then interleaved (depth to space).
+    This skips the zeros a strided transposed convolution inserts between input pixels, and
+    both its gradients are ordinary convolutions. At stride 1 it is a plain VALID convolution
+    of the input padded by (k-1, k-1+op). tests/test_networks.py checks values and gradients
+    against lax.conv_transpose.
+    """
 
     features: int
     kernel: int
-    pad: tuple[int, int]
+    stride: int = 1
+    output_padding: int = 0
     dtype: Any = jnp.float32
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        spatial = (self.pad, self.pad)
-        x = jnp.pad(x, ((0, 0),) * (x.ndim - 3) + spatial + ((0, 0),))
-        return nn.Conv(
-            self.features,
-            (self.kernel, self.kernel),
-            padding="VALID",
-            kernel_init=CONV_INIT,
-            bias_init=ZEROS,
-            dtype=self.dtype,
-        )(x)
+        k, s, op = self.kernel, self.stride, self.output_padding
+        n = x.shape[-2]
+        kernel = self.param("kernel", CONV_INIT, (k, k, x.shape[-1], self.features))
+        bias = self.param("bias", ZEROS, (self.features,))
+        taps = (k - 1) // s + 1  # kernel taps of one phase along one axis
+        size = (n - 1) * s + k + op  # output size
+        phases = -(-size // s)  # output pixels per phase along one axis
+        # Phase r, tap u reads input pixel m + u - (taps - 1) with kernel index s*(u-taps+1)+k-1-r.
+        zero = jnp.zeros_like(kernel[0, 0])
 
+        def tap(ry, uy, rx, ux):
+            iy, ix = (s * (u - taps + 1) + k - 1 - r for r, u in ((ry, uy), (rx, ux)))
+            return kernel[iy, ix] if 0 <= iy < k and 0 <= ix < k else zero
 
-def _conv_transpose(
-    features: int, kernel: int, stride: int = 1, output_padding: int = 0, dtype=jnp.float32
-) -> nn.Module:
-    """PyTorch's ConvTranspose2d(kernel, stride, output_padding): (in-1)*stride + kernel + op.
-
-    lax.conv_transpose with explicit (k-1, k-1+op) padding gives that size, and the reference
-    decoder's shapes rely on it. At stride 1 the same function is a VALID convolution, with the
-    same (unflipped) kernel, of the input zero-padded by (k-1, k-1+op). Written that way the
-    weight gradient is an ordinary convolution, which XLA:CPU runs far faster: one DEAR update
-    at batch 256 on 2 CPU cores took 45.5 s before and 6.6 s after (benchmarks/update.py,
-    benchmarks/results/update_cpu.json). tests/test_networks.py checks the two forms agree.
-    """
-    pad = (kernel - 1, kernel - 1 + output_padding)
-    if stride == 1:
-        return PaddedConv(features, kernel, pad, dtype)
-    return nn.ConvTranspose(
-        features,
-        (kernel, kernel),
-        strides=(stride, stride),
-        padding=(pad, pad),
-        kernel_init=CONV_INIT,
-        bias_init=ZEROS,
-        dtype=dtype,
-    )
+        rows = [
+            [
+                jnp.concatenate([tap(ry, uy, rx, ux) for ry in range(s) for rx in range(s)], -1)
+                for ux in range(taps)
+            ]
+            for uy in range(taps)
+        ]
+        w = jnp.stack([jnp.stack(row) for row in rows])  # [uy, ux, cin, (ry, rx, cout)]
+        pad = (taps - 1, phases - n)
+        x = jnp.pad(x, ((0, 0),) * (x.ndim - 3) + (pad, pad, (0, 0)))
+        y = jax.lax.conv_general_dilated(
+            x.astype(self.dtype).reshape(-1, *x.shape[-3:]),
+            w.astype(self.dtype),
+            (1, 1),
+            "VALID",
+            dimension_numbers=("NHWC", "HWIO", "NHWC"),
+        )
+        # [N, m, m, (ry, rx, c)] -> [N, (m, ry), (m, rx), c], cropped to the output size.
+        y = y.reshape(-1, phases, phases, s, s, self.features).transpose(0, 1, 3, 2, 4, 5)
+        y = y.reshape(*x.shape[:-3], phases * s, phases * s, self.features)[..., :size, :size, :]
+        return y + bias.astype(self.dtype)
 
 
 def preprocess(obs: jax.Array) -> jax.Array:
@@ -201,10 +211,10 @@ class PoolDecoder(nn.Module):
         dt = self.dtype
         x = nn.relu(_dense(16 * 8 * 8, dtype=dt)(z))
         x = x.reshape(*x.shape[:-1], 8, 8, 16)
-        x = nn.relu(_conv_transpose(16, 4, stride=4, output_padding=3, dtype=dt)(x))
+        x = nn.relu(ConvTranspose(16, 4, stride=4, output_padding=3, dtype=dt)(x))
         for features in (32, 32, 32):
-            x = nn.relu(_conv_transpose(features, 3, dtype=dt)(x))
-        out = _conv_transpose(self.out_channels, 3, stride=2, output_padding=1, dtype=dt)(x)
+            x = nn.relu(ConvTranspose(features, 3, dtype=dt)(x))
+        out = ConvTranspose(self.out_channels, 3, stride=2, output_padding=1, dtype=dt)(x)
         return out.astype(jnp.float32)
 
 

@@ -72,26 +72,40 @@ def test_decoder_and_actor_values():
 
 
 @pytest.mark.parametrize("stride, output_padding", [(1, 0), (2, 1), (4, 3)])
-def test_transposed_convolutions_follow_pytorch_sizes_and_lax(stride, output_padding):
+def test_transposed_convolutions_equal_pytorch_sizes_and_lax(stride, output_padding):
     """Each decoder layer is PyTorch's ConvTranspose2d: (in-1)*stride + k + output_padding.
 
-    The stride-1 layers are written as padded VALID convolutions; they must compute exactly
-    lax.conv_transpose with the same kernel.
+    Written per output phase, it must compute lax.conv_transpose with the same kernel and bias,
+    and have the same gradients with respect to input, kernel and bias.
     """
     k = 4 if stride == 4 else 3
-    x = jax.random.normal(jax.random.key(0), (2, 9, 9, 5))
-    layer = networks._conv_transpose(7, k, stride, output_padding)
-    params = layer.init(jax.random.key(1), x)
-    kernel = jax.tree.leaves(params)[1]  # leaves: bias, kernel
-    assert kernel.shape == (k, k, 5, 7)
+    kx, kk, kb, kg = jax.random.split(jax.random.key(0), 4)
+    x = jax.random.normal(kx, (2, 9, 9, 5))
+    layer = networks.ConvTranspose(7, k, stride, output_padding)
+    params = {
+        "kernel": jax.random.normal(kk, (k, k, 5, 7)),
+        "bias": jax.random.normal(kb, (7,)),
+    }
+    init = layer.init(jax.random.key(1), x)["params"]
+    assert jax.tree.map(jnp.shape, init) == jax.tree.map(jnp.shape, params)
     pad = (k - 1, k - 1 + output_padding)
-    expected = jax.lax.conv_transpose(
-        x, kernel, (stride, stride), (pad, pad), dimension_numbers=("NHWC", "HWIO", "NHWC")
-    )
-    out = layer.apply(params, x)
+
+    def reference(p, x):
+        y = jax.lax.conv_transpose(
+            x, p["kernel"], (stride, stride), (pad, pad), dimension_numbers=("NHWC", "HWIO", "NHWC")
+        )
+        return y + p["bias"]
+
+    ours = lambda p, x: layer.apply({"params": p}, x)  # noqa: E731
     size = (9 - 1) * stride + k + output_padding
+    out = ours(params, x)
     assert out.shape == (2, size, size, 7)
-    np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-5)  # the bias starts at zero
+    np.testing.assert_allclose(out, reference(params, x), rtol=1e-5, atol=1e-4)
+    probe = jax.random.normal(kg, out.shape)  # a random cotangent
+    loss = lambda f: lambda p, x: jnp.sum(probe * f(p, x))  # noqa: E731
+    grads, expected = (jax.grad(loss(f), argnums=(0, 1))(params, x) for f in (ours, reference))
+    for g, e in zip(jax.tree.leaves(grads), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(g, e, rtol=1e-4, atol=1e-3)
 
 
 def test_initialisation_orthogonal_with_drqv2_gains_and_zero_bias():
@@ -102,7 +116,7 @@ def test_initialisation_orthogonal_with_drqv2_gains_and_zero_bias():
     np.testing.assert_allclose(linear.T @ linear, np.eye(64), atol=1e-5)
     conv = np.asarray(params["encoder"]["ConvTrunk_0"]["Conv_1"]["kernel"]).reshape(-1, 32)
     np.testing.assert_allclose(conv.T @ conv, 2 * np.eye(32), atol=1e-4)  # gain sqrt(2)
-    deconv = np.asarray(params["mask_decoder"]["PaddedConv_1"]["Conv_0"]["kernel"]).reshape(-1, 32)
+    deconv = np.asarray(params["mask_decoder"]["ConvTranspose_1"]["kernel"]).reshape(-1, 32)
     np.testing.assert_allclose(deconv.T @ deconv, 2 * np.eye(32), atol=1e-4)
     for path, leaf in jax.tree_util.tree_leaves_with_path(params):
         if path[-1].key == "bias" and "LayerNorm" not in str(path):

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import logging
 import pathlib
 import runpy
 import tempfile
@@ -156,6 +157,7 @@ def main():
     p.add_argument("--skip", nargs="*", default=[], choices=["throughput", "split"])
     p.add_argument("--out", default=None)
     args = p.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     config = bench_config(args)
     device = jax.devices()[0]
     result = dict(

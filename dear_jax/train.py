@@ -397,6 +397,8 @@ class _Run:
                     logger.write("train", frame, row)
                     if pbar is not None:
                         pbar.set_postfix(fps=f"{row['fps']:.0f}")
+                    else:  # detached runs: a line per log interval instead of the bar
+                        log.info("frame %d per seed: %.0f frames/s in all", frame, row["fps"])
                     last_log_t, last_log_frame = now, frame
                     next_log = frame + config.log_every_frames
                 if frame >= next_eval or frame >= config.total_frames:

@@ -30,12 +30,14 @@ while [ $# -gt 0 ]; do
       timeout 150 python3 -m benchmarks.update --methods dear drqv2 --seeds 5 --seed-axis loop \
         --batch 512 --iters 10 --out "$out/update_512.json" ;;
     train)
-      # Two processes, each with its own limit, so a slow stage cannot starve the other.
-      timeout 300 python3 -m benchmarks.train --config configs/walker_dear.py --seeds 5 --envs 8 \
-        --reps 5 --skip throughput --out "$out/train_split.json"
-      timeout 600 python3 -m benchmarks.train --config configs/walker_dear.py --seeds 5 --envs 8 \
-        --warmup-frames 2400 --frames 2400 --log-every 800 --skip split \
-        --out "$out/train_throughput.json" ;;
+      # Two processes, each with its own limit and log file under $OUT, so a slow stage can
+      # neither starve the other nor lose its output.
+      timeout 330 python3 -m benchmarks.train --config configs/walker_dear.py --seeds 5 --envs 8 \
+        --warmup-frames 2400 --frames 8000 --log-every 1600 --skip split \
+        --out "$out/train_throughput.json" > "$out/train_throughput.log" 2>&1
+      timeout 220 python3 -m benchmarks.train --config configs/walker_dear.py --seeds 5 --envs 8 \
+        --reps 5 --skip throughput --out "$out/train_split.json" > "$out/train_split.log" 2>&1
+      grep -v warp "$out"/train_throughput.log "$out"/train_split.log | tail -n 40 ;;
     learn)
       for method in drqv2 dear; do
         XLA_PYTHON_CLIENT_MEM_FRACTION=0.45 setsid nohup python3 run.py \

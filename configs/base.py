@@ -14,7 +14,8 @@ def get_config() -> ConfigDict:
     c.seed = 0  # base seed; seed i of the run uses fold_in(key(seed), i)
     c.seeds = 3  # seeds trained together in one process (a vmapped axis)
     c.envs_per_seed = 8  # parallel environments per seed; E / update_every_steps updates per step
-    c.total_frames = 1_000_000  # environment frames per seed (frames = agent steps x action repeat)
+    # Frames count per seed, summed over its envs: frames = agent steps (all E envs) x action repeat.
+    c.total_frames = 1_000_000  # environment frames per seed
     c.eval_every_frames = 10_000  # per seed
     c.num_eval_episodes = 10  # per seed, run in parallel
     c.log_every_frames = 5_000  # per seed: train metrics to CSV / TensorBoard

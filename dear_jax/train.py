@@ -327,6 +327,9 @@ class _Run:
     def loop(self, env: envs.Env, eval_env: envs.Env, logger: RunLogger, workdir) -> None:
         config, spec, programs, counters = self.config, self.spec, self.programs, self.counters
         num_seeds, num_envs = config.seeds, config.envs_per_seed
+        # Frames count per seed, summed over its E envs (as in DrQ-v2 with one env per seed): one
+        # loop iteration is E agent steps and E x action_repeat frames of every seed.
+        frames_per_step = num_envs * spec.action_repeat
         seed_frames = config.replay.seed_frames
         if self.resumed_from is not None and not config.save_replay:
             seed_frames += self.resumed_from  # refill the empty replay before updating again
@@ -354,8 +357,9 @@ class _Run:
                 action, self.agent = programs.act(self.agent, ts.obs, k_act)
                 reset = np.asarray(state.last)
                 future = env.step_async(state, action)
-                # Updates are dispatched while the env thread renders the next observations.
-                if counters["frame"] >= seed_frames:
+                # Updates are dispatched while the env thread renders the next observations;
+                # a reset step adds no transition, so it owes no update.
+                if counters["frame"] >= seed_frames and not reset.all():
                     steps_owed += num_envs / config.agent.update_every_steps
                     n = int(steps_owed)
                     steps_owed -= n
@@ -372,10 +376,10 @@ class _Run:
                 self.buffer = programs.add(self.buffer, ts, action)
                 returns = programs.accumulate(returns, ts)
                 counters["iteration"] += 1
-                if not reset.all():
-                    counters["frame"] += spec.action_repeat
+                if not reset.all():  # a reset step shows the first frames; it is not a step
+                    counters["frame"] += frames_per_step
                     if pbar is not None:
-                        pbar.update(spec.action_repeat)
+                        pbar.update(frames_per_step)
                 if state.last.all():
                     counters["episode"] += 1
                     episode_returns.append(np.asarray(returns).mean(1))

@@ -77,11 +77,23 @@ def test_outputs_exist_and_parse(run):
     assert first["frames_per_seed"] == 200
 
 
+def test_frames_and_updates_follow_the_papers_ratio(run):
+    """Frames count per seed over its E envs; one update per 2 agent steps after seed frames."""
+    workdir, first, resumed, _ = run
+    c = tiny_config()
+    frames_per_step = c.envs_per_seed * c.env.action_repeat  # one loop iteration, per seed
+    steps_learned = (200 - c.replay.seed_frames) // frames_per_step * c.envs_per_seed
+    assert first["updates_per_seed"] == steps_learned // c.agent.update_every_steps
+    resumed_steps = (280 - 200) // frames_per_step * c.envs_per_seed
+    assert resumed["updates_per_seed"] == first["updates_per_seed"] + resumed_steps // 2
+    log = read_csv(workdir / "seed_0" / "train.csv")
+    assert np.all(np.diff(log["frame"]) % frames_per_step == 0)
+
+
 def test_resume_continues_from_saved_step(run):
     workdir, first, resumed, saved_step = run
     assert saved_step == 200
     assert resumed["frames_per_seed"] == 280
-    assert resumed["updates_per_seed"] > first["updates_per_seed"]
     frames = read_csv(workdir / "seed_0" / "eval.csv")["frame"]
     assert list(frames) == [120, 200, 240, 280]  # no frame evaluated twice, none lost
     assert (

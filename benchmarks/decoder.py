@@ -8,13 +8,12 @@ Prints a table (ms per forward+backward) and writes JSON to benchmarks/results/d
 from __future__ import annotations
 
 import argparse
-import json
-import pathlib
 import time
 
 import jax
 import jax.numpy as jnp
 
+from benchmarks.common import save_json
 from dear_jax import networks
 
 # (kernel, stride, output padding, in channels, out channels, input size): the mask decoder's layers.
@@ -65,12 +64,11 @@ def main():
     print("| layer | phase form ms | lax.conv_transpose ms |\n|---|---:|---:|")
     for r in rows:
         print(f"| {r['layer']} | {r['phase_ms']:.2f} | {r['lax_ms']:.2f} |")
-    out = pathlib.Path(args.out or f"benchmarks/results/decoder_{device.platform}.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(
-        json.dumps(dict(device=device.device_kind, batch=args.batch, rows=rows), indent=1)
+    save_json(
+        dict(device=device.device_kind, batch=args.batch, rows=rows),
+        args.out,
+        f"benchmarks/results/decoder_{device.platform}.json",
     )
-    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

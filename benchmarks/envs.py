@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import sys
 import time
@@ -28,6 +27,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 import envs  # noqa: E402
+from benchmarks.common import save_json
 from envs import dmc  # noqa: E402
 from envs.physics import SolverSettings, make_physics  # noqa: E402
 from envs.render import RenderPool, RenderSettings  # noqa: E402
@@ -230,10 +230,7 @@ def main(argv=None):
     )
 
     def save():
-        if args.out:
-            os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-            with open(args.out, "w") as f:
-                json.dump(result, f, indent=1)
+        save_json(result, args.out)
 
     if "physics" in args.what:
         for n in args.envs:

@@ -13,13 +13,13 @@ from __future__ import annotations
 import argparse
 import collections
 import functools
-import json
 import pathlib
 import re
 import tempfile
 
 import jax
 
+from benchmarks.common import save_json
 from benchmarks.update import random_batch
 from dear_jax import update
 
@@ -119,22 +119,18 @@ def main():
     print("\n| hlo op / kernel | part | ms per call |\n|---|---|---:|")
     for key, ns in per_kernel.most_common(args.top):
         print(f"| {key} | {kernel_part[key]} | {ns * scale:.3f} |")
-    out = pathlib.Path(args.out or f"benchmarks/results/profile_{args.method}_{device}.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(
-        json.dumps(
-            dict(
-                device=device,
-                jax=jax.__version__,
-                args=vars(args),
-                ms_per_call=total,
-                parts={p: ns * scale for p, ns in per_part.most_common()},
-                kernels={k: ns * scale for k, ns in per_kernel.most_common(100)},
-            ),
-            indent=1,
-        )
+    save_json(
+        dict(
+            device=device,
+            jax=jax.__version__,
+            args=vars(args),
+            ms_per_call=total,
+            parts={p: ns * scale for p, ns in per_part.most_common()},
+            kernels={k: ns * scale for k, ns in per_kernel.most_common(100)},
+        ),
+        args.out,
+        f"benchmarks/results/profile_{args.method}_{device}.json",
     )
-    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
-import json
 import os
 import platform
 import time
@@ -22,6 +21,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
 
+from benchmarks.common import save_json
 from envs import dmc  # noqa: E402
 from envs.render import RenderPool, RenderSettings  # noqa: E402
 
@@ -95,10 +95,7 @@ def main():
         "cpu_count": os.cpu_count(),
         "rows": rows,
     }
-    if args.out:
-        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-        with open(args.out, "w") as f:
-            json.dump(result, f, indent=1)
+    save_json(result, args.out)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """End-to-end training throughput, and where an iteration's time goes.
 
-    python benchmarks/train.py --config configs/walker_dear.py --seeds 5 --envs 8 --frames 20000
+    python -m benchmarks.train --config configs/walker_dear.py --seeds 5 --envs 8 --frames 20000
 
 1. Throughput: the real `dear_jax.train.train` loop (rendering overlapped with updates) runs
    `--warmup-frames` + `--frames` frames per seed; aggregate env frames/s is read from its train
@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import logging
 import pathlib
 import runpy
@@ -27,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from benchmarks.common import save_json
 from dear_jax import replay, train, update
 from dear_jax.logger import format_table, read_csv
 
@@ -172,12 +172,9 @@ def main():
         method=config.agent.method,
         task=config.env.task,
     )
-    out = pathlib.Path(args.out or f"benchmarks/results/train_{device.platform}.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
 
     def save():  # after every stage, so a run cut off in the next stage keeps this one
-        out.write_text(json.dumps(result, indent=1))
-        print(f"wrote {out}")
+        save_json(result, args.out, f"benchmarks/results/train_{device.platform}.json")
 
     if "split" not in args.skip:
         split = stage_split(config, args.reps)

@@ -1,6 +1,6 @@
 """Time the jitted, seed-vmapped learner update (encoder + heads + critic, actor, target EMA).
 
-python benchmarks/update.py [--methods dear drqv2] [--seeds 1 5] [--batch 256] [--iters 20]
+python -m benchmarks.update [--methods dear drqv2] [--seeds 1 5] [--batch 256] [--iters 20]
     [--dtypes float32 bfloat16] [--seed-axis vmap loop]
 Prints a table and writes JSON to benchmarks/results/update_<platform>.json (or --out).
 """
@@ -9,13 +9,12 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
-import pathlib
 import time
 
 import jax
 import jax.numpy as jnp
 
+from benchmarks.common import save_json
 from dear_jax import update
 from dear_jax.replay import Batch
 
@@ -122,12 +121,11 @@ def main():
             f"{r['ms_per_seed_update']:.2f} | {PYTORCH_ANCHOR_MS / r['ms_per_seed_update']:.2f}x "
             f"| {r['compile_s']:.1f} |"
         )
-    out = pathlib.Path(args.out or f"benchmarks/results/update_{device.platform}.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(
-        json.dumps(dict(device=device.device_kind, jax=jax.__version__, rows=rows), indent=1)
+    save_json(
+        dict(device=device.device_kind, jax=jax.__version__, rows=rows),
+        args.out,
+        f"benchmarks/results/update_{device.platform}.json",
     )
-    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

@@ -50,7 +50,9 @@ def get_config() -> ConfigDict:
     c.agent.hidden_dim = 1024
     c.agent.lr = 1e-4
     c.agent.ted_lr = 1e-3
-    c.agent.compute_dtype = "float32"  # "bfloat16": encoder/decoder convolutions in bf16
+    # "bfloat16": encoder/decoder convolutions in bf16 (parameters stay float32); the DEAR update
+    # at batch 512 took 6.1 instead of 10.3 ms on an H100 (benchmarks/results/update_h100_512.json).
+    c.agent.compute_dtype = "float32"
     # How the update runs over seeds inside one program: "loop" (one traced update per seed) or
     # "vmap". Same numbers; "loop" was 1.5x faster on an H100 (benchmarks/results/update_h100.json).
     c.agent.seed_axis = "loop"

@@ -82,8 +82,8 @@ class ConvTranspose(nn.Module):
         pad = (taps - 1, phases - n)
         # The barrier keeps XLA from folding the zero padding into the convolution: a padded
         # convolution's weight gradient is not matched to cuDNN's filter-gradient kernels and
-        # ran 2-3x slower on an H100 (python -m benchmarks.decoder; DEAR update at batch 512:
-        # 15.6 -> 10.7 ms, benchmarks/results/update_h100.json).
+        # ran 2-3x slower on an H100 (benchmarks/results/decoder_h100.json; DEAR update at batch
+        # 512: 15.5 -> 10.3 ms per seed, benchmarks/results/update_h100_512.json).
         x = jax.lax.optimization_barrier(jnp.pad(x, ((0, 0),) * (x.ndim - 3) + (pad, pad, (0, 0))))
         y = jax.lax.conv_general_dilated(
             x.astype(self.dtype).reshape(-1, *x.shape[-3:]),

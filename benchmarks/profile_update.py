@@ -77,6 +77,8 @@ def main():
     parser.add_argument("--top", type=int, default=25)
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
+    if jax.default_backend() != "gpu":
+        parser.error("it reads the GPU's kernel events from a profile: run it on a GPU machine")
 
     cfg = update.AgentConfig(action_dim=6, method=args.method, compute_dtype=args.dtype)
     keys = jax.random.split(jax.random.key(0), args.seeds)

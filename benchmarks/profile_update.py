@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import functools
 import pathlib
 import re
 import tempfile
@@ -20,7 +19,7 @@ import tempfile
 import jax
 
 from benchmarks.common import save_json
-from benchmarks.update import random_batch
+from benchmarks.update import update_setup
 from dear_jax import update
 
 PARTS = (  # first match wins; matched against the op's Flax/JAX name path
@@ -80,13 +79,10 @@ def main():
     if jax.default_backend() != "gpu":
         parser.error("it reads the GPU's kernel events from a profile: run it on a GPU machine")
 
-    cfg = update.AgentConfig(action_dim=6, method=args.method, compute_dtype=args.dtype)
+    step, states, batches, hp = update_setup(
+        args.method, args.seeds, args.batch, args.dtype, args.seed_axis
+    )
     keys = jax.random.split(jax.random.key(0), args.seeds)
-    states = jax.jit(functools.partial(update.init_seeds, cfg))(keys)
-    batches = jax.vmap(lambda k: random_batch(k, args.batch, 6, args.method == "ted"))(keys)
-    hp = update.HParams().for_seeds(args.seeds)
-    fn = update.over_seeds(functools.partial(update.update, cfg=cfg), args.seed_axis)
-    step = jax.jit(fn, donate_argnums=0)
     compiled_text = step.lower(states, batches, keys, hp).compile().as_text()
     names = hlo_op_names(compiled_text)
     states, metrics = step(states, batches, keys, hp)
@@ -131,7 +127,7 @@ def main():
             kernels={k: ns * scale for k, ns in per_kernel.most_common(100)},
         ),
         args.out,
-        f"benchmarks/results/profile_{args.method}_{device}.json",
+        f"benchmarks/results/profile_{args.method}_gpu.json",
     )
 
 

@@ -37,15 +37,8 @@ def random_batch(key, batch, action_dim, far):
     )
 
 
-def time_update(
-    method: str,
-    seeds: int,
-    batch: int,
-    iters: int,
-    dtype: str = "float32",
-    action_dim: int = 6,
-    seed_axis: str = "vmap",
-) -> dict:
+def update_setup(method, seeds, batch, dtype="float32", seed_axis="vmap", action_dim=6):
+    """(jitted update over all seeds, fresh agent states, random batches, hparams)."""
     cfg = update.AgentConfig(action_dim=action_dim, method=method, compute_dtype=dtype)
     states = jax.jit(functools.partial(update.init_seeds, cfg))(
         jax.random.split(jax.random.key(0), seeds)
@@ -57,6 +50,19 @@ def time_update(
     step = jax.jit(
         update.over_seeds(functools.partial(update.update, cfg=cfg), seed_axis), donate_argnums=0
     )
+    return step, states, batches, hp
+
+
+def time_update(
+    method: str,
+    seeds: int,
+    batch: int,
+    iters: int,
+    dtype: str = "float32",
+    action_dim: int = 6,
+    seed_axis: str = "vmap",
+) -> dict:
+    step, states, batches, hp = update_setup(method, seeds, batch, dtype, seed_axis, action_dim)
     keys = jax.random.split(jax.random.key(2), (iters + 1, seeds))
     t0 = time.perf_counter()
     states, metrics = step(states, batches, keys[0], hp)
@@ -86,7 +92,7 @@ def main():
     parser.add_argument("--seeds", nargs="+", type=int, default=[1, 5])
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--iters", type=int, default=20)
-    parser.add_argument("--seed-axis", nargs="+", default=["vmap"], choices=["vmap", "loop"])
+    parser.add_argument("--seed-axis", nargs="+", default=["vmap"], choices=update.SEED_AXES)
     parser.add_argument("--dtypes", nargs="+", default=["float32"], choices=["float32", "bfloat16"])
     parser.add_argument(
         "--precision",

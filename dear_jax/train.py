@@ -355,11 +355,11 @@ class _Run:
             while counters["frame"] < config.total_frames:
                 self.key, k_act, k_learn = jax.random.split(self.key, 3)
                 action, self.agent = programs.act(self.agent, ts.obs, k_act)
-                reset = np.asarray(state.last)
+                stepped = not np.asarray(state.last).all()  # all envs reset after a last step
                 future = env.step_async(state, action)
                 # Updates are dispatched while the env thread renders the next observations;
                 # a reset step adds no transition, so it owes no update.
-                if counters["frame"] >= seed_frames and not reset.all():
+                if counters["frame"] >= seed_frames and stepped:
                     steps_owed += num_envs / config.agent.update_every_steps
                     n = int(steps_owed)
                     steps_owed -= n
@@ -376,7 +376,7 @@ class _Run:
                 self.buffer = programs.add(self.buffer, ts, action)
                 returns = programs.accumulate(returns, ts)
                 counters["iteration"] += 1
-                if not reset.all():  # a reset step shows the first frames; it is not a step
+                if stepped:  # a reset step shows the first frames; it is not a step
                     counters["frame"] += frames_per_step
                     if pbar is not None:
                         pbar.update(frames_per_step)

@@ -1,10 +1,12 @@
-"""Train DEAR or a baseline: `python run.py --config configs/walker_dear.py [--workdir DIR]`.
+"""Train DEAR or a baseline: `python run.py --config walker_dear.py [--workdir DIR]`.
 
-Any config field can be overridden: `--config.seeds=5 --config.agent.beta=10`. Rerunning the same
-command on the same workdir resumes from its latest checkpoint.
+`--config` takes a file path or a bare name of a file in configs/. Any config field can be
+overridden: `--config.seeds=5 --config.agent.beta=10`. Rerunning the same command on the same
+workdir resumes from its latest checkpoint. SIGTERM or Ctrl-C checkpoints, then exits (with
+128 + the signal's number); `--verbose` shows libraries' INFO logs, which otherwise go only to
+<workdir>/log.txt.
 """
 
-import logging
 import pathlib
 import runpy
 import sys
@@ -12,42 +14,68 @@ import sys
 from absl import app, flags
 from ml_collections import config_flags
 
-_CONFIG = config_flags.DEFINE_config_file("config", None, "experiment config file (configs/*.py)")
+ROOT = pathlib.Path(__file__).resolve().parent
+
+_CONFIG = config_flags.DEFINE_config_file(
+    "config", None, "experiment config: a file path, or a bare name of a file in configs/"
+)
 _WORKDIR = flags.DEFINE_string(
     "workdir", None, "output folder (default: runs/<config file name>); reused to resume"
 )
+_VERBOSE = flags.DEFINE_bool("verbose", False, "show libraries' INFO logs on the console too")
 flags.mark_flags_as_required(["config"])
 
 
-def _check_argv(argv):
-    """Friendly errors for a missing config file or an unknown --config.key, before absl parses."""
-    from dear_jax.config import check_override_keys
+def _resolve_argv(argv: list[str]) -> list[str]:
+    """argv with --config's bare name made a path; friendly errors for a missing config file or
+    an unknown --config.key, before absl parses."""
+    from dear_jax.config import check_override_keys, resolve_config_path
 
-    path = next((a.split("=", 1)[1] for a in argv if a.startswith("--config=")), None)
-    if path is None and "--config" in argv[:-1]:
-        path = argv[argv.index("--config") + 1]
-    if path is None:
-        return
-    if not pathlib.Path(path).is_file():
-        available = ", ".join(sorted(p.name for p in pathlib.Path("configs").glob("*.py")))
-        sys.exit(f"error: config file {path!r} not found; configs/ has: {available}")
-    check_override_keys(runpy.run_path(path)["get_config"](), argv)
+    argv = list(argv)
+    for i, arg in enumerate(argv):
+        if arg.startswith("--config="):
+            path = resolve_config_path(arg.split("=", 1)[1], ROOT / "configs")
+            argv[i] = f"--config={path}"
+            break
+        if arg == "--config" and i + 1 < len(argv):
+            path = resolve_config_path(argv[i + 1], ROOT / "configs")
+            argv[i + 1] = str(path)
+            break
+    else:
+        return argv
+    check_override_keys(runpy.run_path(str(path))["get_config"](), argv)
+    return argv
 
 
 def main(argv):
     del argv
-    from dear_jax.train import train
+    from dear_jax import console
+    from dear_jax.lock import WorkdirLock, WorkdirLocked
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     config_path = flags.FLAGS["config"].config_filename
     workdir = _WORKDIR.value or str(pathlib.Path("runs") / pathlib.Path(config_path).stem)
-    train(_CONFIG.value, workdir)
+    try:
+        lock = WorkdirLock(workdir)
+        lock.acquire()  # before the slow imports: a second run on a workdir fails at once
+    except WorkdirLocked as e:
+        sys.exit(f"error: {e}")
+    console.setup(workdir, verbose=_VERBOSE.value)
+    from dear_jax.signals import Stopped
+    from dear_jax.train import train
+
+    try:
+        train(_CONFIG.value, workdir)
+    except Stopped as e:
+        print(e, file=sys.stderr)
+        sys.exit(e.exit_code)
+    finally:
+        lock.release()
 
 
 if __name__ == "__main__":
-    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+    sys.path.insert(0, str(ROOT))
     try:
-        _check_argv(sys.argv[1:])
-    except KeyError as e:
+        sys.argv[1:] = _resolve_argv(sys.argv[1:])
+    except (KeyError, FileNotFoundError) as e:
         sys.exit(f"error: {e.args[0]}")
     app.run(main)

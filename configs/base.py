@@ -21,9 +21,8 @@ def get_config() -> ConfigDict:
     c.log_every_frames = 5_000  # per seed: train metrics to CSV / TensorBoard
     c.checkpoint_every_frames = 100_000  # per seed; 0 disables periodic checkpoints
     c.keep_checkpoints = 3
-    c.save_replay = False  # put the replay buffers in checkpoints (large: GBs per seed)
     c.save_video = True  # eval video of env 0 per seed: RGB | true mask | predicted mask
-    c.progress = True  # tqdm progress bar
+    c.progress = True  # tqdm progress bar on a terminal (else a log line per log interval)
 
     c.env = ConfigDict()
     c.env.task = "walker-walk"  # python -c "import envs; print(envs.names())" lists them
@@ -78,6 +77,10 @@ def get_config() -> ConfigDict:
         250_000  # entries per seed (DEAR's; DrQ-v2 used 1M, which does not fit 5 seeds)
     )
     c.replay.seed_frames = 4000  # frames per seed collected before the first update
+    # Keep the replay on disk too (workdir/replay/, compressed chunks written as they fill), so a
+    # resume continues with it; False: a resume starts with an empty replay and refills it.
+    c.replay.disk = True
+    c.replay.chunk_entries = 2000  # entries per seed per chunk file (~56 MB before compression)
     return c
 
 

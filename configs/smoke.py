@@ -22,4 +22,5 @@ def get_config():
     c.agent.explore_steps = 200
     c.replay.capacity = 4000
     c.replay.seed_frames = 400
+    c.replay.chunk_entries = 200  # replay files of 100 rows: the run writes a few
     return c

@@ -1,8 +1,10 @@
 """Checkpoints of a run: orbax `CheckpointManager`, atomic, last k kept, guarded by a fingerprint.
 
 Each checkpoint step holds two orbax items:
-  state  the pytree of arrays (agent states vmapped over seeds, RNG key data, optionally replay);
-  meta   json: {"fingerprint": the config fields a resume must match, "extra": host counters}.
+  state  the pytree of arrays (agent states vmapped over seeds, RNG key data, env states...);
+  meta   json: {"fingerprint": the config fields a resume must match, "extra": host values}.
+`extra` may hold numpy arrays (host RNG states, CPU physics): they are stored in the json as
+base64 bytes with their dtype and shape, so they come back bit for bit, float64 included.
 
 Atomicity is orbax's: a step is written into `<step>.orbax-checkpoint-tmp*` and renamed to
 `<step>` only after every file is on disk, so a process killed mid-save leaves the earlier steps
@@ -11,6 +13,8 @@ untouched; the stale temporary folder is ignored by `latest_step` and deleted th
 
 Leaves come back as jax arrays placed like the template's (numpy leaves: on the default device);
 without jax_enable_x64, 64-bit numpy leaves come back as 32-bit, as jax.numpy would make them.
+Zero-size leaves (MJX data of a model without tendons, mocap bodies...) are not stored (orbax
+refuses them); they come back as the template's.
 
 Typed JAX PRNG keys (`jax.random.key`) are stored as their uint32 key data and re-wrapped on
 restore with the template's key implementation, so callers may pass either form.
@@ -18,6 +22,7 @@ restore with the template's key implementation, so callers may pass either form.
 
 from __future__ import annotations
 
+import base64
 import json
 import logging
 import os
@@ -43,10 +48,37 @@ class IncompatibleCheckpointError(ValueError):
     """The checkpoint was written by a run whose fingerprint (config) differs from this one."""
 
 
+_NDARRAY = "__ndarray__"
+
+
+def _encode_arrays(value: Any) -> Any:
+    """numpy arrays (and numpy scalars) inside dicts / lists -> json objects holding their bytes."""
+    if isinstance(value, (np.ndarray, np.generic)):
+        arr = np.asarray(value)
+        data = base64.b64encode(arr.tobytes()).decode("ascii")
+        return {_NDARRAY: arr.dtype.str, "shape": list(arr.shape), "data": data}
+    if isinstance(value, Mapping):
+        return {k: _encode_arrays(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_encode_arrays(v) for v in value]
+    return value
+
+
+def _decode_arrays(value: Any) -> Any:
+    if isinstance(value, dict):
+        if _NDARRAY in value:
+            raw = base64.b64decode(value["data"])
+            return np.frombuffer(raw, np.dtype(value[_NDARRAY])).reshape(value["shape"]).copy()
+        return {k: _decode_arrays(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_decode_arrays(v) for v in value]
+    return value
+
+
 def _jsonable(value: Any, what: str) -> Any:
     """`value` as json would give it back (tuples -> lists), so saved and current compare equal."""
     try:
-        return json.loads(json.dumps(value))
+        return json.loads(json.dumps(_encode_arrays(value)))
     except (TypeError, ValueError) as e:
         raise TypeError(
             f"{what} must be json-serialisable (numbers, strings, lists, dicts): {e}"
@@ -59,16 +91,32 @@ def _is_key(x: Any) -> bool:
 
 def _to_storable(x: Any) -> Any:
     if _is_key(x):
-        return jax.random.key_data(x)
-    if isinstance(x, jax.Array):
-        return x
-    return np.asarray(x)  # python / numpy scalars become 0-d arrays, so every leaf is an array
+        x = jax.random.key_data(x)
+    if not isinstance(x, jax.Array):
+        x = np.asarray(x)  # python / numpy scalars become 0-d arrays, so every leaf is an array
+    return None if x.size == 0 else x
 
 
-def _abstract(x: Any) -> jax.ShapeDtypeStruct:
+def _is_none(x: Any) -> bool:
+    return x is None
+
+
+def _with_empty_leaves(template: Any, restored: Any) -> Any:
+    """`restored` (zero-size leaves stored as None) with the template's zero-size leaves put back."""
+    t_leaves, treedef = jax.tree.flatten(template, is_leaf=_is_none)
+    r_leaves = jax.tree.leaves(restored, is_leaf=_is_none)
+    leaves = [
+        t if t is None or np.size(t) == 0 else r for t, r in zip(t_leaves, r_leaves, strict=True)
+    ]
+    return treedef.unflatten(leaves)
+
+
+def _abstract(x: Any) -> jax.ShapeDtypeStruct | None:
     """What orbax should restore a template leaf as: same shape and dtype, same device(s)."""
     if _is_key(x):
         x = jax.random.key_data(x)
+    if np.size(x) == 0:
+        return None
     if isinstance(x, jax.Array):
         sharding = x.sharding
     else:
@@ -127,8 +175,15 @@ class Checkpointer:
             cleanup_tmp_directories=True,  # a save killed half way left one behind
             enable_async_checkpointing=asynchronous,
         )
+        # Handlers given up front (not registered by the first save) so that a new process can
+        # read the stored array metadata before restoring (`_check_template`).
         self._manager = ocp.CheckpointManager(
-            self.directory, options=options, item_names=(_STATE, _META)
+            self.directory,
+            options=options,
+            item_handlers={
+                _STATE: ocp.StandardCheckpointHandler(),
+                _META: ocp.JsonCheckpointHandler(),
+            },
         )
 
     def all_steps(self) -> list[int]:
@@ -175,7 +230,18 @@ class Checkpointer:
             )[_META]
         finally:
             absl_log.removeFilter(_skip_unrequested_item)
-        return step, meta["fingerprint"], meta["extra"]
+        return step, meta["fingerprint"], _decode_arrays(meta["extra"])
+
+    def check_fingerprint(self, saved: Mapping, step: int) -> None:
+        """Raise IncompatibleCheckpointError, naming every differing field, unless `saved` matches."""
+        diff = fingerprint_diff(saved, self.fingerprint)
+        if diff:
+            raise IncompatibleCheckpointError(
+                f"checkpoint {step} in {self.directory} was written by a different "
+                "configuration:\n  "
+                + "\n  ".join(diff)
+                + "\nResume with the original config, or start this one in a new --workdir."
+            )
 
     def restore(self, template: Any, step: int | None = None) -> tuple[int, Any, dict]:
         """(step, state shaped like `template`, extra) of `step` (default: the latest).
@@ -185,14 +251,7 @@ class Checkpointer:
         """
         self.wait()
         step, saved_fp, extra = self.read_meta(step)
-        diff = fingerprint_diff(saved_fp, self.fingerprint)
-        if diff:
-            raise IncompatibleCheckpointError(
-                f"checkpoint {step} in {self.directory} was written by a different "
-                "configuration:\n  "
-                + "\n  ".join(diff)
-                + "\nResume with the original config, or start this one in a new --workdir."
-            )
+        self.check_fingerprint(saved_fp, step)
         abstract = jax.tree.map(_abstract, template)
         self._check_template(step, abstract)
         try:
@@ -205,6 +264,7 @@ class Checkpointer:
                 f"checkpoint {step} in {self.directory} does not match the state template "
                 f"(a code change of the agent or replay layout?): {e}"
             ) from e
+        restored = _with_empty_leaves(template, restored)
         restored = jax.tree.map(
             lambda t, r: (
                 jax.random.wrap_key_data(r, impl=jax.random.key_impl(t)) if _is_key(t) else r
@@ -213,6 +273,16 @@ class Checkpointer:
             restored,
         )
         return step, restored, extra
+
+    def read_arrays(self, step: int | None = None) -> dict:
+        """The stored arrays of `step` (default: the latest) as nested dicts of numpy arrays,
+        without a template (to inspect or compare checkpoints)."""
+        self.wait()
+        step = self._resolve(step)
+        restored = self._manager.restore(
+            step, args=ocp.args.Composite(**{_STATE: ocp.args.StandardRestore()})
+        )[_STATE]
+        return jax.tree.map(np.asarray, restored)
 
     def _resolve(self, step: int | None) -> int:
         steps = self.all_steps()

@@ -1,8 +1,9 @@
-"""Command-line config checks that need no jax: unknown `--config.key` overrides."""
+"""Command-line config checks that need no jax: config file names, unknown `--config.key`."""
 
 from __future__ import annotations
 
 import difflib
+import pathlib
 
 from ml_collections import ConfigDict
 
@@ -28,3 +29,27 @@ def check_override_keys(config: ConfigDict, argv: list[str]) -> None:
                     f"Valid fields of {where}: {', '.join(valid) or '(none: it is a value)'}"
                 )
             node, path = node[part], [*path, part]
+
+
+def resolve_config_path(name: str, configs_dir: str | pathlib.Path) -> pathlib.Path:
+    """A config file from a path, or a bare name looked up in `configs_dir` (".py" optional).
+
+    Raises FileNotFoundError listing the configs when neither exists.
+    """
+    configs_dir = pathlib.Path(configs_dir)
+    path = pathlib.Path(name)
+    if path.is_file():
+        return path
+    if path.parent == pathlib.Path("."):
+        for candidate in (configs_dir / path.name, configs_dir / f"{path.name}.py"):
+            if candidate.is_file() and candidate.name != "__init__.py":
+                return candidate
+    available = sorted(
+        p.name for p in configs_dir.glob("*.py") if p.name not in ("__init__.py", "base.py")
+    )
+    close = difflib.get_close_matches(path.name, available, n=1)
+    hint = f" Did you mean {close[0]!r}?" if close else ""
+    raise FileNotFoundError(
+        f"config file {name!r} not found (nor in {configs_dir}).{hint} "
+        f"Configs in {configs_dir}: {', '.join(available)}"
+    )

@@ -16,7 +16,9 @@ import dataclasses
 import functools
 import json
 import logging
+import math
 import pathlib
+import sys
 import time
 
 import jax
@@ -25,27 +27,47 @@ import numpy as np
 from ml_collections import ConfigDict
 
 import envs
-from dear_jax import losses, replay, update
+from dear_jax import losses, replay, replay_disk, update
 from dear_jax.checkpoint import Checkpointer
+from dear_jax.lock import WorkdirLock
 from dear_jax.logger import RunLogger, format_table, read_csv
+from dear_jax.signals import Stopped, StopRequest
 from dear_jax.video import side_by_side, write_video
 
 log = logging.getLogger("dear_jax")
 
-# Config fields that must match for a checkpoint to be resumed.
-FINGERPRINT_KEYS = (
-    "seed",
-    "seeds",
-    "envs_per_seed",
-    "env.task",
-    "env.action_repeat",
-    "agent.method",
-    "agent.encoder",
-    "agent.latent_dim",
-    "agent.feature_dim",
-    "agent.hidden_dim",
-    "replay.capacity",
+# Config fields a resumed run may change: how long it runs, what and how often it logs, evaluates
+# and saves, and how fast it runs; never what it learns. Every other field, new ones included, is
+# part of the checkpoint's fingerprint, and a resume that changes one is refused.
+RESUMABLE_CHANGES = (
+    "total_frames",
+    "eval_every_frames",
+    "num_eval_episodes",
+    "log_every_frames",
+    "checkpoint_every_frames",
+    "keep_checkpoints",
+    "save_video",
+    "progress",
+    "env.render.num_workers",
+    "agent.seed_axis",
+    "replay.disk",
+    "replay.chunk_entries",
 )
+
+
+def _flatten(tree: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def fingerprint(config: ConfigDict) -> dict:
+    """Every config field that changes what a run learns (all but RESUMABLE_CHANGES), dotted."""
+    return {k: v for k, v in _flatten(config.to_dict()).items() if k not in RESUMABLE_CHANGES}
 
 
 def _get(config: ConfigDict, dotted: str):
@@ -147,6 +169,20 @@ class Programs:
     add_metrics: callable  # (metrics, metrics) -> elementwise sum
 
 
+_PROGRAMS: dict = {}
+
+
+def cached_programs(acfg: update.AgentConfig, config: ConfigDict) -> Programs:
+    """build_programs, reused by later runs of this process with the same agent and seeds (tests,
+    resumes in one process): their jitted functions are then compiled once."""
+    key = (acfg, config.seeds, json.dumps(config.agent.to_dict(), sort_keys=True))
+    if key not in _PROGRAMS:
+        hp = hparams(config).for_seeds(config.seeds)
+        _PROGRAMS.clear()  # one entry: a process runs one experiment at a time
+        _PROGRAMS[key] = build_programs(acfg, hp, config)
+    return _PROGRAMS[key]
+
+
 def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigDict) -> Programs:
     a = config.agent
     num_seeds = config.seeds
@@ -212,10 +248,17 @@ def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigD
     )
 
 
-def evaluate(env: envs.Env, programs: Programs, agent, key, *, video: bool) -> tuple[dict, dict]:
+class EvalAborted(Exception):
+    """An evaluation was cut short by a stop request; the run evaluates again after resuming."""
+
+
+def evaluate(
+    env: envs.Env, programs: Programs, agent, key, *, video: bool, stop=lambda: False
+) -> tuple[dict, dict]:
     """One episode in each of the eval env's E envs per seed, deterministic actions.
 
     Returns per-seed metrics ([S] arrays) and, if asked, video frames of env 0 per seed.
+    Raises EvalAborted when `stop()` turns true (checked every step).
     """
     state, ts = env.reset(key)
     returns = jnp.zeros(env.shape)
@@ -229,6 +272,8 @@ def evaluate(env: envs.Env, programs: Programs, agent, key, *, video: bool) -> t
         cos_sum, steps = cos_sum + cos, steps + 1
         if bool(np.all(state.last)):
             break
+        if stop():
+            raise EvalAborted
         state, ts = env.step(state, action)
         returns = returns + ts.reward
         success = jnp.maximum(success, ts.success)
@@ -245,186 +290,369 @@ def evaluate(env: envs.Env, programs: Programs, agent, key, *, video: bool) -> t
     return metrics, clips
 
 
-def _fingerprint(config: ConfigDict) -> dict:
-    return {k: _get(config, k) for k in FINGERPRINT_KEYS}
-
-
 def _pbar(config, total, initial):
-    if not config.progress:
+    """The progress bar, on a terminal only (detached runs log a line per log interval instead)."""
+    if not config.progress or not sys.stderr.isatty():
         return None
-    from tqdm.auto import tqdm
+    from tqdm import tqdm
 
-    return tqdm(total=total, initial=initial, unit="frame", desc="frames per seed", smoothing=0.05)
+    return tqdm(
+        total=total,
+        initial=initial,
+        unit="frame",
+        desc="frames per seed",
+        smoothing=0.05,
+        dynamic_ncols=True,
+    )
+
+
+def _replay_store(config: ConfigDict, spec: envs.EnvSpec, workdir: pathlib.Path):
+    """The chunk store of the replay on disk (None when replay.disk is off), its size checked."""
+    if not config.replay.disk:
+        return None
+    num_envs = config.envs_per_seed
+    rows = math.ceil(config.replay.capacity / num_envs)
+    chunk_rows = replay_disk.chunk_rows_for(config.replay.chunk_entries, num_envs, rows)
+    # Rows are batched env steps: each adds E x action_repeat frames per seed, and every episode
+    # adds one more row, its first timestep.
+    per_frame = (spec.episode_steps + 1) / spec.episode_steps / (num_envs * spec.action_repeat)
+    total_rows = math.ceil(config.total_frames * per_frame) + 1
+    ckpt_every = config.checkpoint_every_frames
+    between = math.ceil(ckpt_every * per_frame) + 1 if ckpt_every else total_rows
+    need = replay_disk.disk_bound(
+        num_seeds=config.seeds,
+        rows=rows,
+        chunk_rows=chunk_rows,
+        num_envs=num_envs,
+        entry_bytes=replay.entry_bytes(spec.frame_shape, spec.action_dim),
+        rows_between_checkpoints=between,
+        keep_checkpoints=config.keep_checkpoints,
+        total_rows=total_rows,
+    )
+    directory = workdir / "replay"
+    more, free = replay_disk.check_disk(directory, need)
+    gib = 2**30
+    log.info(
+        "replay on disk in %s: up to %.2f GiB (uncompressed bound, %.2f GiB more than now; "
+        "%.2f GiB free); replay.disk=False turns it off",
+        directory,
+        need / gib,
+        more / gib,
+        free / gib,
+    )
+    return replay_disk.ChunkStore(directory, config.seeds, rows, chunk_rows)
 
 
 def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
-    """Run (or resume) the experiment described by `config` in `workdir`; returns the summary."""
+    """Run (or resume) the experiment described by `config` in `workdir`; returns the summary.
+
+    SIGTERM or SIGINT: the run checkpoints at the end of its step and raises signals.Stopped.
+    """
     validate(config)
     workdir = pathlib.Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     with contextlib.ExitStack() as stack:
+        stack.enter_context(WorkdirLock(workdir))
+        stop = stack.enter_context(StopRequest())
+        ckpt = Checkpointer(
+            workdir / "checkpoints", fingerprint=fingerprint(config), keep=config.keep_checkpoints
+        )
+        stack.callback(ckpt.close)
+        if ckpt.latest_step() is not None:  # a changed config is refused before anything starts
+            step, saved, _ = ckpt.read_meta()
+            ckpt.check_fingerprint(saved, step)
         env = stack.enter_context(
             make_env(config, envs_per_seed=config.envs_per_seed, split="train", seed=config.seed)
         )
         spec = env.spec
         replay.check_fits(config.seeds, config.replay.capacity, spec.frame_shape, spec.action_dim)
-        ckpt = Checkpointer(
-            workdir / "checkpoints", fingerprint=_fingerprint(config), keep=config.keep_checkpoints
-        )
-        stack.callback(ckpt.close)
-        run = _Run(config, spec, ckpt)
-        (workdir / "config.json").write_text(config.to_json(indent=1))
-        logger = RunLogger(workdir, config.seeds, resume_frame=run.resumed_from)
-        stack.callback(logger.close)
+        store = _replay_store(config, spec, workdir)
+        if store is not None:
+            stack.callback(store.close)
         eval_env = stack.enter_context(
             make_env(
                 config, envs_per_seed=config.num_eval_episodes, split="val", seed=config.seed + 1
             )
         )
-        run.loop(env, eval_env, logger, workdir)
+        run = _Run(config, spec, ckpt, store, env, eval_env)
+        (workdir / "config.json").write_text(config.to_json(indent=1))
+        logger = RunLogger(workdir, config.seeds, resume_frame=run.resumed_from)
+        stack.callback(logger.close)
+        run.loop(logger, workdir, stop)
+    if stop:
+        raise Stopped(
+            f"stopped by {stop.name} at frame {run.counters['frame']:,} per seed; checkpoint "
+            f"saved in {workdir / 'checkpoints'}; rerun the same command to resume",
+            stop.signum,
+        )
     return write_summary(workdir, config, spec, run.counters)
 
 
-class _Run:
-    """The mutable state of one training run on the host side: agent, replay, keys, counters."""
+def _is_host(x) -> bool:
+    return isinstance(x, (np.ndarray, np.generic))
 
-    def __init__(self, config: ConfigDict, spec: envs.EnvSpec, ckpt: Checkpointer):
-        self.config, self.spec, self.ckpt = config, spec, ckpt
-        num_seeds = config.seeds
+
+def _uncommitted(x):
+    """`x` as a fresh run has it: a device array not committed to a device. jit compiles
+    separately for committed arguments (orbax restores those), so a resumed run would otherwise
+    compile every program of the loop twice."""
+    if not isinstance(x, jax.Array):
+        return x
+    if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
+        data = jnp.asarray(np.asarray(jax.random.key_data(x)))
+        return jax.random.wrap_key_data(data, impl=jax.random.key_impl(x))
+    return jnp.asarray(np.asarray(x))
+
+
+_init_seeds = jax.jit(update.init_seeds, static_argnums=0)
+
+
+class _Run:
+    """The host side of one training run: agent, replay, envs mid-episode, keys, counters.
+
+    Everything the loop carries from one step to the next is here, and a checkpoint holds all
+    of it (`_tree`: arrays; `_extra`: host values), so a resumed run continues exactly as the
+    uninterrupted one: same updates, same parameters bit for bit, same log rows.
+    """
+
+    def __init__(self, config, spec, ckpt: Checkpointer, store, env: envs.Env, eval_env: envs.Env):
+        self.config, self.spec, self.ckpt, self.store = config, spec, ckpt, store
+        self.env, self.eval_env = env, eval_env
+        num_seeds, num_envs = config.seeds, config.envs_per_seed
         self.acfg = agent_config(config, spec.action_dim)
-        self.programs = build_programs(self.acfg, hparams(config).for_seeds(num_seeds), config)
+        self.programs = cached_programs(self.acfg, config)
         root = jax.random.key(config.seed)
         seed_keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.arange(num_seeds))
-        self.agent = jax.jit(functools.partial(update.init_seeds, self.acfg))(seed_keys)
+        self.agent = _init_seeds(self.acfg, seed_keys)
         self.buffer = replay.init(
             config.replay.capacity,
-            config.envs_per_seed,
+            num_envs,
             spec.frame_shape,
             spec.action_dim,
             leading=(num_seeds,),
         )
         self.key = jax.random.fold_in(root, 1_000_003)
-        self.counters = {"frame": 0, "iteration": 0, "episode": 0, "updates": 0, "wall_s": 0.0}
+        # Evaluations draw from their own stream (one key per frame), so how often a run
+        # evaluates never changes its training.
+        self.eval_root = jax.random.fold_in(root, 2_000_003)
+        self.counters = {
+            "frame": 0,
+            "iteration": 0,
+            "episode": 0,
+            "updates": 0,
+            "rows": 0,  # rows added to the replay (its row r lives in ring row r % T)
+            "wall_s": 0.0,
+        }
+        self.lv = {  # loop variables carried between steps
+            "steps_owed": 0.0,  # agent steps per seed not yet matched by updates
+            "metric_count": 0,
+            "next_log": config.log_every_frames,
+            "last_log_frame": 0,
+            "next_eval": config.eval_every_frames,
+            "last_eval_frame": -1,
+        }
+        self.metric_sum = None  # train metrics summed since the last log row
+        self.episode_returns = []  # [S] returns of the episodes ended since the last log row
+        self.last_eval_return = None
+        self.seed_frames = config.replay.seed_frames
         self.resumed_from = None
-        if ckpt.latest_step() is not None:
-            step, restored, self.counters = ckpt.restore(self._tree())
-            self.agent = restored["agent"]
-            self.key = jax.random.wrap_key_data(restored["key"])
-            self.buffer = restored.get("replay", self.buffer)
-            self.resumed_from = self.counters["frame"]
-            log.info("resumed from frame %d (checkpoint %d)", self.resumed_from, step)
+        self.key, k_reset = jax.random.split(self.key)
+        self.state, self.ts = env.reset(k_reset)
+        self.returns = jnp.zeros((num_seeds, num_envs))
+        self._no_action = jnp.zeros((num_seeds, num_envs, spec.action_dim))
+        if ckpt.latest_step() is None:
+            if store is not None:
+                store.forget_after(0)  # files of an earlier run whose checkpoints were deleted
+            self._add(self.ts, self._no_action)
+        else:
+            self._restore()
 
+    # -- checkpoints -------------------------------------------------------------------------
     def _tree(self) -> dict:
-        tree = {"agent": self.agent, "key": jax.random.key_data(self.key)}
-        if self.config.save_replay:
-            tree["replay"] = self.buffer
-        return tree
+        b = self.buffer
+        return {
+            "agent": self.agent,
+            "key": self.key,
+            "env": [x for x in jax.tree.leaves(self.state) if not _is_host(x)],
+            "ts": self.ts,
+            "returns": self.returns,
+            "replay": {"episodes_started": b.episodes_started, "pos": b.pos, "size": b.size},
+        }
+
+    def _extra(self) -> dict:
+        return {
+            "counters": dict(self.counters),
+            "loop": dict(self.lv),
+            "metric_sum": (
+                None
+                if self.metric_sum is None
+                else {k: np.asarray(v) for k, v in self.metric_sum.items()}
+            ),
+            "episode_returns": list(self.episode_returns),
+            "env_host": [x for x in jax.tree.leaves(self.state) if _is_host(x)],
+            "env_rng": self.env.host_state(),
+            "eval_env_rng": self.eval_env.host_state(),
+            "replay_on_disk": self.store is not None,
+        }
 
     def save(self, wall_s: float) -> None:
         self.counters["wall_s"] = wall_s
-        self.ckpt.save(self.counters["frame"], self._tree(), extra=dict(self.counters))
+        if self.store is not None:
+            self.store.save_partial(self.buffer, self.counters["rows"])
+        self.ckpt.save(self.counters["frame"], self._tree(), extra=self._extra())
+        if self.store is not None:
+            kept = {self.ckpt.read_meta(s)[2]["counters"]["rows"] for s in self.ckpt.all_steps()}
+            self.store.prune(max(kept), kept)
 
-    def loop(self, env: envs.Env, eval_env: envs.Env, logger: RunLogger, workdir) -> None:
-        config, spec, programs, counters = self.config, self.spec, self.programs, self.counters
-        num_seeds, num_envs = config.seeds, config.envs_per_seed
-        # Frames count per seed, summed over its E envs (as in DrQ-v2 with one env per seed): one
-        # loop iteration is E agent steps and E x action_repeat frames of every seed.
-        frames_per_step = num_envs * spec.action_repeat
-        seed_frames = config.replay.seed_frames
-        if self.resumed_from is not None and not config.save_replay:
-            seed_frames += self.resumed_from  # refill the empty replay before updating again
-        every = lambda n: (counters["frame"] // n + 1) * n  # noqa: E731
-        next_eval = every(config.eval_every_frames)
-        next_log = counters["frame"] + config.log_every_frames
-        ckpt_every = config.checkpoint_every_frames
-        next_ckpt = every(ckpt_every) if ckpt_every else None
-
-        self.key, k_reset = jax.random.split(self.key)
-        state, ts = env.reset(k_reset)
-        self.buffer = programs.add(
-            self.buffer, ts, jnp.zeros((num_seeds, num_envs, spec.action_dim))
+    def _restore(self) -> None:
+        step, restored, extra = self.ckpt.restore(self._tree())
+        restored = jax.tree.map(_uncommitted, restored)
+        self.agent, self.key = restored["agent"], restored["key"]
+        self.ts, self.returns = restored["ts"], restored["returns"]
+        leaves, treedef = jax.tree.flatten(self.state)
+        device, host = iter(restored["env"]), iter(extra["env_host"])
+        self.state = treedef.unflatten(
+            [next(host) if _is_host(x) else next(device) for x in leaves]
         )
-        returns = jnp.zeros((num_seeds, num_envs))
-        metric_sum, metric_count, episode_returns = None, 0, []
-        steps_owed = 0.0  # agent steps per seed not yet matched by updates
-        pbar = _pbar(config, config.total_frames, counters["frame"])
-        t_start, wall0 = time.perf_counter(), counters["wall_s"]
-        last_log_t, last_log_frame = t_start, counters["frame"]
-        wall = lambda: wall0 + time.perf_counter() - t_start  # noqa: E731
-        try:
-            while counters["frame"] < config.total_frames:
-                self.key, k_act, k_learn = jax.random.split(self.key, 3)
-                action, self.agent = programs.act(self.agent, ts.obs, k_act)
-                stepped = not np.asarray(state.last).all()  # all envs reset after a last step
-                future = env.step_async(state, action)
-                # Updates are dispatched while the env thread renders the next observations;
-                # a reset step adds no transition, so it owes no update.
-                if counters["frame"] >= seed_frames and stepped:
-                    steps_owed += num_envs / config.agent.update_every_steps
-                    n = int(steps_owed)
-                    steps_owed -= n
-                    for k in jax.random.split(k_learn, n) if n else ():
-                        self.agent, metrics = programs.learn(self.agent, self.buffer, k)
-                        metric_sum = (
-                            metrics
-                            if metric_sum is None
-                            else programs.add_metrics(metric_sum, metrics)
-                        )
-                        metric_count += 1
-                    counters["updates"] += n
-                state, ts = future.result()
-                self.buffer = programs.add(self.buffer, ts, action)
-                returns = programs.accumulate(returns, ts)
-                counters["iteration"] += 1
-                if stepped:  # a reset step shows the first frames; it is not a step
-                    counters["frame"] += frames_per_step
-                    if pbar is not None:
-                        pbar.update(frames_per_step)
-                if state.last.all():
-                    counters["episode"] += 1
-                    episode_returns.append(np.asarray(returns).mean(1))
+        self.env.set_host_state(extra["env_rng"])
+        self.eval_env.set_host_state(extra["eval_env_rng"])
+        self.counters = extra["counters"]
+        self.lv.update(extra["loop"])
+        frame = self.counters["frame"]
+        if self.lv["next_eval"] > frame:  # none pending: follow this run's eval interval
+            self.lv["next_eval"] = (frame // self.config.eval_every_frames + 1) * (
+                self.config.eval_every_frames
+            )
+        if extra["metric_sum"] is not None:
+            self.metric_sum = {k: jnp.asarray(v) for k, v in extra["metric_sum"].items()}
+        self.episode_returns = [np.asarray(r) for r in extra["episode_returns"]]
+        self.resumed_from = frame
+        rows = self.counters["rows"]
+        if self.store is not None and extra["replay_on_disk"]:
+            self.store.forget_after(rows)
+            t0 = time.perf_counter()
+            self.buffer = self.store.restore(self.buffer, rows).replace(**restored["replay"])
+            log.info(
+                "resumed from checkpoint %d (frame %d per seed); replay: %d rows per seed read "
+                "back from %s in %.0f s",
+                step,
+                frame,
+                min(rows, self.store.rows),
+                self.store.directory,
+                time.perf_counter() - t0,
+            )
+        else:
+            log.warning(
+                "resumed from checkpoint %d (frame %d per seed) without its replay (it was not "
+                "kept on disk: replay.disk=False); collecting %d seed frames again before updating",
+                step,
+                frame,
+                self.config.replay.seed_frames,
+            )
+            self.seed_frames += frame
+            self.counters["rows"] = 0
+            if self.store is not None:
+                self.store.forget_after(0)
+            # The env is mid-episode; the empty replay starts an episode at its current timestep.
+            self._add(self.ts.replace(first=jnp.ones_like(self.ts.first)), self._no_action)
 
-                frame = counters["frame"]
-                if frame >= next_log and (metric_count or episode_returns):
-                    now = time.perf_counter()
-                    row = {
-                        "episode": counters["episode"],
-                        "updates": counters["updates"],
-                        "fps": (frame - last_log_frame) * num_seeds / max(now - last_log_t, 1e-9),
-                    }
-                    if metric_count:
-                        row.update({k: np.asarray(v) / metric_count for k, v in metric_sum.items()})
-                        metric_sum, metric_count = None, 0
-                    if episode_returns:
-                        row["episode_return"] = np.mean(episode_returns, 0)
-                        episode_returns = []
-                    logger.write("train", frame, row)
-                    if pbar is not None:
-                        pbar.set_postfix(fps=f"{row['fps']:.0f}")
-                    else:  # detached runs: a line per log interval instead of the bar
-                        log.info("frame %d per seed: %.0f frames/s in all", frame, row["fps"])
-                    last_log_t, last_log_frame = now, frame
-                    next_log = frame + config.log_every_frames
-                if frame >= next_eval or frame >= config.total_frames:
-                    self._evaluate(eval_env, logger, workdir, frame, wall(), pbar)
-                    next_eval = every(config.eval_every_frames)
-                if next_ckpt is not None and frame >= next_ckpt:
-                    self.save(wall())
-                    next_ckpt = every(ckpt_every)
-            if self.ckpt.latest_step() != counters["frame"]:
-                self.save(wall())
-            counters["wall_s"] = wall()
-        finally:
+    # -- one step ----------------------------------------------------------------------------
+    def _add(self, ts, action) -> None:
+        self.buffer = self.programs.add(self.buffer, ts, action)
+        self.counters["rows"] += 1
+        if self.store is not None:
+            self.store.added(self.buffer, self.counters["rows"])
+
+    def _step(self, pbar) -> None:
+        config, programs, counters, lv = self.config, self.programs, self.counters, self.lv
+        num_envs = config.envs_per_seed
+        self.key, k_act, k_learn = jax.random.split(self.key, 3)
+        action, self.agent = programs.act(self.agent, self.ts.obs, k_act)
+        stepped = not np.asarray(self.state.last).all()  # all envs reset after a last step
+        future = self.env.step_async(self.state, action)
+        # Updates are dispatched while the env thread renders the next observations; a reset
+        # step adds no transition, so it owes no update.
+        if counters["frame"] >= self.seed_frames and stepped:
+            lv["steps_owed"] += num_envs / config.agent.update_every_steps
+            n = int(lv["steps_owed"])
+            lv["steps_owed"] -= n
+            for k in jax.random.split(k_learn, n) if n else ():
+                self.agent, metrics = programs.learn(self.agent, self.buffer, k)
+                self.metric_sum = (
+                    metrics
+                    if self.metric_sum is None
+                    else programs.add_metrics(self.metric_sum, metrics)
+                )
+                lv["metric_count"] += 1
+            counters["updates"] += n
+        self.state, self.ts = future.result()
+        self._add(self.ts, action)
+        self.returns = programs.accumulate(self.returns, self.ts)
+        counters["iteration"] += 1
+        if stepped:  # a reset step shows the first frames; it is not a step
+            frames = num_envs * self.spec.action_repeat  # per seed, over its E envs
+            counters["frame"] += frames
             if pbar is not None:
-                pbar.close()
+                pbar.update(frames)
+        if self.state.last.all():
+            counters["episode"] += 1
+            self.episode_returns.append(np.asarray(self.returns).mean(1))
 
-    def _evaluate(self, eval_env, logger, workdir, frame, wall_s, pbar) -> None:
-        config = self.config
-        self.key, k_eval = jax.random.split(self.key)
-        t0 = time.perf_counter()
-        metrics, clips = evaluate(
-            eval_env, self.programs, self.agent, k_eval, video=config.save_video
+    def _log(self, logger: RunLogger, pbar) -> None:
+        config, counters, lv = self.config, self.counters, self.lv
+        frame = counters["frame"]
+        if frame < lv["next_log"] or not (lv["metric_count"] or self.episode_returns):
+            return
+        now = time.perf_counter()
+        row = {
+            "episode": counters["episode"],
+            "updates": counters["updates"],
+            "fps": (frame - lv["last_log_frame"]) * config.seeds / max(now - self._log_t, 1e-9),
+        }
+        if lv["metric_count"]:
+            row.update({k: np.asarray(v) / lv["metric_count"] for k, v in self.metric_sum.items()})
+            self.metric_sum, lv["metric_count"] = None, 0
+        if self.episode_returns:
+            row["episode_return"] = np.mean(self.episode_returns, 0)
+            self.episode_returns = []
+        logger.write("train", frame, row)
+        if pbar is not None:
+            pbar.set_postfix_str(self._postfix(row["fps"]), refresh=False)
+        # Detached runs (no bar) show this line on the console; with a bar only the file has it.
+        log.info(
+            "frame %d per seed: %.0f frames/s in all",
+            frame,
+            row["fps"],
+            extra={"console": pbar is None},
         )
+        self._log_t, lv["last_log_frame"] = now, frame
+        lv["next_log"] = frame + config.log_every_frames
+
+    def _postfix(self, fps) -> str:
+        text = f"{fps:.0f} frames/s in all"
+        if self.last_eval_return is not None:
+            text += f", eval return {self.last_eval_return:.1f}"
+        return text
+
+    def _evaluate_if_due(self, logger, workdir, wall_s, pbar, stop) -> None:
+        config, lv, frame = self.config, self.lv, self.counters["frame"]
+        due = frame >= lv["next_eval"] or frame >= config.total_frames
+        if not due or lv["last_eval_frame"] == frame or stop:
+            return
+        snapshot = self.eval_env.host_state()
+        t0 = time.perf_counter()
+        try:
+            metrics, clips = evaluate(
+                self.eval_env,
+                self.programs,
+                self.agent,
+                jax.random.fold_in(self.eval_root, frame),
+                video=config.save_video,
+                stop=lambda: bool(stop),
+            )
+        except EvalAborted:
+            self.eval_env.set_host_state(snapshot)  # the resumed run evaluates from here again
+            return
         fps_per_seed = frame / max(wall_s, 1e-9)
         metrics.update(
             wall_s=wall_s,
@@ -435,11 +663,49 @@ class _Run:
         logger.write("eval", frame, metrics)
         for s, clip in clips.items():
             write_video(workdir / "videos" / f"eval_{frame}_seed{s}.mp4", clip, fps=30)
-        message = (
-            f"eval @ {frame:,} frames: return per seed "
-            f"{np.round(metrics['episode_return'], 1).tolist()}"
+        self.last_eval_return = float(np.mean(metrics["episode_return"]))
+        lv["last_eval_frame"] = frame
+        lv["next_eval"] = (frame // config.eval_every_frames + 1) * config.eval_every_frames
+        log.info(
+            "eval @ %s frames: return per seed %s",
+            f"{frame:,}",
+            [round(float(r), 1) for r in metrics["episode_return"]],
         )
-        (pbar.write if pbar is not None else log.info)(message)
+        if pbar is not None:
+            pbar.set_postfix_str(self._postfix(metrics["fps"]))
+
+    # -- the loop ----------------------------------------------------------------------------
+    def loop(self, logger: RunLogger, workdir, stop: StopRequest) -> None:
+        config, counters = self.config, self.counters
+        ckpt_every = config.checkpoint_every_frames
+        every = lambda n: (counters["frame"] // n + 1) * n  # noqa: E731
+        next_ckpt = every(ckpt_every) if ckpt_every else None
+        pbar = _pbar(config, config.total_frames, counters["frame"])
+        t_start, wall0 = time.perf_counter(), counters["wall_s"]
+        self._log_t = t_start
+        wall = lambda: wall0 + time.perf_counter() - t_start  # noqa: E731
+        try:
+            # An evaluation a stop cut short runs first (the resumed run continues from there).
+            self._evaluate_if_due(logger, workdir, wall(), pbar, stop)
+            while counters["frame"] < config.total_frames and not stop:
+                self._step(pbar)
+                self._log(logger, pbar)
+                self._evaluate_if_due(logger, workdir, wall(), pbar, stop)
+                if next_ckpt is not None and counters["frame"] >= next_ckpt:
+                    self.save(wall())
+                    next_ckpt = every(ckpt_every)
+            if stop:
+                log.warning(
+                    "%s received: saving a checkpoint at frame %d per seed, then stopping",
+                    stop.name,
+                    counters["frame"],
+                )
+            if self.ckpt.latest_step() != counters["frame"]:
+                self.save(wall())
+            counters["wall_s"] = wall()
+        finally:
+            if pbar is not None:
+                pbar.close()
 
 
 def write_summary(workdir, config, spec, counters) -> dict:

@@ -14,6 +14,8 @@ State ownership: `EnvState` holds the physics state, the frame stack, the jax ke
 numpy leaves, the per-env step counters and `last` flags (so auto-reset needs no device sync).
 The per-env distraction draws (colours, camera, background frame) and the host RNG live in the
 Env object and advance with every step: an Env is stepped along one trajectory, not branched.
+`host_state()` / `set_host_state()` read and restore them (numpy arrays and python numbers), so
+a checkpointed run continues exactly.
 """
 
 from __future__ import annotations
@@ -295,6 +297,21 @@ class Env:
 
     def step(self, state: EnvState, action: jax.Array) -> tuple[EnvState, TimeStep]:
         return self.step_async(state, action).result()
+
+    def host_state(self) -> dict:
+        """Host RNG and distraction state (copies): with an EnvState, all a resume needs."""
+        _, keys, pos, has_gauss, cached = self._rng.get_state()
+        rng = {"keys": keys.copy(), "pos": pos, "has_gauss": has_gauss, "cached": cached}
+        return {"episode_rng": rng, "distractor": self._distractor.get_state()}
+
+    def set_host_state(self, state: dict) -> None:
+        r = state["episode_rng"]
+        self._rng = np.random.RandomState()
+        keys = np.asarray(r["keys"], np.uint32)
+        self._rng.set_state(
+            ("MT19937", keys, int(r["pos"]), int(r["has_gauss"]), float(r["cached"]))
+        )
+        self._distractor.set_state(state["distractor"])
 
     def _finish(self, phys, reward, first, step, stack, key, perturb, bg_index):
         qpos = np.asarray(self.physics.qpos(phys)).reshape(self.batch, -1)

@@ -376,6 +376,29 @@ class Distractor:
         self.roll_vel = roll - self.cam[:, 3]
         self.cam[:, 3] = roll
 
+    # -- checkpoints ------------------------------------------------------------------------
+    _STATE_ARRAYS = (
+        "mat_rgb",
+        "geom_rgb",
+        "cam",
+        "cam_vel",
+        "roll_vel",
+        "video",
+        "frame",
+        "direction",
+    )
+
+    def get_state(self) -> dict:
+        """The per-env draws and the generator's state (copies; json-able but for the arrays)."""
+        state = {k: getattr(self, k).copy() for k in self._STATE_ARRAYS}
+        state["rng"] = self.rng.bit_generator.state
+        return state
+
+    def set_state(self, state: dict) -> None:
+        for k in self._STATE_ARRAYS:
+            setattr(self, k, np.array(state[k], dtype=getattr(self, k).dtype))
+        self.rng.bit_generator.state = state["rng"]
+
     # -- outputs ----------------------------------------------------------------------------
     def perturb(self) -> dict[str, np.ndarray]:
         """Per-env parameters for RenderPool.render(perturb=...); {} when nothing is perturbed."""

@@ -37,16 +37,25 @@ reward reads (kinematics, centre-of-mass, sensors), which is the same state.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
+import io
+import logging
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
-from envs.dmc import PhysicsView, view_from_mjdata
+# mujoco.mjx prints "Failed to import warp" when the optional Warp backend is absent (it is never
+# used here: impl="jax"); the text goes to the log instead of every process's console.
+with contextlib.redirect_stdout(io.StringIO()) as _import_noise:
+    from mujoco import mjx
+if _import_noise.getvalue().strip():
+    logging.getLogger(__name__).info("mujoco.mjx import: %s", _import_noise.getvalue().strip())
+
+from envs.dmc import PhysicsView, view_from_mjdata  # noqa: E402
 
 BACKENDS = ("mjx", "cpu", "auto")
 

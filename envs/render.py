@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import signal
 import threading
 import traceback
 from collections.abc import Callable
@@ -373,6 +374,11 @@ def _attach_shm(name: str) -> shared_memory.SharedMemory:
 
 
 def _worker_main(conn, model_fn, init_kwargs) -> None:
+    # Ctrl-C and SIGTERM sent to the whole process group are the parent's to handle: it finishes
+    # its step, checkpoints and then closes the pool. A worker also ends when the parent's end of
+    # the pipe closes (EOF below), so it never outlives the parent.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     renderer = None
     shm = None
     try:
@@ -568,7 +574,8 @@ class RenderPool:
         for proc in self._procs:
             proc.join(timeout=10)
             if proc.is_alive():
-                proc.terminate()
+                proc.kill()  # workers ignore SIGTERM
+                proc.join(timeout=10)
         for conn in self._conns:
             conn.close()
         self._conns, self._procs = [], []

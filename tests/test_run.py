@@ -1,17 +1,23 @@
 """The trainer end to end on CPU: outputs, resume, seeds, and clear errors for bad input."""
 
 import json
+import os
 import pathlib
+import signal
+import socket
 import subprocess
 import sys
+import time
 
 import cv2
+import jax
 import numpy as np
 import pytest
 
 from configs import smoke
-from dear_jax import train
+from dear_jax import replay_disk, train
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
+from dear_jax.config import resolve_config_path
 from dear_jax.logger import read_csv
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -33,6 +39,7 @@ def tiny_config(**overrides):
     c.agent.explore_steps = 40
     c.replay.seed_frames = 120
     c.replay.capacity = 1000
+    c.replay.chunk_entries = 40  # 20 rows: the runs write full chunks, not only partial ones
     for key, value in overrides.items():
         node = c
         *parents, leaf = key.split(".")
@@ -42,21 +49,54 @@ def tiny_config(**overrides):
     return c
 
 
+# Columns that hold wall-clock measurements; every other column of a resumed run's logs must equal
+# the uninterrupted run's.
+TIMING_COLUMNS = {"fps", "wall_s", "eval_s", "sec_per_1000_frames"}
+
+
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    """One run to 200 frames per seed, then the same workdir resumed to 280.
-
-    The replay goes into the checkpoints, so the resumed run updates from its first step.
-    """
+    """The same experiment run twice: uninterrupted to 280 frames per seed ("whole"), and stopped
+    at 200 then resumed to 280 on the same workdir. The runs share their compiled programs."""
+    whole = tmp_path_factory.mktemp("whole")
+    train.train(tiny_config(total_frames=280), whole)
     workdir = tmp_path_factory.mktemp("run")
-    first = train.train(tiny_config(save_replay=True), workdir)
+    first = train.train(tiny_config(), workdir)
     saved_step = Checkpointer(workdir / "checkpoints", fingerprint={}).latest_step()
-    resumed = train.train(tiny_config(total_frames=280, save_replay=True), workdir)
-    return workdir, first, resumed, saved_step
+    resumed = train.train(tiny_config(total_frames=280), workdir)
+    return workdir, first, resumed, saved_step, whole
+
+
+def assert_same_run(a: pathlib.Path, b: pathlib.Path, frame: int) -> None:
+    """Two workdirs hold the same run: checkpoint `frame` bit for bit (agent, optimisers, keys,
+    envs mid-episode, replay counters; host RNG states and loop counters), the replay files, and
+    the CSV rows but for wall-clock columns."""
+    arrays = [Checkpointer(w / "checkpoints", fingerprint={}).read_arrays(frame) for w in (a, b)]
+    flat = [jax.tree_util.tree_flatten_with_path(x)[0] for x in arrays]
+    assert [p for p, _ in flat[0]] == [p for p, _ in flat[1]]
+    for (path, x), (_, y) in zip(*flat):
+        assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), jax.tree_util.keystr(path)
+    extras = [Checkpointer(w / "checkpoints", fingerprint={}).read_meta(frame)[2] for w in (a, b)]
+    for key in ("env_host", "env_rng", "eval_env_rng", "episode_returns", "metric_sum"):
+        assert repr(extras[0][key]) == repr(extras[1][key]), key
+    for key in ("frame", "iteration", "episode", "updates", "rows"):
+        assert extras[0]["counters"][key] == extras[1]["counters"][key], key
+    files = [sorted(p.relative_to(w) for p in (w / "replay").rglob("*.npz")) for w in (a, b)]
+    assert files[0] == files[1] and files[0]
+    for name in files[0]:
+        with np.load(a / name) as x, np.load(b / name) as y:
+            for field in x.files:
+                np.testing.assert_array_equal(x[field], y[field], err_msg=f"{name}:{field}")
+    for seed in (0, 1):
+        for kind in ("train", "eval"):
+            logs = [read_csv(w / f"seed_{seed}" / f"{kind}.csv") for w in (a, b)]
+            assert set(logs[0]) == set(logs[1])
+            for column in set(logs[0]) - TIMING_COLUMNS:
+                np.testing.assert_array_equal(logs[0][column], logs[1][column], err_msg=column)
 
 
 def test_outputs_exist_and_parse(run):
-    workdir, first, _, _ = run
+    workdir, first, *_ = run
     config = json.loads((workdir / "config.json").read_text())
     assert config["agent"]["method"] == "dear" and config["seeds"] == 2
     for seed in (0, 1):
@@ -79,7 +119,7 @@ def test_outputs_exist_and_parse(run):
 
 def test_frames_and_updates_follow_the_papers_ratio(run):
     """Frames count per seed over its E envs; one update per 2 agent steps after seed frames."""
-    workdir, first, resumed, _ = run
+    workdir, first, resumed, *_ = run
     c = tiny_config()
     frames_per_step = c.envs_per_seed * c.env.action_repeat  # one loop iteration, per seed
     steps_learned = (200 - c.replay.seed_frames) // frames_per_step * c.envs_per_seed
@@ -98,7 +138,7 @@ def test_frames_and_updates_follow_the_papers_ratio(run):
 
 
 def test_resume_continues_from_saved_step(run):
-    workdir, first, resumed, saved_step = run
+    workdir, first, resumed, saved_step, _ = run
     assert saved_step == 200
     assert resumed["frames_per_seed"] == 280
     frames = read_csv(workdir / "seed_0" / "eval.csv")["frame"]
@@ -115,31 +155,71 @@ def test_seeds_differ(run):
     assert not np.allclose(a["critic_loss"], b["critic_loss"], equal_nan=True)
 
 
-def test_same_config_reproduces_the_first_updates(tmp_path):
-    c = tiny_config(total_frames=160, eval_every_frames=10**6, save_video=False)
-    results = []
-    for name in ("a", "b"):
-        train.train(c, tmp_path / name)
-        results.append(read_csv(tmp_path / name / "seed_0" / "train.csv")["critic_loss"])
-    np.testing.assert_array_equal(results[0], results[1])
+def test_resumed_run_equals_the_uninterrupted_one(run):
+    """Stopped at 200 frames and resumed, the run ends where the uninterrupted one does."""
+    workdir, *_, whole = run
+    assert_same_run(whole, workdir, 280)
+    # Replay chunks are written as they fill; a checkpoint adds the unfinished chunk's rows.
+    c = tiny_config()
+    chunk = replay_disk.chunk_rows_for(c.replay.chunk_entries, c.envs_per_seed, 10**9)
+    names = [p.name for p in (workdir / "replay" / "seed_0").iterdir()]
+    assert replay_disk.file_name(0, chunk) in names and len(names) >= 3
 
 
-def test_incompatible_checkpoint_is_refused(run, tmp_path):
+def test_changed_learning_fields_are_refused_naming_them(run):
     workdir = run[0]
-    with pytest.raises(IncompatibleCheckpointError, match="agent.method"):
-        train.train(tiny_config(**{"agent.method": "drqv2", "total_frames": 400}), workdir)
+    changed = {"agent.batch_size": 4, "agent.alpha": 0.5, "total_frames": 400}
+    with pytest.raises(IncompatibleCheckpointError) as err:
+        train.train(tiny_config(**changed), workdir)
+    message = str(err.value)
+    assert "agent.batch_size: saved=8, now=4" in message
+    assert "agent.alpha: saved=0.25, now=0.5" in message
+    assert "total_frames" not in message  # may change: the fixture's resume changed it
 
 
-def test_unknown_config_key_fails_with_valid_choices():
+def test_fingerprint_is_every_field_but_the_resumable_ones():
+    c = tiny_config()
+    fp = train.fingerprint(c)
+    assert {"agent.nstep", "agent.compute_dtype", "agent.ortho_form", "env.distraction"} <= set(fp)
+    assert {"env.mask", "replay.capacity", "env.render.shadows", "seed"} <= set(fp)
+    assert not set(train.RESUMABLE_CHANGES) & set(fp)
+    c.agent.new_field = 1  # a field added later counts, unless listed as resumable
+    assert train.fingerprint(c)["agent.new_field"] == 1
+    relaxed = tiny_config(
+        total_frames=10,
+        log_every_frames=7,
+        eval_every_frames=9,
+        checkpoint_every_frames=0,
+        save_video=False,
+        progress=True,
+        **{"env.render.num_workers": 1},
+    )
+    assert train.fingerprint(relaxed) == train.fingerprint(tiny_config())
+
+
+def test_config_by_bare_name_and_unknown_names():
+    """`--config walker_dear.py` (or `smoke`) is looked up in configs/; an unknown name lists them."""
     out = subprocess.run(
-        [sys.executable, "run.py", "--config", "configs/smoke.py", "--config.agent.alpah=1"],
-        cwd=ROOT,
+        [sys.executable, str(ROOT / "run.py"), "--config", "smoke", "--config.agent.alpah=1"],
+        cwd=ROOT / "tests",  # not the repo root: the name is looked up next to run.py
         capture_output=True,
         text=True,
         timeout=120,
     )
     assert out.returncode != 0
     assert "Did you mean 'agent.alpha'" in out.stderr and "batch_size" in out.stderr
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "run.py"), "--config=walker_dear.pyy"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode != 0
+    assert "Did you mean 'walker_dear.py'" in out.stderr and "cup_ted_distracting.py" in out.stderr
+    configs = ROOT / "configs"
+    assert resolve_config_path("walker_dear.py", configs) == configs / "walker_dear.py"
+    assert resolve_config_path("walker_dear", configs) == configs / "walker_dear.py"
+    assert resolve_config_path(str(configs / "smoke.py"), configs) == configs / "smoke.py"
 
 
 def test_bad_values_fail_with_valid_choices(tmp_path):
@@ -151,3 +231,81 @@ def test_bad_values_fail_with_valid_choices(tmp_path):
         train.train(tiny_config(**{"env.background_dir": str(tmp_path / "nope")}), tmp_path)
     with pytest.raises(MemoryError, match="replay for 2 seeds"):
         train.train(tiny_config(**{"replay.capacity": 10**9}), tmp_path)
+
+
+def _overrides(config) -> list[str]:
+    """--config.key=value arguments that make configs/smoke.py into `config`."""
+    base = train._flatten(smoke.get_config().to_dict())
+    want = train._flatten(config.to_dict())
+    return [f"--config.{k}={v}" for k, v in want.items() if base.get(k) != v]
+
+
+def _children(pid: int) -> list[int]:
+    found = []
+    for stat in pathlib.Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def test_sigterm_checkpoints_exits_cleanly_and_resumes_exactly(run, tmp_path):
+    """run.py sent SIGTERM mid-run saves a checkpoint and exits with 143, leaving no shared
+    memory and no render worker behind; meanwhile a second run on its workdir is refused; resumed,
+    the run ends exactly as the uninterrupted one (the fixture's)."""
+    workdir = tmp_path / "w"
+    config = tiny_config(total_frames=280)
+    cmd = [sys.executable, "run.py", "--config", "smoke", f"--workdir={workdir}"]
+    cmd += _overrides(config)
+    env = dict(os.environ, MUJOCO_GL="egl", JAX_PLATFORMS="cpu")
+    proc = subprocess.Popen(
+        cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    seen = []
+    for line in proc.stderr:  # no terminal: a line per log interval instead of the bar
+        seen.append(line)
+        if "frame 80 per seed" in line:
+            break
+    workers = _children(proc.pid)
+    second = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=300)
+    err = "".join(seen) + err
+    assert proc.returncode == 128 + signal.SIGTERM, err[-3000:]
+    assert second.returncode != 0 and f"in use by pid {proc.pid}" in second.stderr
+    assert "stopped by SIGTERM" in err and "rerun the same command" in err
+    for noise in ("leaked", "Traceback", "Failed to import", "orbax", "absl"):
+        assert noise not in out + err, noise
+    assert "eval @ 120 frames" in err  # one line per evaluation
+    deadline = time.monotonic() + 30
+    while any(pathlib.Path(f"/proc/{p}").exists() for p in workers) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert len(workers) >= 4  # render workers of both envs (+ multiprocessing's tracker)
+    assert not [p for p in workers if pathlib.Path(f"/proc/{p}").exists()]
+    assert not (workdir / "run.lock").exists()
+    assert "stopped by SIGTERM" in (workdir / "log.txt").read_text()
+    stopped_at = Checkpointer(workdir / "checkpoints", fingerprint={}).latest_step()
+    assert 80 <= stopped_at < 280
+    train.train(config, workdir)  # resumes in this process
+    assert_same_run(run[-1], workdir, 280)
+
+
+def test_stale_lock_is_taken_over(tmp_path, caplog):
+    from dear_jax.lock import WorkdirLock, WorkdirLocked
+
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True
+    )
+    (tmp_path / "run.lock").write_text(
+        json.dumps({"pid": int(dead.stdout), "host": socket.gethostname(), "since": "earlier"})
+    )
+    with WorkdirLock(tmp_path):
+        assert json.loads((tmp_path / "run.lock").read_text())["pid"] == os.getpid()
+        assert "no longer running" in caplog.text
+    assert not (tmp_path / "run.lock").exists()
+    (tmp_path / "run.lock").write_text(json.dumps({"pid": 1, "host": "elsewhere"}))
+    with pytest.raises(WorkdirLocked, match="delete .*run.lock"):
+        WorkdirLock(tmp_path).acquire()

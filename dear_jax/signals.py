@@ -1,0 +1,57 @@
+"""SIGTERM and SIGINT ask a run to stop: it checkpoints at the end of its current step and exits.
+
+`StopRequest` replaces both handlers while a run lasts (main thread only; elsewhere it does
+nothing) and restores the previous ones after. The first signal only sets a flag that the loop
+reads once per step (and every step of an evaluation); a second one stops at once with
+KeyboardInterrupt, without a checkpoint (the previous checkpoint stays intact: saves are atomic).
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+
+SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+
+class Stopped(Exception):
+    """The run stopped on a signal after saving a checkpoint; `signum` says which signal."""
+
+    def __init__(self, message: str, signum: int):
+        super().__init__(message)
+        self.signum = signum
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum  # what a shell reports for a process ended by that signal
+
+
+class StopRequest:
+    """Context manager: `signum` is None until SIGTERM or SIGINT arrives."""
+
+    def __init__(self):
+        self.signum: int | None = None
+        self._previous: dict[int, object] = {}
+
+    def __bool__(self) -> bool:
+        return self.signum is not None
+
+    @property
+    def name(self) -> str:
+        return signal.Signals(self.signum).name if self.signum else ""
+
+    def _handle(self, signum, frame) -> None:
+        if self.signum is not None:
+            raise KeyboardInterrupt(f"second {signal.Signals(signum).name}: stopping at once")
+        self.signum = signum
+
+    def __enter__(self) -> StopRequest:
+        if threading.current_thread() is threading.main_thread():
+            for sig in SIGNALS:
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous = {}

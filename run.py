@@ -7,6 +7,7 @@ workdir resumes from its latest checkpoint. SIGTERM or Ctrl-C checkpoints, then 
 <workdir>/log.txt.
 """
 
+import logging
 import pathlib
 import runpy
 import sys
@@ -66,7 +67,7 @@ def main(argv):
     try:
         train(_CONFIG.value, workdir)
     except Stopped as e:
-        print(e, file=sys.stderr)
+        logging.getLogger("dear_jax").warning("%s", e)
         sys.exit(e.exit_code)
     finally:
         lock.release()

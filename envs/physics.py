@@ -53,7 +53,9 @@ import numpy as np
 with contextlib.redirect_stdout(io.StringIO()) as _import_noise:
     from mujoco import mjx
 if _import_noise.getvalue().strip():
-    logging.getLogger(__name__).info("mujoco.mjx import: %s", _import_noise.getvalue().strip())
+    logging.getLogger(__name__).info(
+        "mujoco.mjx import: %s", _import_noise.getvalue().strip(), extra={"console": False}
+    )
 
 from envs.dmc import PhysicsView, view_from_mjdata  # noqa: E402
 

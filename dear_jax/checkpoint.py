@@ -185,6 +185,9 @@ class Checkpointer:
                 _META: ocp.JsonCheckpointHandler(),
             },
         )
+        # orbax deletes a killed save's temporary folder in a background thread and waits for it
+        # only before its next save; wait now, so the folder is clean once the manager is open.
+        getattr(self._manager, "_maybe_await_cleanup_tmp_directory", lambda: None)()
 
     def all_steps(self) -> list[int]:
         return sorted(self._manager.all_steps())

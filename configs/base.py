@@ -61,7 +61,6 @@ def get_config() -> ConfigDict:
     c.agent.beta = 100.0  # orthogonality loss weight (DEAR)
     c.agent.recon_weight = 1.0  # SEAR
     c.agent.ted_weight = 100.0  # TED
-    c.agent.ted_far_max = 50  # TED's same-episode negatives: 2..ted_far_max steps away
     c.agent.tau = 0.01
     c.agent.stddev_clip = 0.3
     c.agent.std_init = 1.0

@@ -84,6 +84,20 @@ def validate(config: ConfigDict) -> None:
     for key in positive:
         if _get(config, key) < 1:
             raise ValueError(f"{key} must be >= 1, got {_get(config, key)}")
+    a, r = config.agent, config.replay
+    steps = r.seed_frames // config.env.action_repeat  # transitions per seed before updating
+    if steps < a.batch_size:
+        raise ValueError(
+            f"replay.seed_frames={r.seed_frames} gives {steps} transitions per seed (at "
+            f"env.action_repeat={config.env.action_repeat}) before the first update, fewer than "
+            f"one batch (agent.batch_size={a.batch_size}); set replay.seed_frames >= "
+            f"{a.batch_size * config.env.action_repeat}"
+        )
+    if a.batch_size > r.capacity:
+        raise ValueError(
+            f"agent.batch_size={a.batch_size} is larger than the replay "
+            f"(replay.capacity={r.capacity}); lower the batch or raise the capacity"
+        )
     if config.env.background_dir and not pathlib.Path(config.env.background_dir).is_dir():
         raise FileNotFoundError(
             f"env.background_dir {config.env.background_dir!r} is not a folder; give a DAVIS-2017 "
@@ -166,7 +180,7 @@ def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigD
             nstep=a.nstep,
             gamma=a.discount,
             frame_stack=acfg.frame_stack,
-            far_max=a.ted_far_max if acfg.method == "ted" else 0,
+            same_episode=acfg.method == "ted",
         )
         return update.update(agent, batch, k_update, hp_seed, cfg=acfg)
 
@@ -267,6 +281,11 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
             make_env(config, envs_per_seed=config.envs_per_seed, split="train", seed=config.seed)
         )
         spec = env.spec
+        if config.agent.nstep > spec.episode_steps:
+            raise ValueError(
+                f"agent.nstep={config.agent.nstep} is longer than an episode of {spec.name} "
+                f"({spec.episode_steps} agent steps); lower agent.nstep"
+            )
         replay.check_fits(config.seeds, config.replay.capacity, spec.frame_shape, spec.action_dim)
         ckpt = Checkpointer(
             workdir / "checkpoints", fingerprint=_fingerprint(config), keep=config.keep_checkpoints
@@ -344,6 +363,8 @@ class _Run:
         self.buffer = programs.add(
             self.buffer, ts, jnp.zeros((num_seeds, num_envs, spec.action_dim))
         )
+        if counters["frame"] == 0:  # as DrQ-v2: every curve starts at the untrained policy
+            self._evaluate(eval_env, logger, workdir, 0, 0.0, None)
         returns = jnp.zeros((num_seeds, num_envs))
         metric_sum, metric_count, episode_returns = None, 0, []
         steps_owed = 0.0  # agent steps per seed not yet matched by updates
@@ -363,6 +384,11 @@ class _Run:
                     steps_owed += num_envs / config.agent.update_every_steps
                     n = int(steps_owed)
                     steps_owed -= n
+                    if n and not counters["updates"]:  # once: the replay must hold a batch
+                        replay.check_can_sample(
+                            replay.num_transitions(self.buffer, self.acfg.frame_stack),
+                            config.agent.batch_size,
+                        )
                     for k in jax.random.split(k_learn, n) if n else ():
                         self.agent, metrics = programs.learn(self.agent, self.buffer, k)
                         metric_sum = (
@@ -425,12 +451,12 @@ class _Run:
         metrics, clips = evaluate(
             eval_env, self.programs, self.agent, k_eval, video=config.save_video
         )
-        fps_per_seed = frame / max(wall_s, 1e-9)
+        fps_per_seed = frame / wall_s if frame else np.nan  # nothing trained before frame 0
         metrics.update(
             wall_s=wall_s,
             eval_s=time.perf_counter() - t0,
             fps=fps_per_seed * config.seeds,
-            sec_per_1000_frames=1000.0 / max(fps_per_seed, 1e-9),
+            sec_per_1000_frames=1000.0 / fps_per_seed,
         )
         logger.write("eval", frame, metrics)
         for s, clip in clips.items():

@@ -181,20 +181,33 @@ def main():
             for tiles in args.tiles:
                 fast_obs = None
                 for variant in sorted(args.variants, key=lambda v: v != "fast"):  # fast first
-                    row = measure(
-                        task, variant, workers, tiles, qpos, args.calls, ref_rgb, ref_labels
-                    )
+                    where = f"{name:<18} {variant:<20} {workers:>7} {tiles:>5}"
+                    try:
+                        row = measure(
+                            task, variant, workers, tiles, qpos, args.calls, ref_rgb, ref_labels
+                        )
+                    except Exception as err:  # noqa: BLE001 - one variant must not end the run
+                        rows.append(
+                            dict(
+                                task=name,
+                                variant=variant,
+                                workers=workers,
+                                tiles=tiles,
+                                error=repr(err),
+                            )
+                        )
+                        print(f"{where} failed: {err!r}", flush=True)
+                        continue
                     rows.append(row)
                     fast_obs = row["obs_per_s"] if variant == "fast" else fast_obs
                     rel = f"{row['obs_per_s'] / fast_obs:6.3f}" if fast_obs else f"{'':>6}"
                     print(
-                        f"{name:<18} {variant:<20} {workers:>7} {tiles:>5} "
-                        f"{row['obs_per_s']:>8.0f} {rel} {row['ms_per_call']:>8.1f} "
+                        f"{where} {row['obs_per_s']:>8.0f} {rel} {row['ms_per_call']:>8.1f} "
                         f"{row['mean_abs_diff_vs_renderer']:>15.3f} "
                         f"{row['label_pixels_differing']:>8}",
                         flush=True,
                     )
-    print(f"GL_RENDERER: {rows[0]['gl_renderer']}")
+    print("GL_RENDERER:", {row["gl_renderer"] for row in rows if "gl_renderer" in row})
     result = {
         "benchmark": "render pool per visual variant, RGB + labels, 84x84",
         "host": platform.node(),

@@ -330,6 +330,7 @@ class TileRenderer:
             self._sheet_fbo = int(self.con.auxFBO[_SHEET_AUX])
         self.scene = mujoco.MjvScene(model, maxgeom=10000)
         self.option = mujoco.MjvOption()
+        self.option.flags[mujoco.mjtVisFlag.mjVIS_RANGEFINDER] = False  # as dm_control draws
         apply_scene_flags(self.scene, self.visuals)
 
         self.tables = label_tables(model, agent_geom_ids, floor_geom_ids)

@@ -501,6 +501,7 @@ def write_summary(workdir, config, spec, counters) -> dict:
         "backend": spec.backend,
         "device": jax.devices()[0].device_kind,
         "render": config.env.render.to_dict(),
+        "render_quality": config.env.render.quality,
         "distraction": config.env.distraction,
         "per_seed": per_seed,
     }

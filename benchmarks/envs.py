@@ -38,8 +38,7 @@ def _initial_states(task, model, n, seed=0):
     data = mujoco.MjData(model)
     qpos, qvel = [], []
     for _ in range(n):
-        mujoco.mj_resetData(model, data)
-        task.init_episode(model, data, rng)
+        dmc.episode_start(task, model, data, rng)
         qpos.append(data.qpos.copy())
         qvel.append(data.qvel.copy())
     return np.array(qpos), np.array(qvel)
@@ -99,8 +98,7 @@ def _rollout_poses(task, model, n, seed=1):
     data = mujoco.MjData(model)
     poses = []
     for _ in range(n):
-        mujoco.mj_resetData(model, data)
-        task.init_episode(model, data, rng)
+        dmc.episode_start(task, model, data, rng)
         data.ctrl[:] = rng.uniform(-1, 1, model.nu)
         mujoco.mj_step(model, data, int(rng.randint(0, 200)))
         poses.append(data.qpos.copy())

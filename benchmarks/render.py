@@ -1,11 +1,26 @@
-"""Render pool throughput: observations (RGB + pixel labels) per second vs workers and tiling.
+"""Render pool throughput per visual variant: observations (RGB + pixel labels) per second.
 
-    python -m benchmarks.render --workers 1 4 8 16 --tiles 1 64 --out benchmarks/results/render.json
+    python -m benchmarks.render --workers 16 --variants default fast default-in-place \
+        no-reflection no-msaa no-shadow shadow2048 --out benchmarks/results/render_quality.json
 
 One observation = one 84x84 RGB frame plus its label image, delivered to the caller as numpy
 arrays (the pool's whole path: pickled qpos to the workers, kinematics, drawing, readback,
-labels, shared memory, copy out). States are random walker poses. Prints a table and writes JSON
-with the GL renderer string, so a run on Mesa llvmpipe cannot pass for a GPU run.
+labels, shared memory, copy out). States are random poses of the task. Every variant, task,
+worker count and tile count is one row, all in one invocation.
+
+Each row also checks its picture: the first `--check` frames against mujoco.Renderer's default
+frame of the same state drawn in this process (dm_control's picture: mean absolute difference in
+levels of 255), and the labels against mujoco.Renderer's segmentation (pixels that differ). The
+JSON records the GL renderer string, so a run on Mesa llvmpipe cannot pass for a GPU run.
+
+`--workers 0` times one renderer in this process by its CPU time instead of a pool by the wall
+clock: on a shared CPU-only machine the ratios between variants stay meaningful (with Mesa,
+LP_NUM_THREADS=0 keeps rasterisation in this process's thread).
+
+Variants: "default" and "fast" are the two qualities (envs/render.py); the others change one
+thing of "default": an effect off, another shadow map size, or "-in-place" (each picture drawn in
+its place on a sheet-sized MuJoCo buffer, the layout before pictures were drawn at the origin and
+copied).
 """
 
 from __future__ import annotations
@@ -19,80 +34,185 @@ import time
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from benchmarks.common import save_json
+from benchmarks.common import save_json  # noqa: E402
 from envs import dmc  # noqa: E402
-from envs.render import RenderPool, RenderSettings  # noqa: E402
+from envs.render import (  # noqa: E402
+    QUALITY_VISUALS,
+    RenderPool,
+    RenderSettings,
+    TileRenderer,
+    label_tables,
+    labels_from_segmentation,
+)
+
+_DM = QUALITY_VISUALS["dm_control"]
+VARIANTS = {
+    "default": RenderSettings(quality="dm_control"),
+    "fast": RenderSettings(quality="fast"),
+    "default-in-place": RenderSettings(quality="dm_control", in_place=True),
+    "fast-in-place": RenderSettings(quality="fast", in_place=True),
+    "no-reflection": RenderSettings(visuals=dataclasses.replace(_DM, reflections=False)),
+    "no-msaa": RenderSettings(visuals=dataclasses.replace(_DM, multisample=False)),
+    "no-shadow": RenderSettings(visuals=dataclasses.replace(_DM, shadows=False)),
+    "no-skybox": RenderSettings(visuals=dataclasses.replace(_DM, skybox=False)),
+    "shadow2048": RenderSettings(visuals=dataclasses.replace(_DM, shadow_size=None)),
+    "shadow512": RenderSettings(visuals=dataclasses.replace(_DM, shadow_size=512)),
+    "shadow128": RenderSettings(visuals=dataclasses.replace(_DM, shadow_size=128)),
+    "shadow2048-in-place": RenderSettings(
+        visuals=dataclasses.replace(_DM, shadow_size=None), in_place=True
+    ),
+}
 
 
-def measure(task, workers, tiles, batch, calls, shadows):
-    model = task.render_model()
-    settings = RenderSettings(
-        num_workers=workers, tiles_per_sheet=tiles, shadows=shadows, reflections=shadows
-    )
+def random_states(model: mujoco.MjModel, batch: int) -> np.ndarray:
     rng = np.random.default_rng(0)
-    qpos = np.tile(model.qpos0, (batch, 1)) + rng.normal(0, 0.3, (batch, model.nq))
+    return np.tile(model.qpos0, (batch, 1)) + rng.normal(0, 0.3, (batch, model.nq))
+
+
+def reference(task, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """mujoco.Renderer's default frames and labels (from its segmentation) of these states."""
+    model = task.render_model()
+    data = mujoco.MjData(model)
+    tables = label_tables(model, task.agent_geom_ids(model), task.floor_geom_ids(model))
+    rgb, labels = [], []
+    with mujoco.Renderer(model, 84, 84) as renderer:
+        for q in qpos:
+            data.qpos[:] = q
+            mujoco.mj_forward(model, data)
+            renderer.update_scene(data, task.camera)
+            rgb.append(renderer.render())
+            renderer.enable_segmentation_rendering()
+            labels.append(labels_from_segmentation(renderer.render(), tables))
+            renderer.disable_segmentation_rendering()
+    return np.stack(rgb), np.stack(labels)
+
+
+def measure(task, variant, workers, tiles, qpos, calls, ref_rgb, ref_labels):
+    """Pool throughput (wall clock), or with workers=0 one TileRenderer in this process timed by
+    this process's CPU time (best of `calls`): a proxy that other load on the machine barely moves.
+    """
+    settings = dataclasses.replace(VARIANTS[variant], num_workers=workers, tiles_per_sheet=tiles)
+    model = task.render_model()
+    agent, floor = task.agent_geom_ids(model), task.floor_geom_ids(model)
     t0 = time.perf_counter()
-    with RenderPool(
-        functools.partial(dmc.render_model_fn, task.name),
-        camera=task.camera,
-        agent_geom_ids=task.agent_geom_ids(model),
-        floor_geom_ids=task.floor_geom_ids(model),
-        settings=settings,
-    ) as pool:
+    if workers == 0:
+        renderer = TileRenderer(
+            model, camera=task.camera, agent_geom_ids=agent, floor_geom_ids=floor, settings=settings
+        )
         start_s = time.perf_counter() - t0
-        info = pool.gl_info()[0]
-        pool.render(qpos)  # warm-up: shared memory, GL state
-        t0 = time.perf_counter()
+        info = renderer.gl_info()
+        rgb = np.zeros((len(qpos), 84, 84, 3), np.uint8)
+        labels = np.zeros((len(qpos), 84, 84), np.uint8)
+        renderer.render(qpos, rgb, labels)
+        best = np.inf
         for _ in range(calls):
-            rgb, labels = pool.render(qpos)
-        dt = time.perf_counter() - t0
-    assert rgb.shape == (batch, 84, 84, 3) and (labels == 2).any()
+            t0 = time.process_time()
+            renderer.render(qpos, rgb, labels)
+            best = min(best, time.process_time() - t0)
+        renderer.close()
+        dt = best * calls
+    else:
+        with RenderPool(
+            functools.partial(dmc.render_model_fn, task.name),
+            camera=task.camera,
+            agent_geom_ids=agent,
+            floor_geom_ids=floor,
+            settings=settings,
+        ) as pool:
+            start_s = time.perf_counter() - t0
+            info = pool.gl_info()[0]
+            rgb, labels = pool.render(qpos)  # warm-up: shared memory, GL state
+            t0 = time.perf_counter()
+            for _ in range(calls):
+                pool.render(qpos)
+            dt = time.perf_counter() - t0
+    n = len(ref_rgb)
+    diff = np.abs(rgb[:n].astype(np.int16) - ref_rgb)
+    batch = qpos.shape[0]
     return {
+        "task": task.name,
+        "variant": variant,
         "workers": workers,
         "tiles_per_sheet": tiles,
         "batch": batch,
         "calls": calls,
-        "shadows_reflections": shadows,
         "seconds": dt,
         "obs_per_s": batch * calls / dt,
         "ms_per_call": 1e3 * dt / calls,
         "pool_start_s": start_s,
+        "frames_checked": n,
+        "mean_abs_diff_vs_renderer": float(diff.mean()),
+        "worst_frame_mean_abs_diff": float(diff.mean(axis=(1, 2, 3)).max()),
+        "label_pixels_differing": int((labels[:n] != ref_labels).sum()),
         "gl_renderer": info["GL_RENDERER"],
         "gl_vendor": info["GL_VENDOR"],
         "settings": dataclasses.asdict(settings),
+        "visuals": dataclasses.asdict(settings.resolved_visuals()),
     }
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--task", default="walker-walk")
-    parser.add_argument("--workers", type=int, nargs="+", default=[1, 4, 8, 16])
+    parser.add_argument("--tasks", nargs="+", default=["walker-walk"], choices=sorted(dmc.TASKS))
+    parser.add_argument("--variants", nargs="+", default=["default", "fast"], choices=VARIANTS)
+    parser.add_argument(
+        "--workers", type=int, nargs="+", default=[16], help="0 = in this process, CPU time"
+    )
     parser.add_argument("--tiles", type=int, nargs="+", default=[0], help="0 = auto")
-    parser.add_argument("--batch", type=int, nargs="+", default=[1024])
+    parser.add_argument("--batch", type=int, default=1024)
     parser.add_argument("--calls", type=int, default=5)
-    parser.add_argument("--shadows", action="store_true", help="shadows and reflections on")
+    parser.add_argument("--check", type=int, default=16, help="frames compared with the renderer")
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
-    task = dmc.TASKS[args.task]
     rows = []
-    print(f"{'workers':>7} {'tiles':>5} {'batch':>6} {'obs/s':>9} {'ms/call':>8}  GL_RENDERER")
-    for batch in args.batch:
-        for tiles in args.tiles:
-            for workers in args.workers:
-                row = measure(task, workers, tiles, batch, args.calls, args.shadows)
-                rows.append(row)
-                print(
-                    f"{workers:>7} {tiles:>5} {batch:>6} {row['obs_per_s']:>9.0f} "
-                    f"{row['ms_per_call']:>8.1f}  {row['gl_renderer']}",
-                    flush=True,
-                )
+    head = (
+        f"{'task':<18} {'variant':<20} {'workers':>7} {'tiles':>5} {'obs/s':>8} {'x fast':>6} "
+        f"{'ms/call':>8} {'|d| vs Renderer':>15} {'label px':>8}"
+    )
+    print(head)
+    for name in args.tasks:
+        task = dmc.TASKS[name]
+        qpos = random_states(task.render_model(), args.batch)
+        ref_rgb, ref_labels = reference(task, qpos[: args.check])
+        for workers in args.workers:
+            for tiles in args.tiles:
+                fast_obs = None
+                for variant in sorted(args.variants, key=lambda v: v != "fast"):  # fast first
+                    where = f"{name:<18} {variant:<20} {workers:>7} {tiles:>5}"
+                    try:
+                        row = measure(
+                            task, variant, workers, tiles, qpos, args.calls, ref_rgb, ref_labels
+                        )
+                    except Exception as err:  # noqa: BLE001 - one variant must not end the run
+                        rows.append(
+                            dict(
+                                task=name,
+                                variant=variant,
+                                workers=workers,
+                                tiles=tiles,
+                                error=repr(err),
+                            )
+                        )
+                        print(f"{where} failed: {err!r}", flush=True)
+                        continue
+                    rows.append(row)
+                    fast_obs = row["obs_per_s"] if variant == "fast" else fast_obs
+                    rel = f"{row['obs_per_s'] / fast_obs:6.3f}" if fast_obs else f"{'':>6}"
+                    print(
+                        f"{where} {row['obs_per_s']:>8.0f} {rel} {row['ms_per_call']:>8.1f} "
+                        f"{row['mean_abs_diff_vs_renderer']:>15.3f} "
+                        f"{row['label_pixels_differing']:>8}",
+                        flush=True,
+                    )
+    print("GL_RENDERER:", {row["gl_renderer"] for row in rows if "gl_renderer" in row})
     result = {
-        "benchmark": "render pool, RGB + labels, 84x84",
-        "task": args.task,
+        "benchmark": "render pool per visual variant, RGB + labels, 84x84",
         "host": platform.node(),
         "cpu_count": os.cpu_count(),
+        "args": vars(args),
         "rows": rows,
     }
     save_json(result, args.out)

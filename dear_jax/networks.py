@@ -2,7 +2,8 @@
 
 Every module works on one unbatched-or-batched array with channels last; seeds are added by
 `jax.vmap` at the call site, never here. Initialisation follows DrQ-v2: orthogonal weights (gain 1
-for linear layers, sqrt(2) for convolutions and transposed convolutions), zero biases.
+for linear layers, sqrt(2) for convolutions and transposed convolutions), zero biases, drawn as
+PyTorch's `nn.init.orthogonal_` draws them on its own weight layouts.
 """
 
 from __future__ import annotations
@@ -16,8 +17,22 @@ import jax
 import jax.numpy as jnp
 
 LINEAR_INIT = nn.initializers.orthogonal(1.0)
+# A conv kernel [kh, kw, in, out] flattened to [kh*kw*in, out] is the transpose of PyTorch's
+# [out, in*kh*kw] up to a permutation of rows, so Flax's orthogonal init has PyTorch's law.
 CONV_INIT = nn.initializers.orthogonal(math.sqrt(2.0))
 ZEROS = nn.initializers.zeros
+
+
+def conv_transpose_init(key, shape, dtype=jnp.float32):
+    """`nn.init.orthogonal_(w, sqrt(2))` on PyTorch's ConvTranspose2d layout, as our kernel.
+
+    PyTorch flattens a transposed-convolution weight [in, out, kh, kw] to [in, out*kh*kw] and
+    makes that orthogonal; Flax's init on our [kh, kw, in, out] kernel would make
+    [kh*kw*in, out] orthogonal instead, a different scale whenever in != out.
+    """
+    kh, kw, cin, cout = shape
+    w = nn.initializers.orthogonal(math.sqrt(2.0))(key, (cin, cout * kh * kw), dtype)
+    return w.reshape(cin, cout, kh, kw).transpose(2, 3, 0, 1)
 
 
 def _dense(features: int, name: str | None = None, dtype=jnp.float32) -> nn.Dense:
@@ -59,7 +74,7 @@ class ConvTranspose(nn.Module):
     def __call__(self, x: jax.Array) -> jax.Array:
         k, s, op = self.kernel, self.stride, self.output_padding
         n = x.shape[-2]
-        kernel = self.param("kernel", CONV_INIT, (k, k, x.shape[-1], self.features))
+        kernel = self.param("kernel", conv_transpose_init, (k, k, x.shape[-1], self.features))
         bias = self.param("bias", ZEROS, (self.features,))
         taps = (k - 1) // s + 1  # kernel taps of one phase along one axis
         size = (n - 1) * s + k + op  # output size

@@ -51,7 +51,7 @@ class Batch:
     next_obs: jax.Array  # uint8 [B, H, W, C*K]
     mask: jax.Array  # uint8 [B, H, W, K]: agent masks of obs's frames
     far_obs: jax.Array | None = None  # uint8 [B, H, W, C*K]: same episode, >= 2 steps from obs
-    far_valid: jax.Array | None = None  # f32 [B]: 1 where far_obs exists
+    far_valid: jax.Array | None = None  # f32 [B]: 1 where the episode has such a step stored
 
 
 def entry_bytes(frame_shape: tuple[int, int, int], action_dim: int) -> int:
@@ -212,11 +212,11 @@ def sample_at(
     nstep: int,
     gamma: float,
     frame_stack: int,
-    far: jax.Array | None = None,
+    far_key: jax.Array | None = None,
 ) -> Batch:
     """The transitions that start at entries (row[b], env[b]); see the module docstring.
 
-    `far` [B] (int offsets >= 2), when given, picks TED's same-episode frame at row +- far.
+    `far_key`, when given, also draws TED's same-episode frame (see `same_episode_offsets`).
     """
     reward = jnp.zeros(row.shape, jnp.float32)
     discount = jnp.ones(row.shape, jnp.float32)
@@ -237,15 +237,55 @@ def sample_at(
         next_obs=_gather_stack(state.frames, _stack_rows(state, next_row, env, frame_stack), env),
         mask=_gather_stack(state.masks, _stack_rows(state, row, env, frame_stack), env),
     )
-    if far is None:
+    if far_key is None:
         return batch
-    fwd_ok, fwd = _same_episode_at(state, row, env, far)
-    bwd_ok, bwd = _same_episode_at(state, row, env, -far)
-    far_row = jnp.where(fwd_ok, fwd, bwd)
+    offset, valid = same_episode_offsets(state, row, env, far_key)
+    far_row = (row + offset) % state.rows
     return batch.replace(
         far_obs=_gather_stack(state.frames, _stack_rows(state, far_row, env, frame_stack), env),
-        far_valid=(fwd_ok | bwd_ok).astype(jnp.float32),
+        far_valid=valid.astype(jnp.float32),
     )
+
+
+def _episode_span(state, row, env):
+    """Ages of the first and last stored entries of the episode of (row, env), each [B].
+
+    For one env, episode ids never decrease with age, so both ends are found by binary search
+    over the stored ages (log2(T) gathers) instead of a scan of the episode.
+    """
+    ep = state.episode[row, env]
+    oldest = jnp.where(state.size == state.rows, state.pos, 0)
+
+    def first_age_where(pred):
+        # Smallest age in [0, size] whose entry satisfies pred (monotone in age); size if none.
+        lo, hi = jnp.zeros_like(row), jnp.broadcast_to(state.size, row.shape)
+        for _ in range(max(1, math.ceil(math.log2(state.rows + 1)))):
+            mid = (lo + hi) // 2
+            hit = pred(state.episode[(oldest + mid) % state.rows, env]) | (lo == hi)
+            lo, hi = jnp.where(hit, lo, mid + 1), jnp.where(hit, mid, hi)
+        return lo
+
+    start = first_age_where(lambda e: e >= ep)
+    end = first_age_where(lambda e: e > ep) - 1
+    return start, end
+
+
+def same_episode_offsets(state, row, env, key):
+    """TED's same-episode negatives: an offset to a uniformly drawn stored step of the same
+    episode other than t and t+-1 (as TED's reference samples them), and whether one exists.
+
+    row, env [B] -> (offset int32 [B], valid bool [B]); offset is 0 where none exists.
+    """
+    start, end = _episode_span(state, row, env)
+    age = _age(state, row)
+    lo, hi = start - age, end - age  # lo <= 0 <= hi
+    n_before = jnp.maximum(-1 - lo, 0)  # offsets lo..-2
+    n_after = jnp.maximum(hi - 1, 0)  # offsets 2..hi
+    n = n_before + n_after
+    u = jnp.floor(jax.random.uniform(key, row.shape) * n).astype(jnp.int32)
+    offset = jnp.where(u < n_before, lo + u, 2 + u - n_before)
+    valid = n > 0
+    return jnp.where(valid, offset, 0), valid
 
 
 def sample(
@@ -256,22 +296,46 @@ def sample(
     nstep: int,
     gamma: float,
     frame_stack: int,
-    far_max: int = 0,
+    same_episode: bool = False,
 ) -> Batch:
-    """Uniform sample of `batch_size` transitions among the valid starts.
+    """Uniform sample (with replacement) of `batch_size` transitions among the valid starts.
 
-    far_max > 0 also returns TED's same-episode frames, 2..far_max steps away.
+    same_episode=True also returns TED's same-episode frames (`same_episode_offsets`).
+    Raises ValueError when called on a replay holding no transition (outside `jit`; inside,
+    the trainer checks once before its first update, see `check_can_sample`).
     """
     k_idx, k_far = jax.random.split(key)
     weights = sample_weights(state, frame_stack).reshape(-1)
+    if not isinstance(weights, jax.core.Tracer):
+        check_can_sample(weights.sum(), 1)
     flat = jax.random.choice(k_idx, weights.shape[0], (batch_size,), p=weights / weights.sum())
     row, env = jnp.divmod(flat, state.frames.shape[1])
-    far = None
-    if far_max > 0:
-        far = jax.random.randint(k_far, (batch_size,), 2, max(far_max, 2) + 1)
-    return sample_at(state, row, env, nstep=nstep, gamma=gamma, frame_stack=frame_stack, far=far)
+    return sample_at(
+        state,
+        row,
+        env,
+        nstep=nstep,
+        gamma=gamma,
+        frame_stack=frame_stack,
+        far_key=k_far if same_episode else None,
+    )
+
+
+def check_can_sample(transitions, needed: int) -> None:
+    """Raise unless every seed's replay holds at least `needed` transitions (host check).
+
+    Sampling an empty replay would divide by zero weights and return garbage silently.
+    """
+    have = np.atleast_1d(np.asarray(transitions)).astype(int)
+    if (have < needed).any():
+        raise ValueError(
+            f"the replay holds {have.tolist()} sampleable transitions (per seed) but at least "
+            f"{needed} are needed to sample; collect more before updating "
+            "(raise replay.seed_frames, or lower agent.batch_size)"
+        )
 
 
 def num_transitions(state: ReplayState, frame_stack: int) -> np.ndarray:
-    """How many transitions can be sampled now (host value, for logs and tests)."""
-    return np.asarray(sample_weights(state, frame_stack).sum())
+    """How many transitions can be sampled now (host value; [S] for a replay with a seed axis)."""
+    weights = sample_weights if state.frames.ndim == 5 else jax.vmap(sample_weights, (0, None))
+    return np.asarray(weights(state, frame_stack).sum((-2, -1)))

@@ -106,6 +106,20 @@ def validate(config: ConfigDict) -> None:
     for key in positive:
         if _get(config, key) < 1:
             raise ValueError(f"{key} must be >= 1, got {_get(config, key)}")
+    a, r = config.agent, config.replay
+    steps = r.seed_frames // config.env.action_repeat  # transitions per seed before updating
+    if steps < a.batch_size:
+        raise ValueError(
+            f"replay.seed_frames={r.seed_frames} gives {steps} transitions per seed (at "
+            f"env.action_repeat={config.env.action_repeat}) before the first update, fewer than "
+            f"one batch (agent.batch_size={a.batch_size}); set replay.seed_frames >= "
+            f"{a.batch_size * config.env.action_repeat}"
+        )
+    if a.batch_size > r.capacity:
+        raise ValueError(
+            f"agent.batch_size={a.batch_size} is larger than the replay "
+            f"(replay.capacity={r.capacity}); lower the batch or raise the capacity"
+        )
     if config.env.background_dir and not pathlib.Path(config.env.background_dir).is_dir():
         raise FileNotFoundError(
             f"env.background_dir {config.env.background_dir!r} is not a folder; give a DAVIS-2017 "
@@ -202,7 +216,7 @@ def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigD
             nstep=a.nstep,
             gamma=a.discount,
             frame_stack=acfg.frame_stack,
-            far_max=a.ted_far_max if acfg.method == "ted" else 0,
+            same_episode=acfg.method == "ted",
         )
         return update.update(agent, batch, k_update, hp_seed, cfg=acfg)
 
@@ -354,18 +368,33 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
     with contextlib.ExitStack() as stack:
         stack.enter_context(WorkdirLock(workdir))
         stop = stack.enter_context(StopRequest())
-        ckpt = Checkpointer(
-            workdir / "checkpoints", fingerprint=fingerprint(config), keep=config.keep_checkpoints
-        )
-        stack.callback(ckpt.close)
-        if ckpt.latest_step() is not None:  # a changed config is refused before anything starts
-            step, saved, _ = ckpt.read_meta()
-            ckpt.check_fingerprint(saved, step)
+
+        def checkpointer() -> Checkpointer:
+            ckpt = Checkpointer(
+                workdir / "checkpoints",
+                fingerprint=fingerprint(config),
+                keep=config.keep_checkpoints,
+            )
+            stack.callback(ckpt.close)
+            return ckpt
+
+        ckpt = None
+        if (workdir / "checkpoints").is_dir():  # a changed config is refused before anything
+            ckpt = checkpointer()
+            if ckpt.latest_step() is not None:
+                step, saved, _ = ckpt.read_meta()
+                ckpt.check_fingerprint(saved, step)
         env = stack.enter_context(
             make_env(config, envs_per_seed=config.envs_per_seed, split="train", seed=config.seed)
         )
         spec = env.spec
+        if config.agent.nstep > spec.episode_steps:
+            raise ValueError(
+                f"agent.nstep={config.agent.nstep} is longer than an episode of {spec.name} "
+                f"({spec.episode_steps} agent steps); lower agent.nstep"
+            )
         replay.check_fits(config.seeds, config.replay.capacity, spec.frame_shape, spec.action_dim)
+        ckpt = ckpt or checkpointer()  # a new run's folder: only once the config is known to work
         store = _replay_store(config, spec, workdir)
         if store is not None:
             stack.callback(store.close)
@@ -448,7 +477,7 @@ class _Run:
             "metric_count": 0,
             "next_log": config.log_every_frames,
             "last_log_frame": 0,
-            "next_eval": config.eval_every_frames,
+            "next_eval": 0,  # as DrQ-v2: every curve starts at the untrained policy
             "last_eval_frame": -1,
         }
         self.metric_sum = None  # train metrics summed since the last log row
@@ -576,6 +605,11 @@ class _Run:
             lv["steps_owed"] += num_envs / config.agent.update_every_steps
             n = int(lv["steps_owed"])
             lv["steps_owed"] -= n
+            if n and not counters["updates"]:  # once: the replay must hold a batch
+                replay.check_can_sample(
+                    replay.num_transitions(self.buffer, self.acfg.frame_stack),
+                    config.agent.batch_size,
+                )
             for k in jax.random.split(k_learn, n) if n else ():
                 self.agent, metrics = programs.learn(self.agent, self.buffer, k)
                 self.metric_sum = (
@@ -629,10 +663,10 @@ class _Run:
         lv["next_log"] = frame + config.log_every_frames
 
     def _postfix(self, fps) -> str:
-        text = f"{fps:.0f} frames/s in all"
+        parts = [f"{fps:.0f} frames/s in all"] if np.isfinite(fps) else []
         if self.last_eval_return is not None:
-            text += f", eval return {self.last_eval_return:.1f}"
-        return text
+            parts.append(f"eval return {self.last_eval_return:.1f}")
+        return ", ".join(parts)
 
     def _evaluate_if_due(self, logger, workdir, wall_s, pbar, stop) -> None:
         config, lv, frame = self.config, self.lv, self.counters["frame"]
@@ -653,12 +687,12 @@ class _Run:
         except EvalAborted:
             self.eval_env.set_host_state(snapshot)  # the resumed run evaluates from here again
             return
-        fps_per_seed = frame / max(wall_s, 1e-9)
+        fps_per_seed = frame / wall_s if frame else np.nan  # nothing trained before frame 0
         metrics.update(
             wall_s=wall_s,
             eval_s=time.perf_counter() - t0,
             fps=fps_per_seed * config.seeds,
-            sec_per_1000_frames=1000.0 / max(fps_per_seed, 1e-9),
+            sec_per_1000_frames=1000.0 / fps_per_seed,
         )
         logger.write("eval", frame, metrics)
         for s, clip in clips.items():
@@ -741,6 +775,7 @@ def write_summary(workdir, config, spec, counters) -> dict:
         "backend": spec.backend,
         "device": jax.devices()[0].device_kind,
         "render": config.env.render.to_dict(),
+        "render_quality": config.env.render.quality,
         "distraction": config.env.distraction,
         "per_seed": per_seed,
     }

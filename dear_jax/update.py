@@ -310,24 +310,30 @@ def learner_loss(
         metrics["recon_loss"] = l_rec
         total = total + hp.recon_weight * l_rec
     if cfg.method == "ted":
-        l_ted, ted_metrics = _ted_loss(nets, learner, z, z_next, batch, k_far, k_ted, cfg)
+        # Only z_t carries the encoder's gradient: as in TED's reference, the next and the
+        # same-episode observations are encoded without gradient (which also spares their
+        # backward passes through the encoder).
+        far = augment.random_shift_batch(batch.far_obs, k_far, cfg.augment_pad)
+        z_far = jax.lax.stop_gradient(encode(far))
+        l_ted, ted_metrics = ted_classifier_loss(
+            learner["ted"], z, z_next_sg, z_far, batch.far_valid, k_ted, nets=nets
+        )
         metrics.update(ted_metrics, ted_loss=l_ted)
         total = total + hp.ted_weight * l_ted
     metrics["loss"] = total
     return total, (metrics, jax.lax.stop_gradient(z))
 
 
-def _ted_loss(nets, learner, z, z_next, batch, k_far, k_shuffle, cfg):
-    """TED: positives (z_t, z_t+n); negatives (z_t, z_t+n of another sample) and (z_t, a frame of
-    the same episode >= 2 steps away). Mean BCE over the valid pairs."""
-    far = augment.random_shift_batch(batch.far_obs, k_far, cfg.augment_pad)
-    z_far = nets.encoder.apply({"params": learner["encoder"]}, far)
-    perm = jax.random.permutation(k_shuffle, z.shape[0])
-    classify = lambda a, b: nets.ted.apply({"params": learner["ted"]}, a, b)  # noqa: E731
+def ted_classifier_loss(ted_params, z, z_next, z_far, far_valid, key, *, nets: Networks):
+    """TED's temporal loss on latents [B, F]: positives (z_t, z_t+n); negatives (z_t, z_t+n of
+    another sample) and (z_t, a frame of the same episode other than t and t+-1, where
+    far_valid [B] is 1). Mean BCE over the valid pairs; returns (loss, metrics)."""
+    perm = jax.random.permutation(key, z.shape[0])
+    classify = lambda a, b: nets.ted.apply({"params": ted_params}, a, b)  # noqa: E731
     logits = jnp.concatenate([classify(z, z_next), classify(z, z_next[perm]), classify(z, z_far)])
     n = z.shape[0]
     labels = jnp.concatenate([jnp.ones(n), jnp.zeros(2 * n)])
-    weights = jnp.concatenate([jnp.ones(2 * n), batch.far_valid])
+    weights = jnp.concatenate([jnp.ones(2 * n), far_valid])
     bce = optax.sigmoid_binary_cross_entropy(logits, labels)
     loss = jnp.sum(weights * bce) / jnp.sum(weights)
     acc = jnp.sum(weights * ((logits > 0) == (labels > 0.5))) / jnp.sum(weights)

@@ -8,7 +8,8 @@
   (`envs/masks.py`) and rolls the frame stack; `step_async` returns at once, so the caller can
   dispatch accelerator work meanwhile;
 - episodes: auto-reset with dm_env semantics. Episode starts are drawn on the host (CPU MuJoCo,
-  `envs/dmc.py`) from a numpy RandomState seeded by the key given to `reset`.
+  `envs/dmc.py::episode_start`, dm_control's law) from a numpy RandomState seeded by the key
+  given to `reset`; both physics backends start from these qpos/qvel.
 
 State ownership: `EnvState` holds the physics state, the frame stack, the jax key and, as host
 numpy leaves, the per-env step counters and `last` flags (so auto-reset needs no device sync).
@@ -31,7 +32,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from envs import distractions, masks
+from envs import distractions, dmc, masks
 from envs.dmc import DmcTask, render_model_fn
 from envs.physics import SolverSettings, make_physics, resolve_backend
 from envs.render import RenderPool, RenderSettings
@@ -240,8 +241,7 @@ class Env:
         qpos = np.tile(m.qpos0, self.shape + (1,))
         qvel = np.zeros(self.shape + (m.nv,))
         for s, e in zip(*np.nonzero(which), strict=True):
-            mujoco.mj_resetData(m, d)
-            self.task.init_episode(m, d, self._rng)
+            dmc.episode_start(self.task, m, d, self._rng)
             qpos[s, e], qvel[s, e] = d.qpos, d.qvel
         return qpos, qvel
 

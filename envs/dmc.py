@@ -19,10 +19,11 @@ well under a pixel at 84x84) and any visible site are labelled "other" by the re
 spin hides its `target` and `tip` sites (alpha 0, as dm_control's Spin task does) and the touch
 sites are in a hidden group, so no finger site is ever drawn.
 
-Episode-start randomisation runs on the host with CPU MuJoCo because two tasks reject states in
-contact (ball_in_cup, finger: `ncon > 0`) and cheetah settles for 200 physics steps; both are
-cheap on the CPU and exactly reproduce dm_control's distribution. The MJX backend uploads the
-result.
+Episode starts (`episode_start`) run on the host with CPU MuJoCo because two tasks reject states
+in contact (ball_in_cup, finger: `ncon > 0`) and cheetah settles for 200 physics steps; both are
+cheap on the CPU. They draw dm_control's numbers in dm_control's order, so one seed gives
+dm_control's starts (tests/test_starts.py). The CPU backend starts from the resulting qpos/qvel;
+the MJX backend uploads them.
 """
 
 from __future__ import annotations
@@ -123,51 +124,95 @@ def load_model(xml_file: str) -> mujoco.MjModel:
 
 
 # --------------------------------------------------------------------------------------------
-# Episode-start randomisation (dm_control's randomizers, numpy RandomState).
+# Episode starts: dm_control's `control.Environment.reset`, each task's `initialize_episode` and
+# `suite/utils/randomizers.py`, drawn from a numpy RandomState in dm_control's order, so that one
+# seed gives the starts dm_control gives.
+
+# Plain ints: a numpy integer from `jnt_type` never equals a pybind enum member on the enum's
+# side, so `jnt_type[j] in (mjJNT_HINGE, ...)` is always false.
+_FREE, _BALL, _SLIDE, _HINGE = (
+    int(mujoco.mjtJoint.mjJNT_FREE),
+    int(mujoco.mjtJoint.mjJNT_BALL),
+    int(mujoco.mjtJoint.mjJNT_SLIDE),
+    int(mujoco.mjtJoint.mjJNT_HINGE),
+)
+
+
+def _axis_angle_quat(axis: np.ndarray, angle: float) -> np.ndarray:
+    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
 
 
 def _randomize_limited_and_rotational_joints(model, data, rng: np.random.RandomState) -> None:
-    """dm_control `randomize_limited_and_rotational_joints` (hinge/slide/ball/free joints)."""
+    """dm_control's `randomizers.randomize_limited_and_rotational_joints`, joint by joint:
+    limited hinge/slide: uniform over the range; unlimited hinge: uniform over [-pi, pi];
+    limited ball: a uniform axis turned by an angle uniform over [0, range max]
+    (`random_limited_quaternion`); unlimited ball: uniform on the unit 3-sphere; free: only the
+    quaternion, drawn with `rand` (the positive orthant; dm_control keeps this on purpose, its
+    comment says, for benchmark continuity). Unlimited slides and free positions keep their
+    value."""
     for j in range(model.njnt):
-        kind = model.jnt_type[j]
+        kind = int(model.jnt_type[j])
         adr = model.jnt_qposadr[j]
         lo, hi = model.jnt_range[j]
         if model.jnt_limited[j]:
-            if kind in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+            if kind in (_HINGE, _SLIDE):
                 data.qpos[adr] = rng.uniform(lo, hi)
-            elif kind == mujoco.mjtJoint.mjJNT_BALL:
+            elif kind == _BALL:
                 axis = rng.randn(3)
                 axis /= np.linalg.norm(axis)
-                angle = rng.rand() * hi
-                quat = np.zeros(4)
-                mujoco.mju_axisAngle2Quat(quat, axis, angle)
-                data.qpos[adr : adr + 4] = quat
-        else:
-            if kind == mujoco.mjtJoint.mjJNT_HINGE:
-                data.qpos[adr] = rng.uniform(-np.pi, np.pi)
-            elif kind == mujoco.mjtJoint.mjJNT_BALL:
-                quat = rng.randn(4)
-                data.qpos[adr : adr + 4] = quat / np.linalg.norm(quat)
-            elif kind == mujoco.mjtJoint.mjJNT_FREE:
-                quat = rng.randn(4)
-                data.qpos[adr + 3 : adr + 7] = quat / np.linalg.norm(quat)
+                data.qpos[adr : adr + 4] = _axis_angle_quat(axis, rng.rand() * hi)
+        elif kind == _HINGE:
+            data.qpos[adr] = rng.uniform(-np.pi, np.pi)
+        elif kind == _BALL:
+            quat = rng.randn(4)
+            data.qpos[adr : adr + 4] = quat / np.linalg.norm(quat)
+        elif kind == _FREE:
+            quat = rng.rand(4)
+            data.qpos[adr + 3 : adr + 7] = quat / np.linalg.norm(quat)
+
+
+def _legacy_steps(model, data, nstep: int) -> None:
+    """dm_control's `Physics.step(nstep)` with legacy stepping: `mj_step2` finishes a step
+    whose position stage is whatever the data holds (not recomputed for a qpos written since),
+    then `mj_step` x (nstep - 1) and `mj_step1`; RK4 takes `mj_step` x nstep, then `mj_step1`."""
+    if model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4:
+        mujoco.mj_step(model, data, nstep)
+    else:
+        mujoco.mj_step2(model, data)
+        if nstep > 1:
+            mujoco.mj_step(model, data, nstep - 1)
+    mujoco.mj_step1(model, data)
 
 
 def _init_walker(model, data, rng):
+    # Walker's `PlanarWalker.initialize_episode`: every joint by the randomizer (rooty over
+    # [-pi, pi], the six leg hinges over their ranges; rootx and rootz are unlimited slides and
+    # stay at 0). No rejection: a start may touch the floor.
     _randomize_limited_and_rotational_joints(model, data, rng)
 
 
+# cheetah's `Cheetah.initialize_episode` lets the model fall for this many physics steps.
+CHEETAH_SETTLE_STEPS = 200
+
+
 def _init_cheetah(model, data, rng):
+    # `Cheetah.initialize_episode`: the limited joints (the six leg hinges; the root joints are
+    # unlimited) uniform over their ranges in one vectorised draw, then 200 physics steps of
+    # settling starting from the position stage of the reset pose, then the clock back to 0.
+    # qpos is indexed by joint, which needs one qpos entry per joint (dm_control asserts it).
+    if model.nq != model.njnt:
+        raise ValueError(f"cheetah: {model.nq} qpos entries for {model.njnt} joints")
     limited = model.jnt_limited == 1
     lower, upper = model.jnt_range[limited].T
     data.qpos[limited] = rng.uniform(lower, upper)
-    mujoco.mj_forward(model, data)
-    # dm_control settles the model for 200 physics steps and then zeroes the clock.
-    mujoco.mj_step(model, data, 200)
+    if CHEETAH_SETTLE_STEPS:
+        _legacy_steps(model, data, CHEETAH_SETTLE_STEPS)
     data.time = 0.0
 
 
 def _init_ball_in_cup(model, data, rng):
+    # `BallInCup.initialize_episode`: ball x over [-0.2, 0.2], then z over [0.2, 0.5], redrawn
+    # (no attempt limit) until the forward pass finds no contact; the cup stays at 0.
     x, z = model.joint("ball_x").qposadr[0], model.joint("ball_z").qposadr[0]
     while True:
         data.qpos[x] = rng.uniform(-0.2, 0.2)
@@ -177,21 +222,39 @@ def _init_ball_in_cup(model, data, rng):
             return
 
 
-def _init_finger(model, data, rng):
-    for _ in range(1000):
+def _init_finger(model, data, rng, max_attempts: int = 1000):
+    # finger's `_set_random_joint_angles` (called by `Spin.initialize_episode`): all three
+    # joints by the randomizer (proximal and distal over their ranges, the spinner's unlimited
+    # `hinge` over [-pi, pi]), redrawn together until no contact, at most 1000 attempts. Spin
+    # moves no target; its hinge damping and hidden sites are model edits (_finger_spin_*).
+    for _ in range(max_attempts):
         _randomize_limited_and_rotational_joints(model, data, rng)
         mujoco.mj_forward(model, data)
         if data.ncon == 0:
             return
-    raise RuntimeError("finger: no collision-free state after 1000 attempts")
+    raise RuntimeError(f"finger: no collision-free state after {max_attempts} attempts")
 
 
 def _init_cartpole_swingup(model, data, rng):
+    # `Balance.initialize_episode` with swing_up: slider 0.01 N(0,1), pole pi + 0.01 N(0,1), any
+    # further poles 0.1 N(0,1), then every qvel 0.01 N(0,1), drawn in that order.
     slider, hinge = model.joint("slider").qposadr[0], model.joint("hinge_1").qposadr[0]
     data.qpos[slider] = 0.01 * rng.randn()
     data.qpos[hinge] = np.pi + 0.01 * rng.randn()
     data.qpos[2:] = 0.1 * rng.randn(model.nv - 2)
     data.qvel[:] = 0.01 * rng.randn(model.nv)
+
+
+def episode_start(task: DmcTask, model, data, rng: np.random.RandomState) -> None:
+    """Draw one episode start into `data`, as dm_control's `control.Environment.reset` does:
+    `Physics.reset` (`mj_resetData`, then a forward pass), the task's `initialize_episode`, then
+    `Physics.after_reset` (a forward pass). dm_control runs both forward passes with actuation
+    disabled; that changes only actuator outputs, never qpos, qvel or contacts, and cheetah's
+    first settling `mj_step2` recomputes actuation itself, so they run plainly here."""
+    mujoco.mj_resetData(model, data)
+    mujoco.mj_forward(model, data)
+    task.init_episode(model, data, rng)
+    mujoco.mj_forward(model, data)
 
 
 # --------------------------------------------------------------------------------------------

@@ -15,18 +15,32 @@ Agent rule (REFERENCE section 4), per segmentation object type:
   sites) are therefore scenery, never mask; tests/test_render.py checks both cases.
 - anything else drawn (decor, skins, flexes): OTHER. Pixels where nothing is drawn: BACKGROUND.
 
-Drawing: each worker renders its samples into "tile sheets": sample k's RGB image and its
-segmentation image go to two viewports of one large offscreen buffer, one `mjv_updateScene` per
-sample serves both, and one `mjr_readPixels` per sheet reads everything back (per-frame readback
-is what limits throughput, DESIGN.md). Results return through one shared-memory block; only the
-small inputs (qpos, perturbations) are pickled. Measured (benchmarks/results/render_h100.json,
+Pictures (`RenderSettings.quality`, the config's `env.render.quality`): "dm_control" draws what
+dm_control's `physics.render(84, 84, camera_id)` draws, i.e. mujoco.Renderer's default frame
+(skybox, shadows, floor reflection, the model's 4x multisampling), with a 256-texel shadow map
+instead of 2048; "fast" draws none of these effects (black sky). The segmentation pass is MuJoCo's
+flat-colour pass, which skips every effect, so labels are the same under both.
+
+Drawing: each worker renders its samples into "tile sheets". Each picture (a sample's RGB frame,
+then its segmentation) is drawn by `mjr_render` at the origin of a one-picture offscreen buffer,
+as mujoco.Renderer draws a frame, so every effect works per picture (one shadow-map pass per
+light, one reflection pass, one skybox), and the frame equals mujoco.Renderer's bit for bit; a
+GPU-side copy (resolving the multisamples) then puts it in its place on the sheet, an auxiliary
+buffer. One `mjv_updateScene` per sample serves both pictures, and one readback per sheet reads
+everything (per-frame readback is what limits throughput, DESIGN.md). Results return through one
+shared-memory block; only the small inputs (qpos, perturbations) are pickled.
+
+The earlier layout drew each picture in place on a sheet-sized buffer (`RenderSettings.in_place`,
+kept for measurements): there MuJoCo's reflection pass clears the stencil of the whole sheet for
+every picture, and pictures at other offsets could differ from mujoco.Renderer by a level in a
+few pixels on a GPU. Measured that way without effects (benchmarks/results/render_h100.json,
 H100 + 16 cores, walker, 84x84, batch 1024): 64 tiles per sheet 8.1k obs/s with 1 worker and
 24.7k with 16; one tile per sheet 6.4k with 1 worker and ~4.8k with 4-16 (readback contention).
-On Mesa llvmpipe one tile per sheet is faster, and that is the automatic choice there.
 """
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import os
 import signal
@@ -56,35 +70,79 @@ PERTURB_KEYS = ("mat_rgb", "geom_rgb", "cam_sphere", "cam_lookat")
 _WORKER_TIMEOUT_S = 600.0
 
 
+QUALITIES = ("dm_control", "fast")
+
+
+@dataclasses.dataclass(frozen=True)
+class Visuals:
+    """MuJoCo's visual effects, as a render quality resolves them."""
+
+    skybox: bool
+    shadows: bool
+    reflections: bool  # the floor's mirror image (dm_control's floors have reflectance 0.2)
+    multisample: bool  # the model's own offscreen multisampling (vis.quality.offsamples, 4) or none
+    shadow_size: int | None = None  # shadow map texels per side; None = the model's own (2048)
+
+
+# "dm_control": the picture of dm_control's `physics.render(84, 84, camera_id)`, which is
+# mujoco.Renderer's default picture: every effect on, the model's 4x multisampling. Only the shadow
+# map is smaller: 256 instead of the XMLs' 2048 texels per side moves 84x84 frames by 0.02-0.11
+# levels of 255 on average (walker, cup, finger; tests/test_render.py) and took an H100 pool
+# (16 workers, pictures drawn in place) from 1.5k to 4.1k obs/s. "fast": no effect at all, so the
+# sky is black: a different picture (32-45 levels from dm_control's), for quick runs on CPU-only
+# machines (Mesa llvmpipe draws it ~7x faster; benchmarks/results/render_quality_cpu.json).
+QUALITY_VISUALS = {
+    "dm_control": Visuals(
+        skybox=True, shadows=True, reflections=True, multisample=True, shadow_size=256
+    ),
+    "fast": Visuals(skybox=False, shadows=False, reflections=False, multisample=False),
+}
+
+
 @dataclasses.dataclass(frozen=True)
 class RenderSettings:
-    """Visual settings of the render pool; recorded in run summaries (dataclasses.asdict)."""
+    """Settings of the render pool; the config's `env.render` fields (recorded in summaries)."""
 
     width: int = 84
     height: int = 84
-    shadows: bool = False  # shadows and reflections together cost ~2.8x (DESIGN.md)
-    reflections: bool = False
-    skybox: bool = False  # the background is composited from videos (or left black) anyway
-    msaa_samples: int = 0  # offscreen multisample anti-aliasing; MuJoCo's default is 4
+    quality: str = "dm_control"  # QUALITIES: "dm_control" (its picture) | "fast" (no effects)
     num_workers: int = 0  # 0 -> min(os.cpu_count(), 8)
-    # Samples drawn into one offscreen buffer before one readback. 0 -> auto: 1 on software GL
-    # (bit-identical to mujoco.Renderer), 64 on a GPU (tiles at other offsets can differ from
-    # mujoco.Renderer by 1 intensity level in a few pixels: rasterisation at another position).
+    # Samples drawn before one readback (one "sheet"). 0 -> auto: 64.
     tiles_per_sheet: int = 0
+    # For measurements only (benchmarks/render.py), never set by configs:
+    # visuals: effects other than the quality's (None = the quality's);
+    # in_place: draw each sample straight into its place in a sheet-sized MuJoCo buffer (the
+    #   layout before samples were drawn at the origin and copied; see TileRenderer).
+    visuals: Visuals | None = None
+    in_place: bool = False
+
+    def __post_init__(self):
+        if self.quality not in QUALITY_VISUALS:
+            raise ValueError(
+                f"unknown render quality {self.quality!r}; valid: {', '.join(QUALITIES)}"
+            )
 
     def resolved_workers(self) -> int:
         return self.num_workers if self.num_workers > 0 else min(os.cpu_count() or 1, 8)
 
-
-def apply_settings(model: mujoco.MjModel, settings: RenderSettings) -> None:
-    """Sets the model-side visual options (they must be set before the render context exists)."""
-    model.vis.quality.offsamples = int(settings.msaa_samples)
+    def resolved_visuals(self) -> Visuals:
+        return self.visuals or QUALITY_VISUALS[self.quality]
 
 
-def apply_scene_flags(scene: mujoco.MjvScene, settings: RenderSettings) -> None:
-    scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = settings.shadows
-    scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = settings.reflections
-    scene.flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = settings.skybox
+def apply_visuals(model: mujoco.MjModel, visuals: Visuals) -> None:
+    """Sets the model-side options (read when a render context is made, so set them before)."""
+    if not visuals.multisample:
+        model.vis.quality.offsamples = 0
+    if not visuals.shadows:
+        model.vis.quality.shadowsize = 0  # no shadow map allocated
+    elif visuals.shadow_size is not None:
+        model.vis.quality.shadowsize = int(visuals.shadow_size)
+
+
+def apply_scene_flags(scene: mujoco.MjvScene, visuals: Visuals) -> None:
+    scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = visuals.shadows
+    scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = visuals.reflections
+    scene.flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = visuals.skybox
 
 
 def kinematics(model: mujoco.MjModel, data: mujoco.MjData) -> None:
@@ -180,6 +238,44 @@ def perturbed_camera_pose(
 # ---------------------------------------------------------------------------------------------
 # One worker's renderer.
 
+_SHEET_AUX = 0  # index of the MuJoCo auxiliary buffer that holds the sheet
+
+
+class _RawGL:
+    """The GL calls MuJoCo has no function for: copy a picture into the sheet, read the sheet.
+
+    PyOpenGL's raw entry points (about a microsecond a call); `read` checks GL's error flag once
+    per sheet.
+    """
+
+    def __init__(self):
+        from OpenGL.raw.GL.VERSION import GL_1_0, GL_3_0
+
+        self.g1, self.g3 = GL_1_0, GL_3_0
+
+    def blit(self, src: int, dst: int, w: int, h: int, left: int, bottom: int) -> None:
+        g1, g3 = self.g1, self.g3
+        g3.glBindFramebuffer(g3.GL_READ_FRAMEBUFFER, src)
+        g3.glBindFramebuffer(g3.GL_DRAW_FRAMEBUFFER, dst)
+        # Same size, so a multisampled picture is resolved as mjr_readPixels resolves it.
+        g3.glBlitFramebuffer(
+            0, 0, w, h, left, bottom, left + w, bottom + h, g1.GL_COLOR_BUFFER_BIT, g1.GL_NEAREST
+        )
+
+    def read(self, fbo: int, out: np.ndarray) -> None:
+        g1, g3 = self.g1, self.g3
+        if not out.flags.c_contiguous:
+            raise ValueError("the sheet must be C-contiguous")
+        g3.glBindFramebuffer(g3.GL_READ_FRAMEBUFFER, fbo)
+        g1.glPixelStorei(g1.GL_PACK_ALIGNMENT, 1)
+        h, w = out.shape[:2]
+        g1.glReadPixels(
+            0, 0, w, h, g1.GL_RGB, g1.GL_UNSIGNED_BYTE, out.ctypes.data_as(ctypes.c_void_p)
+        )
+        err = g1.glGetError()
+        if err:
+            raise RuntimeError(f"OpenGL error 0x{int(err):04x} copying or reading a sheet")
+
 
 class TileRenderer:
     """Renders batches of states with one GL context; usable in-process (tests, preview)."""
@@ -214,14 +310,29 @@ class TileRenderer:
         self.cols = min(self.tiles, 16)  # sample pairs across a sheet
         self.rows = -(-self.tiles // self.cols)
         sheet_w, sheet_h = 2 * self.cols * w, self.rows * h
-        apply_settings(model, settings)
-        model.vis.global_.offwidth = max(model.vis.global_.offwidth, sheet_w)
-        model.vis.global_.offheight = max(model.vis.global_.offheight, sheet_h)
+        self.visuals = settings.resolved_visuals()
+        apply_visuals(model, self.visuals)
+        self.in_place = settings.in_place
+        if self.in_place:
+            model.vis.global_.offwidth = max(model.vis.global_.offwidth, sheet_w)
+            model.vis.global_.offheight = max(model.vis.global_.offheight, sheet_h)
+        else:
+            # One picture at a time, at the origin, as mujoco.Renderer draws it. The buffer holds
+            # just that picture: the reflection pass clears the stencil of the whole buffer.
+            model.vis.global_.offwidth, model.vis.global_.offheight = w, h
         self.con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self.con)
+        if not self.in_place:
+            # The sheet: a single-sample buffer the pictures are copied (resolved) into.
+            mujoco.mjr_addAux(_SHEET_AUX, sheet_w, sheet_h, 0, self.con)
+            self._gl = _RawGL()
+            self._origin = mujoco.MjrRect(0, 0, w, h)
+            self._picture_fbo = int(self.con.offFBO)
+            self._sheet_fbo = int(self.con.auxFBO[_SHEET_AUX])
         self.scene = mujoco.MjvScene(model, maxgeom=10000)
         self.option = mujoco.MjvOption()
-        apply_scene_flags(self.scene, settings)
+        self.option.flags[mujoco.mjtVisFlag.mjVIS_RANGEFINDER] = False  # as dm_control draws
+        apply_scene_flags(self.scene, self.visuals)
 
         self.tables = label_tables(model, agent_geom_ids, floor_geom_ids)
         self.sheet = np.empty((sheet_h, sheet_w, 3), np.uint8)
@@ -230,8 +341,12 @@ class TileRenderer:
         self.no_material = model.geom_matid < 0
 
     def _auto_tiles(self) -> int:
-        # Software rasterisers (Mesa llvmpipe) pay per pixel of the whole buffer, so one sample
-        # per sheet is fastest there (measured); on a GPU the per-readback cost dominates.
+        if not self.settings.in_place:
+            # The drawing buffer stays one picture whatever the sheet holds, so a big sheet
+            # costs nothing more, on software GL too; fewer readbacks is what counts (DESIGN.md).
+            return 64
+        # Drawing in place, software rasterisers (Mesa llvmpipe) pay per pixel of the whole
+        # buffer, so one sample per sheet was fastest there; on a GPU the readbacks dominated.
         renderer = self.gl_info()["GL_RENDERER"].lower()
         return 1 if any(s in renderer for s in ("llvmpipe", "softpipe", "swrast")) else 64
 
@@ -287,6 +402,25 @@ class TileRenderer:
             d.cam_xpos[self.cam_id] = pos
             d.cam_xmat[self.cam_id] = xmat.reshape(-1)
 
+    def _draw(self, left: int, bottom: int) -> None:
+        """Draws the current scene into the sheet with its lower left corner at (left, bottom)."""
+        w, h = self.settings.width, self.settings.height
+        if self.in_place:
+            mujoco.mjr_render(mujoco.MjrRect(left, bottom, w, h), self.scene, self.con)
+            return
+        mujoco.mjr_render(self._origin, self.scene, self.con)
+        self._gl.blit(self._picture_fbo, self._sheet_fbo, w, h, left, bottom)
+        mujoco.mjr_restoreBuffer(self.con)
+
+    def _read(self, sheet: np.ndarray) -> None:
+        """The sheet's bottom rows (GL order) -> sheet, uint8 [rows, sheet width, 3]."""
+        if self.in_place:
+            rect = mujoco.MjrRect(0, 0, sheet.shape[1], sheet.shape[0])
+            mujoco.mjr_readPixels(sheet, None, rect, self.con)
+            return
+        self._gl.read(self._sheet_fbo, sheet)
+        mujoco.mjr_restoreBuffer(self.con)
+
     def render(
         self,
         qpos: np.ndarray,
@@ -319,20 +453,18 @@ class TileRenderer:
                     self.scene,
                 )
                 r, c = divmod(k, self.cols)
-                mujoco.mjr_render(mujoco.MjrRect(2 * c * w, r * h, w, h), self.scene, self.con)
+                self._draw(2 * c * w, r * h)
+                # MuJoCo's segmentation pass draws flat colours with no effect (skybox, shadows,
+                # reflections, multisampling) whatever the scene's flags say.
                 for f in seg_flags:
                     flags[f] = 1
-                mujoco.mjr_render(
-                    mujoco.MjrRect((2 * c + 1) * w, r * h, w, h), self.scene, self.con
-                )
+                self._draw((2 * c + 1) * w, r * h)
                 for f in seg_flags:
                     flags[f] = 0
                 luts.append(self._scene_labels())
             rows_used = -(-count // self.cols)
             sheet = self.sheet[: rows_used * h]
-            mujoco.mjr_readPixels(
-                sheet, None, mujoco.MjrRect(0, 0, sheet.shape[1], rows_used * h), self.con
-            )
+            self._read(sheet)
             for k in range(count):
                 r, c = divmod(k, self.cols)
                 # GL rows run bottom-up: flip each tile.
@@ -352,10 +484,15 @@ class TileRenderer:
 
     def close(self) -> None:
         if getattr(self, "con", None) is not None:
-            self.gl.make_current()
-            self.con.free()
+            with self.gl.as_current():  # and back to the context that was current
+                self.con.free()
             self.con = None
             self.gl.free()
+
+    def __del__(self) -> None:
+        # Left to the garbage collector, the MuJoCo context would free its GL objects in
+        # whichever context is current: another renderer's, whose objects have the same ids.
+        self.close()
 
 
 # ---------------------------------------------------------------------------------------------

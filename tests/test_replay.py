@@ -108,7 +108,7 @@ def test_sample_matches_python_reference(steps, capacity):
         np.testing.assert_allclose(batch.discount[i], ref["discount"], rtol=1e-5)
 
 
-def test_uniform_sample_only_returns_valid_starts_and_far_frames_of_same_episode():
+def test_uniform_sample_only_returns_valid_starts_and_same_episode_negatives():
     num_envs = 2
     logs = _rollout(num_envs, 40, seed=5)
     state = replay.init(24, num_envs, FRAME, 2)
@@ -118,7 +118,7 @@ def test_uniform_sample_only_returns_valid_starts_and_far_frames_of_same_episode
         )
     sample = jax.jit(
         functools.partial(
-            replay.sample, batch_size=512, nstep=2, gamma=0.99, frame_stack=3, far_max=6
+            replay.sample, batch_size=512, nstep=2, gamma=0.99, frame_stack=3, same_episode=True
         )
     )
     batch = sample(state, jax.random.key(0))
@@ -135,7 +135,7 @@ def test_uniform_sample_only_returns_valid_starts_and_far_frames_of_same_episode
         np.testing.assert_allclose(batch.reward[i], ref["reward"], rtol=1e-5)
         if batch.far_valid[i]:
             e2, g2 = values[int(batch.far_obs[i, 0, 0, -1])]
-            assert e2 == e and ep[e][g2] == ep[e][g] and 2 <= abs(g2 - g) <= 6
+            assert e2 == e and ep[e][g2] == ep[e][g] and abs(g2 - g) >= 2
             valid_pairs += 1
     assert valid_pairs > 100
 
@@ -164,3 +164,62 @@ def test_capacity_check_says_how_much_is_needed():
     with pytest.raises(MemoryError, match=r"needs 32\.90 GiB .* replay.capacity to at most 48,633"):
         replay.check_fits(5, 250_000, (84, 84, 3), 6, available=8 * 2**30)
     assert replay.check_fits(1, 1000, (84, 84, 3), 6, available=8 * 2**30) == need // 1250
+
+
+def _one_env_replay(episode_lengths, rows):
+    """One env whose episodes have the given numbers of entries; frame value = global step."""
+    state = replay.init(rows, 1, FRAME, 2)
+    g = 0
+    for length in episode_lengths:
+        for i in range(length):
+            state = replay.add(
+                state,
+                jnp.full((1, *FRAME), g, jnp.uint8),
+                jnp.zeros((1, *FRAME[:2]), jnp.uint8),
+                jnp.zeros((1, 2)),
+                jnp.zeros(1),
+                jnp.ones(1),
+                jnp.array([i == 0]),
+            )
+            g += 1
+    return state
+
+
+@pytest.mark.parametrize(
+    "lengths, rows, t, expected",
+    [
+        # t = 6 in an episode of entries 3..14: any of 3..14 but 5, 6, 7.
+        ((3, 12, 4), 32, 6, [*range(3, 5), *range(8, 15)]),
+        # The ring (12 rows) holds steps 7..18: episode 3..14 keeps 7..14; t = 8 excludes 7..9.
+        ((3, 12, 4), 12, 8, [*range(10, 15)]),
+        # An episode of two entries has no step at distance >= 2.
+        ((2, 5), 16, 0, []),
+    ],
+)
+def test_same_episode_negatives_are_uniform_over_the_episode_but_t_and_neighbours(
+    lengths, rows, t, expected
+):
+    state = _one_env_replay(lengths, rows)
+    draws = 4000
+    row = jnp.full((draws,), t % rows)
+    env = jnp.zeros((draws,), jnp.int32)
+    keys = jax.random.split(jax.random.key(0), draws)
+    offset, valid = jax.jit(jax.vmap(replay.same_episode_offsets, in_axes=(None, 0, 0, 0)))(
+        state, row[:, None], env[:, None], keys
+    )
+    offset, valid = np.asarray(offset[:, 0]), np.asarray(valid[:, 0])
+    if not expected:
+        assert not valid.any()
+        return
+    assert valid.all()
+    steps, counts = np.unique(t + offset, return_counts=True)
+    assert steps.tolist() == expected
+    # Uniform: each count within 5 standard deviations of draws / len(expected).
+    p = 1 / len(expected)
+    assert np.all(np.abs(counts - draws * p) < 5 * np.sqrt(draws * p * (1 - p))), counts
+
+
+def test_sampling_an_empty_replay_raises():
+    state = replay.init(8, 2, FRAME, 2)
+    with pytest.raises(ValueError, match="holds \\[0\\] sampleable transitions"):
+        replay.sample(state, jax.random.key(0), 4, nstep=1, gamma=0.99, frame_stack=3)

@@ -112,7 +112,7 @@ def test_outputs_exist_and_parse(run):
         assert np.all(np.isfinite(train_log["frame"]))
         eval_log = read_csv(workdir / f"seed_{seed}" / "eval.csv")
         assert {"episode_return", "cos_agent_env", "fps", "sec_per_1000_frames"} <= set(eval_log)
-        assert list(eval_log["frame"][:2]) == [120, 240]
+        assert list(eval_log["frame"][:3]) == [0, 120, 240]  # frame 0: the untrained policy
         assert any((workdir / f"seed_{seed}" / "tb").iterdir())
     video = workdir / "videos" / "eval_240_seed0.mp4"
     cap = cv2.VideoCapture(str(video))
@@ -148,7 +148,7 @@ def test_resume_continues_from_saved_step(run):
     assert saved_step == 240
     assert resumed["frames_per_seed"] == 280
     frames = read_csv(workdir / "seed_0" / "eval.csv")["frame"]
-    assert list(frames) == [120, 240, 280]  # no frame evaluated twice, none lost
+    assert list(frames) == [0, 120, 240, 280]  # no frame evaluated twice, none lost
     assert (
         sorted(p.name for p in (workdir / "checkpoints").iterdir() if p.name.isdigit())[-1] == "280"
     )
@@ -237,6 +237,30 @@ def test_bad_values_fail_with_valid_choices(tmp_path):
         train.train(tiny_config(**{"env.background_dir": str(tmp_path / "nope")}), tmp_path)
     with pytest.raises(MemoryError, match="replay for 2 seeds"):
         train.train(tiny_config(**{"replay.capacity": 10**9}), tmp_path)
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (
+            {"replay.seed_frames": 0},
+            r"seed_frames=0 gives 0 transitions .* set replay.seed_frames >= 16",
+        ),
+        ({"replay.seed_frames": 14}, r"fewer than one batch \(agent.batch_size=8\)"),
+        (
+            {"replay.capacity": 4, "agent.batch_size": 8, "replay.seed_frames": 16},
+            r"larger than the replay",
+        ),
+        (
+            {"agent.nstep": 21},
+            r"agent.nstep=21 is longer than an episode of walker-walk \(20 agent steps\)",
+        ),
+    ],
+)
+def test_configs_that_cannot_work_are_refused_by_name(overrides, message, tmp_path):
+    with pytest.raises(ValueError, match=message):
+        train.train(tiny_config(**overrides), tmp_path)
+    assert not (tmp_path / "checkpoints").exists()  # refused before anything was allocated
 
 
 def _overrides(config) -> list[str]:

@@ -187,7 +187,7 @@ def test_fingerprint_is_every_field_but_the_resumable_ones():
     c = tiny_config()
     fp = train.fingerprint(c)
     assert {"agent.nstep", "agent.compute_dtype", "agent.ortho_form", "env.distraction"} <= set(fp)
-    assert {"env.mask", "replay.capacity", "env.render.shadows", "seed"} <= set(fp)
+    assert {"env.mask", "replay.capacity", "env.render.quality", "seed"} <= set(fp)
     assert not set(train.RESUMABLE_CHANGES) & set(fp)
     c.agent.new_field = 1  # a field added later counts, unless listed as resumable
     assert train.fingerprint(c)["agent.new_field"] == 1

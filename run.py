@@ -61,6 +61,8 @@ def main(argv):
     except WorkdirLocked as e:
         sys.exit(f"error: {e}")
     console.setup(workdir, verbose=_VERBOSE.value)
+    from dear_jax.checkpoint import IncompatibleCheckpointError
+    from dear_jax.replay_disk import DiskSpaceError
     from dear_jax.signals import Stopped
     from dear_jax.train import train
 
@@ -69,6 +71,9 @@ def main(argv):
     except Stopped as e:
         logging.getLogger("dear_jax").warning("%s", e)
         sys.exit(e.exit_code)
+    except (IncompatibleCheckpointError, DiskSpaceError) as e:  # the message says what to do
+        logging.getLogger("dear_jax").error("error: %s", e)
+        sys.exit(2)
     finally:
         lock.release()
 

@@ -84,14 +84,19 @@ def disk_bound(
     return num_seeds * per_seed * num_envs * entry_bytes
 
 
+class DiskSpaceError(OSError):
+    """The replay on disk would not fit on the workdir's disk."""
+
+
 def check_disk(directory: pathlib.Path, need: int, *, headroom: float = 0.9) -> tuple[int, int]:
-    """(bytes still to write, free bytes); raise OSError naming the numbers unless they fit."""
+    """(bytes still to write, free bytes); raise DiskSpaceError naming the numbers unless they
+    fit."""
     directory.mkdir(parents=True, exist_ok=True)
     more = max(0, need - bytes_on_disk(directory))
     free = shutil.disk_usage(directory).free
     if more > headroom * free:
         gib = 2**30
-        raise OSError(
+        raise DiskSpaceError(
             f"the replay on disk ({directory}) may need {more / gib:.2f} GiB more "
             f"(uncompressed bound: ring + rows between checkpoints), but only {free / gib:.2f} GiB "
             f"is free there and {headroom:.0%} of it may be used; set replay.disk=False (a resume "

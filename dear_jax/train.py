@@ -6,7 +6,11 @@ observations on CPU workers -> add the new timestep to each seed's replay. The o
 the loop are the physics state crossing to the renderers and, once per episode or log interval,
 a few scalars for the logs.
 
-`train(config, workdir)` runs (or resumes) a whole experiment and returns its summary.
+`train(config, workdir)` runs (or resumes) a whole experiment and returns its summary. A resume
+continues exactly where the checkpoint left off (`_Run` says what a checkpoint holds; the replay
+comes back from its chunk files, `dear_jax/replay_disk.py`), and is refused if a config field
+that changes learning differs (all but RESUMABLE_CHANGES). One run per workdir (`run.lock`);
+SIGTERM / SIGINT checkpoint and stop (`dear_jax/signals.py`).
 """
 
 from __future__ import annotations

@@ -2,6 +2,7 @@
 
 import copy
 import importlib.util
+import json
 import logging
 import os
 import pathlib
@@ -195,6 +196,24 @@ def test_colour_ranges_and_static_mode(difficulty):
     np.testing.assert_array_equal(p2["mat_rgb"][~which], mat[~which])
     assert (p2["mat_rgb"][which] != mat[which]).any()
     assert (dis.background_index()[0] < 3).all() and (dis.background_index()[1] < 10).all()
+
+
+def test_saved_state_continues_the_same_draws():
+    """What a checkpoint keeps (get_state, through json) makes another Distractor draw the same."""
+    _, dis = make_distractor("hard", dynamic=True)
+    dis.reset()
+    dis.step()
+    saved = json.loads(json.dumps(dis.get_state(), default=lambda a: a.tolist()))
+    _, other = make_distractor("hard", dynamic=True, seed=99)
+    other.set_state(saved)
+    for d in (dis, other):
+        d.step()
+        d.reset(np.array([True, False] * 3))
+        d.step()
+    for key, value in dis.perturb().items():
+        np.testing.assert_array_equal(value, other.perturb()[key])
+    for a, b in zip(dis.background_index(), other.background_index(), strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_dynamic_mode_moves_within_ranges():

@@ -10,6 +10,7 @@
    the host, render (RGB + labels), upload + compositing/masks/stack, the E/update_every updates
    per seed, and acting + replay insertion ("other").
 Prints tables and writes JSON to benchmarks/results/train_<device>.json (or --out).
+The PyTorch pipeline of the reference's shape: `python -m benchmarks.torch_reference pipeline`.
 """
 
 from __future__ import annotations

@@ -3,6 +3,7 @@
 python -m benchmarks.update [--methods dear drqv2] [--seeds 1 5] [--batch 256] [--iters 20]
     [--dtypes float32 bfloat16] [--seed-axis vmap loop]
 Prints a table and writes JSON to benchmarks/results/update_<platform>.json (or --out).
+The same update in PyTorch, timed on the same GPU: `python -m benchmarks.torch_reference update`.
 """
 
 from __future__ import annotations

@@ -172,7 +172,8 @@ class Trunk(nn.Module):
 
     @nn.compact
     def __call__(self, z: jax.Array) -> jax.Array:
-        return jnp.tanh(nn.LayerNorm()(_dense(self.feature_dim)(z)))
+        # epsilon 1e-5: PyTorch's LayerNorm default, which DrQ-v2 uses (Flax's is 1e-6).
+        return jnp.tanh(nn.LayerNorm(epsilon=1e-5)(_dense(self.feature_dim)(z)))
 
 
 class MLP(nn.Module):

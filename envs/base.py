@@ -30,7 +30,7 @@ import mujoco
 import numpy as np
 
 from envs import distractions, masks
-from envs.dmc import DmcTask, render_model_fn
+from envs.dmc import DmcTask
 from envs.physics import SolverSettings, make_physics, resolve_backend
 from envs.render import RenderPool, RenderSettings
 
@@ -88,6 +88,7 @@ def _post(
     reward,
     first,
     last,
+    success,
     key,
     *,
     floor_alpha,
@@ -110,16 +111,22 @@ def _post(
         mask=mask,
         true_mask=true_mask,
         reward=reward,
-        discount=jnp.ones_like(reward),
+        # Reaching a goal is a true terminal (no bootstrap); time limits are not.
+        discount=jnp.where(success, 0.0, 1.0).astype(jnp.float32),
         first=first,
         last=last,
-        success=jnp.zeros_like(reward),
+        success=success.astype(jnp.float32),
     )
     return obs, ts
 
 
 class Env:
-    """S x E DMC envs; see notes/env_interface.md for the interface."""
+    """S x E envs of one task; see notes/env_interface.md for the interface.
+
+    task: a `DmcTask` (envs/dmc.py) or a `KitchenTask` (envs/kitchen.py); both provide the
+    models, the reward, the control mapping, the episode start and the render facts. Tasks with
+    `success_ends_episode` end an episode on the step their reward is 1 (success 1, discount 0).
+    """
 
     def __init__(
         self,
@@ -168,6 +175,7 @@ class Env:
             n_sub_steps=n_sub,
             action_repeat=action_repeat,
             solver=solver,
+            control=task.make_control(self._model),
         )
         h, w = render.height, render.width
         self.spec = EnvSpec(
@@ -176,6 +184,7 @@ class Env:
             action_repeat=action_repeat,
             episode_steps=frames // action_repeat,
             frame_shape=(h, w, 3),
+            has_success=task.success_ends_episode,
             floor_alpha=task.floor_alpha,
             num_seeds=num_seeds,
             envs_per_seed=envs_per_seed,
@@ -224,7 +233,7 @@ class Env:
         self._rng = np.random.RandomState(seed)
         self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="env")
         self._pool = RenderPool(
-            functools.partial(render_model_fn, task.name),
+            task.render_factory(),
             camera=task.camera,
             agent_geom_ids=task.agent_geom_ids(render_model),
             floor_geom_ids=task.floor_geom_ids(render_model),
@@ -304,6 +313,12 @@ class Env:
         background = self._backgrounds[jnp.asarray(video), jnp.asarray(frame_idx)]
         key, mask_key = jax.random.split(key)
         last = step >= self.spec.episode_steps
+        success = np.zeros(self.shape, bool)
+        if self.task.success_ends_episode:
+            # The reward is 1 exactly while the goal is reached; the first such step ends it.
+            success = (np.asarray(reward).reshape(self.shape) > 0) & ~first
+            last = last | success
+            reward = success.astype(np.float32)
         stack, ts = self._post(
             jnp.asarray(rgb).reshape(self.shape + (h, w, 3)),
             jnp.asarray(labels).reshape(self.shape + (h, w)),
@@ -312,6 +327,7 @@ class Env:
             jnp.asarray(reward),
             jnp.asarray(first),
             jnp.asarray(last),
+            jnp.asarray(success),
             mask_key,
         )
         state = EnvState(physics=phys, stack=stack, key=key, step=step, last=last)

@@ -110,6 +110,7 @@ class MjxPhysics:
         n_sub_steps: int,
         action_repeat: int,
         solver: SolverSettings = SolverSettings(),
+        control=None,
     ):
         model = _copy_model(model)
         if solver.iterations is not None:
@@ -131,6 +132,7 @@ class MjxPhysics:
         self.solver = solver
         self.n_sub_steps = n_sub_steps
         self.action_repeat = action_repeat
+        self.control = control
         self._m = mjx.put_model(model, impl="jax")
         self._reward_fn = reward_fn
         self._step = jax.jit(_vmap2(self._step_one))
@@ -156,6 +158,8 @@ class MjxPhysics:
             return mjx.step(m, d), None
 
         def control_step(d, _):
+            if self.control is not None:
+                d = d.replace(ctrl=self.control(d.qpos, action, jnp).astype(d.ctrl.dtype))
             d, _ = jax.lax.scan(
                 physics_step, d, None, length=self.n_sub_steps, unroll=self.solver.unroll
             )
@@ -197,10 +201,19 @@ class CpuPhysics:
 
     name = "cpu"
 
-    def __init__(self, model: mujoco.MjModel, reward_fn, *, n_sub_steps: int, action_repeat: int):
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        reward_fn,
+        *,
+        n_sub_steps: int,
+        action_repeat: int,
+        control=None,
+    ):
         self.mj_model = model
         self.n_sub_steps = n_sub_steps
         self.action_repeat = action_repeat
+        self.control = control
         self._data = mujoco.MjData(model)
         self._reward = jax.jit(_vmap2(jax.vmap(reward_fn)))
         self._cpu = jax.devices("cpu")[0]
@@ -249,6 +262,8 @@ class CpuPhysics:
                 d.ctrl[:] = action[s, e]
                 env_views = []
                 for _ in range(self.action_repeat):
+                    if self.control is not None:
+                        d.ctrl[:] = self.control(d.qpos, action[s, e], np)
                     self._control_step(d)
                     env_views.append(view_from_mjdata(d))
                 views.append(env_views)
@@ -291,11 +306,24 @@ def make_physics(
     n_sub_steps: int,
     action_repeat: int,
     solver: SolverSettings = SolverSettings(),
+    control=None,
 ):
-    """Build the named backend ("mjx", "cpu" or "auto")."""
+    """Build the named backend ("mjx", "cpu" or "auto").
+
+    control: None (ctrl = action) or `control(qpos, action, xp) -> ctrl`, evaluated at the start
+    of every control step with xp = jax.numpy (MJX) or numpy (CPU), e.g. the kitchen's joint
+    velocity -> position target mapping.
+    """
     backend = resolve_backend(backend)
     if backend == "mjx":
         return MjxPhysics(
-            model, reward_fn, n_sub_steps=n_sub_steps, action_repeat=action_repeat, solver=solver
+            model,
+            reward_fn,
+            n_sub_steps=n_sub_steps,
+            action_repeat=action_repeat,
+            solver=solver,
+            control=control,
         )
-    return CpuPhysics(model, reward_fn, n_sub_steps=n_sub_steps, action_repeat=action_repeat)
+    return CpuPhysics(
+        model, reward_fn, n_sub_steps=n_sub_steps, action_repeat=action_repeat, control=control
+    )

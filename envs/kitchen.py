@@ -149,8 +149,7 @@ def scene_dir() -> str:
         if os.path.isfile(os.path.join(path, SCENE_XML)):
             return path
     raise FileNotFoundError(
-        f"no {SCENE_SUBDIR}/{SCENE_XML} in gymnasium_robotics at "
-        f"{spec.submodule_search_locations}"
+        f"no {SCENE_SUBDIR}/{SCENE_XML} in gymnasium_robotics at {spec.submodule_search_locations}"
     )
 
 
@@ -331,9 +330,7 @@ def build_physics_model() -> mujoco.MjModel:
             )  # fmt: skip
 
     for body in FINGER_BODIES:
-        pads = [
-            i for i in range(orig.ngeom) if body_of[i] == body and _collides(orig, i)
-        ]
+        pads = [i for i in range(orig.ngeom) if body_of[i] == body and _collides(orig, i)]
         corners = np.concatenate([_geom_corners(orig, i) for i in pads])
         lo, hi = corners.min(0), corners.max(0)
         _add_box(

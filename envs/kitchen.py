@@ -119,11 +119,15 @@ CONTACT_BITS = {
 SCENE_BOX_BODIES = ("counters", "ovenroot", "hoodroot")  # their collision boxes
 SWITCH_BODY = "lightswitchroot"  # its collision capsule
 KETTLE_BODY = "kettleroot"
-CAPSULE_LINKS = ("panda0_link5", "panda0_link6", "panda0_link7")
+BOX_LINKS = ("panda0_link5", "panda0_link6", "panda0_link7")
 SHOULDER_BODY = "panda0_link2"  # its origin (on joints 1 and 2) does not move
 REACH = 1.0  # m from the shoulder: links 0.316 + 0.384 + 0.088, flange and hand 0.107, fingers
 HAND_MESH = "hand_col"
 FINGER_BODIES = ("panda0_leftfinger", "panda0_rightfinger")
+# The shipped fingers use condim 6 (torsional and rolling friction); MJX and CPU MuJoCo
+# disagree on those (fingers pressed into the counter: arm joints 1.6 rad apart after 15 agent
+# steps with 6, 0.2 rad with 3), so the fingers get sliding friction only.
+FINGER_CONDIM = 3
 ROBOT_ROOT_CHILD = "panda0_link0"  # the pedestal is its parent (an unnamed body)
 
 # Plain ints: numpy ints and MuJoCo's enums do not compare equal in every direction.
@@ -194,39 +198,21 @@ def mesh_vertices(model: mujoco.MjModel, geom: int) -> np.ndarray:
     return model.mesh_vert[start : start + model.mesh_vertnum[mesh]].astype(np.float64)
 
 
-def bounding_capsule(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """The thinnest capsule along the points' longest box axis containing all of them.
-
-    points [n, 3] in a frame whose axes are the shape's principal axes -> (end0, end1, radius).
-    """
-    lo, hi = points.min(0), points.max(0)
-    axis = int(np.argmax(hi - lo))
-    centre = (lo + hi) / 2
-    rel = points - centre
-    along = rel[:, axis]
-    radial = np.sqrt(np.sum(np.delete(rel, axis, axis=1) ** 2, axis=1))
-    radius = float(radial.max())
-    # Each point is inside when the segment reaches to within sqrt(r^2 - radial^2) of it.
-    reach = np.sqrt(np.maximum(radius**2 - radial**2, 0.0))
-    top, bottom = float(np.max(along - reach)), float(np.min(along + reach))
-    if top < bottom:  # a sphere contains everything
-        top = bottom = (top + bottom) / 2
-    unit = np.eye(3)[axis]
-    return centre + bottom * unit, centre + top * unit, radius
-
-
-def _geom_corners(model: mujoco.MjModel, geom: int) -> np.ndarray:
-    """Points [k, 3] in the body frame whose box hull bounds a box or capsule geom."""
+def primitive_half_extents(model: mujoco.MjModel, geom: int) -> np.ndarray:
+    """Half extents [3] of the box around a box, capsule or cylinder geom, in its own frame."""
     size, kind = model.geom_size[geom], int(model.geom_type[geom])
     if kind == _BOX:
-        half = size
-    elif kind == _CAPSULE:
-        half = np.array([size[0], size[0], size[1] + size[0]])
-    else:
-        raise ValueError(f"geom {geom}: type {mujoco.mjtGeom(kind)} is not a box or capsule")
+        return size.copy()
+    if kind == _CAPSULE:
+        return np.array([size[0], size[0], size[1] + size[0]])
+    if kind == _CYLINDER:
+        return np.array([size[0], size[0], size[1]])
+    raise ValueError(f"geom {geom}: no box for type {mujoco.mjtGeom(kind)}")
+
+
+def _box_corners(pos, rot, half) -> np.ndarray:
     signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
-    rot = _quat_mat(model.geom_quat[geom])
-    return model.geom_pos[geom] + (signs * half) @ rot.T
+    return pos + (signs * half) @ rot.T
 
 
 def _box_distance(data: mujoco.MjData, model: mujoco.MjModel, geom: int, point) -> float:
@@ -251,34 +237,27 @@ def _contact_params(model: mujoco.MjModel, geom: int) -> dict:
     )
 
 
-def _add_collision_geom(body: mujoco.MjsBody, group: str, params: dict, **shape) -> None:
+def _add_box(body: mujoco.MjsBody, group: str, params: dict, pos, quat, half) -> None:
     contype, conaffinity = CONTACT_BITS[group]
     body.add_geom(
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        pos=pos,
+        quat=quat,
+        size=half,
         contype=contype,
         conaffinity=conaffinity,
         group=3,  # hidden, like the shipped collision geoms
         mass=0.0,  # the bodies keep the shipped mass and inertia
         rgba=[0.9, 0.4, 0.2, 0.5],
         **params,
-        **shape,
     )
-
-
-def _add_capsule(body, group, params, end0, end1, radius) -> None:
-    _add_collision_geom(
-        body, group, params, type=_CAPSULE, fromto=np.concatenate([end0, end1]), size=[radius, 0, 0]
-    )
-
-
-def _add_box(body, group, params, pos, quat, half) -> None:
-    _add_collision_geom(body, group, params, type=_BOX, pos=pos, quat=quat, size=half)
 
 
 def build_physics_model() -> mujoco.MjModel:
     """The shipped scene with the collision model described in the module docstring."""
     spec = load_spec()
     orig = spec.compile()
-    geoms = list(spec.geoms)  # spec order is the compiled order
+    geoms = list(spec.geoms)  # the compiled order; new geoms join their bodies' lists below
     for g in geoms:
         g.contype, g.conaffinity = 0, 0
 
@@ -286,57 +265,40 @@ def build_physics_model() -> mujoco.MjModel:
     data = mujoco.MjData(orig)
     mujoco.mj_kinematics(orig, data)
     shoulder = data.xpos[orig.body(SHOULDER_BODY).id]
-    for i, g in enumerate(geoms):
+    for i in range(orig.ngeom):
         if not _collides(orig, i):
             continue
-        kind, body = int(orig.geom_type[i]), body_of[i]
+        kind, body, params = int(orig.geom_type[i]), body_of[i], _contact_params(orig, i)
+        pos, quat = orig.geom_pos[i], orig.geom_quat[i]
         if body in SCENE_BOX_BODIES and kind == _BOX:
             if _box_distance(data, orig, i, shoulder) < REACH:
-                g.contype, g.conaffinity = CONTACT_BITS["scene"]
+                geoms[i].contype, geoms[i].conaffinity = CONTACT_BITS["scene"]
         elif body == SWITCH_BODY:
-            g.contype, g.conaffinity = CONTACT_BITS["scene"]
+            _add_box(spec.body(body), "scene", params, pos, quat, primitive_half_extents(orig, i))
         elif body == KETTLE_BODY:
-            if kind == _BOX:
-                g.contype, g.conaffinity = CONTACT_BITS["kettle_base"]
-            elif kind == _CAPSULE:
-                g.contype, g.conaffinity = CONTACT_BITS["kettle_grip"]
-            elif kind == _CYLINDER:  # the spout: a capsule of the same radius and length
-                radius, half = orig.geom_size[i][:2]
-                axis = _quat_mat(orig.geom_quat[i])[:, 2]
-                reach = max(half - radius, 0.0) * axis
-                pos = orig.geom_pos[i]
-                _add_capsule(
-                    spec.body(body), "kettle_grip", _contact_params(orig, i), pos - reach,
-                    pos + reach, radius,
-                )  # fmt: skip
-
-    for i in range(orig.ngeom):
-        if orig.geom_type[i] != _MESH or not _collides(orig, i):
-            continue
-        body, mesh = body_of[i], orig.mesh(orig.geom_dataid[i]).name
-        rot, pos = _quat_mat(orig.geom_quat[i]), orig.geom_pos[i]
-        verts = mesh_vertices(orig, i)
-        if mesh == HAND_MESH:
+            group = "kettle_base" if kind == _BOX else "kettle_grip"
+            _add_box(spec.body(body), group, params, pos, quat, primitive_half_extents(orig, i))
+        elif kind == _MESH and (
+            body in BOX_LINKS or orig.mesh(orig.geom_dataid[i]).name == HAND_MESH
+        ):
+            verts = mesh_vertices(orig, i)  # in the mesh's principal frame
             lo, hi = verts.min(0), verts.max(0)
-            _add_box(
-                spec.body(body), "robot", _contact_params(orig, i), pos + rot @ ((lo + hi) / 2),
-                orig.geom_quat[i], (hi - lo) / 2,
-            )  # fmt: skip
-        elif body in CAPSULE_LINKS:
-            end0, end1, radius = bounding_capsule(verts)
-            _add_capsule(
-                spec.body(body), "robot", _contact_params(orig, i), pos + rot @ end0,
-                pos + rot @ end1, radius,
-            )  # fmt: skip
+            centre = pos + _quat_mat(quat) @ ((lo + hi) / 2)
+            _add_box(spec.body(body), "robot", params, centre, quat, (hi - lo) / 2)
 
     for body in FINGER_BODIES:
         pads = [i for i in range(orig.ngeom) if body_of[i] == body and _collides(orig, i)]
-        corners = np.concatenate([_geom_corners(orig, i) for i in pads])
+        corners = np.concatenate(
+            [
+                _box_corners(
+                    orig.geom_pos[i], _quat_mat(orig.geom_quat[i]), primitive_half_extents(orig, i)
+                )
+                for i in pads
+            ]
+        )
         lo, hi = corners.min(0), corners.max(0)
-        _add_box(
-            spec.body(body), "robot", _contact_params(orig, pads[0]), (lo + hi) / 2,
-            [1.0, 0, 0, 0], (hi - lo) / 2,
-        )  # fmt: skip
+        params = _contact_params(orig, pads[0]) | {"condim": FINGER_CONDIM}
+        _add_box(spec.body(body), "robot", params, (lo + hi) / 2, [1.0, 0, 0, 0], (hi - lo) / 2)
     return spec.compile()
 
 

@@ -15,26 +15,34 @@ joint (23-29, position then w-first quaternion).
 Collision model (the physics model only; rendering draws the original model). `mjx.put_model`
 refuses the scene as shipped: the robot's collision meshes and the pedestal would collide with
 cylinders (counter handles, oven knobs and bars, the kettle spout), and meshes cannot carry the
-1 mm contact margin the kitchen geoms have. Every geom's contype/conaffinity is cleared, and
-contacts are switched back on for four groups only, each a bit:
-- robot (bit 1): bounding primitives fitted, when the model is built, to the shipped collision
-  geometry: a capsule around the convex collision mesh of each of links 3-7 (in the mesh's
-  principal frame, along its longest axis, the thinnest capsule that contains every vertex), an
-  oriented box around the hand's mesh, and per finger one box around its 13 original pad
-  primitives (12 capsules and a box), keeping the fingers' contact parameters (condim 6,
-  friction, solref, solimp, margin). Links 0-2 and the pedestal sit by the base and collide with
-  nothing, as before with the rest of the (static) kitchen; robot self-collisions are off.
-- scene (bit 2): the kitchen's own collision boxes and capsules of the counters (both counter
-  blocks, the sink), the oven block (its top is the burner surface; the burner plates are
-  visual only in the shipped scene too), the hood under which the switch hangs, and the light
-  switch's lever capsule. Cylinders (handles, knobs, faucet) and the microwave, cabinets, walls
-  and knobs are left without contacts: neither task needs them and each pair costs MJX time.
-- kettle base (bit 4): the kettle's collision box; it rests on, and slides over, the scene.
-- kettle grip (bit 8): handle and side posts (capsules) and the spout (a cylinder in the scene,
-  here a capsule of the same radius and length); they touch the robot only.
-Pairs: robot x {scene, kettle}, kettle base x scene; nothing else. The new geoms have no mass
-and the old ones stay (without contacts), so every body keeps the shipped mass and inertia
-(tests check it). Both backends step this same model, so MJX is tested against CPU MuJoCo on it.
+1 mm contact margin the kitchen geoms have. Every geom's contype/conaffinity is cleared and
+contacts come back for four groups only, each a bit, all of them boxes:
+- robot (bit 1): boxes fitted when the model is built to the shipped collision geometry: around
+  the convex collision mesh of links 5, 6, 7 and of the hand (axis-aligned in the mesh's
+  principal frame, where MuJoCo stores its vertices; tests check every vertex is inside), and
+  per finger one box around its 13 pad primitives (12 capsules and a box), with the fingers'
+  friction, solref, solimp and margin. Links 0-4 and the pedestal never come within 15 cm of
+  the scene (20k joint configurations sampled uniformly in the joint ranges) and have no
+  contacts; robot self-collisions are off.
+- scene (bit 2): the kitchen's own collision boxes of the counters, the oven block (its top is
+  the burner surface: the burner plates are visual only in the shipped scene too) and the hood
+  under which the switch hangs, except the boxes farther than 1 m (the arm's reach) from the
+  shoulder (four far walls of the sink); and the box around the switch lever's capsule.
+  Cylinders (counter handles, faucet, knobs), the microwave, cabinets and walls have no
+  contacts: neither task needs them, and each pair costs MJX time every physics step.
+- kettle base (bit 4): the kettle's collision box; it rests on and slides over the scene.
+- kettle grip (bit 8): boxes around the handle and posts (capsules) and the spout (cylinder);
+  they touch the robot only.
+Pairs: robot x {scene, kettle}, kettle base x scene: 100 box-box pairs. Why boxes only: MJX's
+capsule-box routine missed 4 of 195 shallow contacts CPU MuJoCo finds (random poses of a finger-
+sized capsule on a box, misses at the box's edges; a robot of capsules then slid past the lever
+in MJX and not on the CPU), while box-box agreed on all 195 within 3.2 mm of depth (mean 0.45).
+The fingers' condim is 3 instead of the shipped 6 (torsional and rolling friction): on a
+scripted rollout (tests/test_kitchen.py) condim 6 left the switch at -0.13 rad on the CPU and
+-0.43 in MJX and the arm pressed into the counter 1.2 rad apart; condim 3: -0.36 / -0.42 and
+0.5 rad (the kettle keeps its condim 4). The added geoms have no mass and the shipped ones stay
+(without contacts), so every body keeps the shipped mass and inertia (tests check it). Both
+backends step this model; tests/test_kitchen.py states how closely they agree.
 
 Actuation. The arm has position actuators (kp 870 / 120, fingers 500) and the action is a joint
 velocity, as in D4RL and gymnasium-robotics: the 9-d action a in [-1, 1] is scaled by 2 (rad/s,
@@ -57,11 +65,12 @@ model cameras, draw exactly the free camera's picture (tests compare the two).
 
 Agent mask: the geoms of the robot's body tree, i.e. the pedestal, links 0-7, the hand and the
 fingers; nothing of the kitchen, the kettle included. The reference renders segmentation at
-252x252, applies a morphological opening and resizes to 84x84, which removes speckle where its
-segmentation and RGB were drawn at different resolutions. Here the labels are drawn in the same
-pass as the RGB frame, at the observation's resolution and without multisampling, so every mask
-pixel is a pixel where the observation shows the robot and nothing needs cleaning; thin parts
-(finger tips) stay in the mask instead of being opened away.
+252x252, cleans it with a morphological opening (which deletes specks and parts thinner than
+its kernel) and resizes it to 84x84. Here the labels come from the same draw as the 84x84 RGB
+observation (the render pool draws both per state, no multisampling), so the mask is exactly
+the set of observation pixels that show the robot: no speck can arise that a cleaning step
+would remove, and thin parts that are visible in the observation (finger tips) stay in the
+mask. tests/test_kitchen.py checks mask == pixels whose segmentation geom is a robot body's.
 """
 
 from __future__ import annotations
@@ -117,17 +126,14 @@ CONTACT_BITS = {
     "kettle_grip": (KETTLE_GRIP, ROBOT),
 }
 SCENE_BOX_BODIES = ("counters", "ovenroot", "hoodroot")  # their collision boxes
-SWITCH_BODY = "lightswitchroot"  # its collision capsule
+SWITCH_BODY = "lightswitchroot"  # its collision capsule, as a box
 KETTLE_BODY = "kettleroot"
 BOX_LINKS = ("panda0_link5", "panda0_link6", "panda0_link7")
 SHOULDER_BODY = "panda0_link2"  # its origin (on joints 1 and 2) does not move
 REACH = 1.0  # m from the shoulder: links 0.316 + 0.384 + 0.088, flange and hand 0.107, fingers
 HAND_MESH = "hand_col"
 FINGER_BODIES = ("panda0_leftfinger", "panda0_rightfinger")
-# The shipped fingers use condim 6 (torsional and rolling friction); MJX and CPU MuJoCo
-# disagree on those (fingers pressed into the counter: arm joints 1.6 rad apart after 15 agent
-# steps with 6, 0.2 rad with 3), so the fingers get sliding friction only.
-FINGER_CONDIM = 3
+FINGER_CONDIM = 3  # shipped: 6, on which MJX and MuJoCo disagree (module docstring)
 ROBOT_ROOT_CHILD = "panda0_link0"  # the pedestal is its parent (an unnamed body)
 
 # Plain ints: numpy ints and MuJoCo's enums do not compare equal in every direction.

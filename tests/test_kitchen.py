@@ -390,3 +390,16 @@ def test_scripted_kettle_push_reaches_the_goal():
     kettle = run["qpos"][t, 0, 0, 23:26]
     assert kettle[1] > 0.4 and abs(kettle[2] - 1.62) < 0.02  # pushed forwards, still upright
     assert task.goal_distance(run["qpos"][t, 0, 0]) < kitchen.SUCCESS_THRESHOLD
+
+
+@pytest.mark.parametrize("task", ["light", "kettle"])
+def test_configs_validate(task):
+    import importlib
+
+    from dear_jax import train
+
+    for method in ("dear", "drqv2", "sear", "ted"):
+        config = importlib.import_module(f"configs.kitchen_{task}_{method}").get_config()
+        train.validate(config)
+        assert config.env.task == f"kitchen-{task}" and config.agent.method == method
+        assert config.env.action_repeat == 1 and config.env.episode_frames == 0

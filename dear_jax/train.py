@@ -220,6 +220,7 @@ def evaluate(env: envs.Env, programs: Programs, agent, key, *, video: bool) -> t
     state, ts = env.reset(key)
     returns = jnp.zeros(env.shape)
     success = jnp.zeros(env.shape)
+    done = np.zeros(env.shape, bool)  # envs whose first episode has ended (kitchen: at success)
     cos_sum, steps = jnp.zeros(env.shape[0]), 0
     frames = []
     while True:
@@ -227,11 +228,13 @@ def evaluate(env: envs.Env, programs: Programs, agent, key, *, video: bool) -> t
         if video:
             frames.append((ts.frame[:, 0], ts.true_mask[:, 0], pred))
         cos_sum, steps = cos_sum + cos, steps + 1
-        if bool(np.all(state.last)):
+        done |= np.asarray(state.last)
+        if done.all():
             break
+        live = jnp.asarray(~done)  # an ended env restarts; its next episode does not count
         state, ts = env.step(state, action)
-        returns = returns + ts.reward
-        success = jnp.maximum(success, ts.success)
+        returns = returns + jnp.where(live, ts.reward, 0.0)
+        success = jnp.maximum(success, jnp.where(live, ts.success, 0.0))
     metrics = {
         "episode_return": np.asarray(returns.mean(1)),
         "cos_agent_env": np.asarray(cos_sum / steps),
@@ -439,6 +442,8 @@ class _Run:
             f"eval @ {frame:,} frames: return per seed "
             f"{np.round(metrics['episode_return'], 1).tolist()}"
         )
+        if "success" in metrics:
+            message += f", success per seed {np.round(metrics['success'], 2).tolist()}"
         (pbar.write if pbar is not None else log.info)(message)
 
 
@@ -461,8 +466,17 @@ def write_summary(workdir, config, spec, counters) -> dict:
             )
         )
         rows.append([s, f"{returns[-1]:.1f}", f"{np.nanmax(returns):.1f}", f"{cos[-1]:.2e}"])
+        if spec.has_success:  # success rate of the eval episodes (kitchen)
+            success = evals.get("success", np.array([np.nan]))
+            per_seed[-1].update(
+                final_success=float(success[-1]), best_success=float(np.nanmax(success))
+            )
+            rows[-1].append(f"{success[-1]:.2f}")
     finals = np.array([p["final_return"] for p in per_seed])
     rows.append(["mean", f"{finals.mean():.1f} ± {finals.std():.1f}", "", ""])
+    if spec.has_success:
+        rates = np.array([p["final_success"] for p in per_seed])
+        rows[-1].append(f"{rates.mean():.2f} ± {rates.std():.2f}")
     summary = {
         "task": config.env.task,
         "method": config.agent.method,
@@ -478,7 +492,9 @@ def write_summary(workdir, config, spec, counters) -> dict:
         "distraction": config.env.distraction,
         "per_seed": per_seed,
     }
-    table = format_table(["seed", "final eval return", "best eval return", "cos(z_A, z_E)"], rows)
+    columns = ["seed", "final eval return", "best eval return", "cos(z_A, z_E)"]
+    columns += ["final eval success"] if spec.has_success else []
+    table = format_table(columns, rows)
     text = (
         f"# {config.agent.method} on {config.env.task}\n\n"
         f"{counters['frame']:,} frames per seed x {config.seeds} seeds, {wall:.0f} s of training "

@@ -403,3 +403,41 @@ def test_configs_validate(task):
         train.validate(config)
         assert config.env.task == f"kitchen-{task}" and config.agent.method == method
         assert config.env.action_repeat == 1 and config.env.episode_frames == 0
+
+
+def test_evaluation_counts_each_envs_first_episode():
+    """Kitchen episodes end at different steps; dear_jax.train.evaluate must still stop."""
+    import types
+
+    from dear_jax import train
+
+    ends, wins = np.array([[2, 4, 3]]), np.array([[True, False, True]])
+
+    class FakeEnv:
+        shape = (1, 3)
+        spec = types.SimpleNamespace(has_success=True)
+
+        def _ts(self, step):
+            end = step == ends
+            # After its end an env restarts and would score 5 a step: none of it may count.
+            reward = np.where(step > ends, 5.0, np.where(end & wins, 1.0, 0.0))
+            ts = types.SimpleNamespace(
+                obs=jnp.zeros((1, 3, 4)), frame=None, true_mask=None,
+                reward=jnp.asarray(reward, jnp.float32),
+                success=jnp.asarray(end & wins, jnp.float32),
+            )  # fmt: skip
+            return types.SimpleNamespace(step=step, last=end), ts
+
+        def reset(self, key):
+            return self._ts(np.zeros((1, 3), int))
+
+        def step(self, state, action):
+            assert state.step.max() < 20, "evaluate did not stop"
+            return self._ts(state.step + 1)
+
+    programs = types.SimpleNamespace(
+        evaluate_step=lambda agent, obs: (jnp.zeros((1, 3, 9)), jnp.zeros(1), jnp.zeros((4, 4)))
+    )
+    metrics, _ = train.evaluate(FakeEnv(), programs, None, None, video=False)
+    np.testing.assert_allclose(metrics["episode_return"], [2 / 3])
+    np.testing.assert_allclose(metrics["success"], [2 / 3])

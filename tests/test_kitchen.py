@@ -277,6 +277,13 @@ def test_reset_and_steps_are_finite_on_both_backends(light):
         assert np.isfinite(run["qpos"]).all(), backend
         np.testing.assert_allclose(run["qpos"][0, 0, 0], kitchen.INIT_QPOS, atol=1e-6)
         assert run["first"][0].all() and not run["first"][1 : t + 1].any(), backend
+    # MJX ran on past its success: env 0 restarted alone, env 1 went on.
+    run = light["mjx"]
+    t = int(np.flatnonzero(run["last"][:, 0, 0])[0])
+    assert t + 1 < len(run["first"])
+    np.testing.assert_array_equal(run["first"][t + 1], [[True, False]])
+    np.testing.assert_allclose(run["qpos"][t + 1, 0, 0], kitchen.INIT_QPOS, atol=1e-6)
+    assert run["reward"][t + 1, 0, 0] == 0.0 and not run["last"][t + 1, 0, 0]
 
 
 def test_scripted_switch_reaches_the_goal_and_ends_the_episode(light):

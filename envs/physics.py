@@ -77,7 +77,8 @@ def _compiler_options() -> dict | None:
     ops into every consumer, so MJX's kinematics down a deep body chain recomputes each parent
     pose exponentially often: the 10-body Franka chain of the kitchen took 23 ms per
     `mjx.kinematics` call with them and 0.4 ms without; one kitchen agent step (2 envs, 40
-    physics steps) 5.8 s -> 0.12 s, its compile 55 -> 30 s of CPU; walker 5 -> 3 ms per step.
+    physics steps) 2.9 s -> 0.15 s, its compile 30 -> 22 s of CPU; walker 5 -> 3 ms per step.
+    Only the CPU platform gets the option (GPU fusion is a different compiler).
     """
     if jax.default_backend() == "cpu":
         return {"xla_cpu_use_fusion_emitters": False}

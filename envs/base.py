@@ -7,8 +7,11 @@
   composites the distraction background (`envs/distractions.py`), builds the mask variant
   (`envs/masks.py`) and rolls the frame stack; `step_async` returns at once, so the caller can
   dispatch accelerator work meanwhile;
-- episodes: auto-reset with dm_env semantics. Episode starts are drawn on the host (CPU MuJoCo,
-  `envs/dmc.py`) from a numpy RandomState seeded by the key given to `reset`.
+- episodes: auto-reset with dm_env semantics, per env. Episode starts are drawn on the host (CPU
+  MuJoCo, the task's `init_episode`) from a numpy RandomState seeded by the key given to
+  `reset`. Tasks with `success_ends_episode` (the kitchen) end an env's episode on the step its
+  reward is 1 (success 1, discount 0), reading that reward on the host with the qpos the
+  renderers need anyway.
 
 State ownership: `EnvState` holds the physics state, the frame stack, the jax key and, as host
 numpy leaves, the per-env step counters and `last` flags (so auto-reset needs no device sync).

@@ -1,6 +1,7 @@
 """Environment benchmark: physics ms per agent step, render observations/s, whole env steps.
 
-For `--seeds` S x E envs (E from `--envs`), on one task (walker-walk by default):
+For `--seeds` S x E envs (E from `--envs`), on one task (walker-walk by default; the kitchen
+tasks too, e.g. `--task kitchen-light`: action repeat 1, 40 physics steps per agent step):
 - physics: MJX (or CPU MuJoCo) through one agent step (action repeat x substeps), timed per step
   including the qpos fetch to the host that rendering needs (what a training step pays), and
   also as a chain of dispatched steps with one sync at the end (pure device throughput);
@@ -28,7 +29,7 @@ import numpy as np  # noqa: E402
 
 import envs  # noqa: E402
 from benchmarks.common import save_json
-from envs import dmc  # noqa: E402
+from envs import dmc, kitchen  # noqa: E402
 from envs.physics import SolverSettings, make_physics  # noqa: E402
 from envs.render import RenderPool, RenderSettings  # noqa: E402
 
@@ -44,6 +45,14 @@ def _initial_states(task, model, n, seed=0):
     return np.array(qpos), np.array(qvel)
 
 
+def _task(name):
+    return kitchen.TASKS[name] if name in kitchen.TASKS else dmc.TASKS[name]
+
+
+def _action_repeat(name) -> int:
+    return 1 if name in kitchen.TASKS else 2  # REFERENCE 6 / DMC's 2
+
+
 def bench_physics(task, backend, seeds, num_envs, solver, steps):
     model = task.physics_model()
     phys = make_physics(
@@ -51,8 +60,9 @@ def bench_physics(task, backend, seeds, num_envs, solver, steps):
         model,
         task.make_reward(model),
         n_sub_steps=task.n_sub_steps(model),
-        action_repeat=2,
+        action_repeat=_action_repeat(task.name),
         solver=solver,
+        control=task.make_control(model),
     )
     shape = (seeds, num_envs)
     qpos, qvel = _initial_states(task, model, seeds * num_envs)
@@ -106,14 +116,12 @@ def _rollout_poses(task, model, n, seed=1):
 
 
 def bench_render(task, seeds, env_counts, workers, calls):
-    import functools
-
     model = task.render_model()
     settings = RenderSettings(num_workers=workers)
     poses = _rollout_poses(task, task.physics_model(), seeds * max(env_counts))
     rows = []
     with RenderPool(
-        functools.partial(dmc.render_model_fn, task.name),
+        task.render_factory(),
         camera=task.camera,
         agent_geom_ids=task.agent_geom_ids(model),
         floor_geom_ids=task.floor_geom_ids(model),
@@ -205,7 +213,7 @@ def main(argv=None):
     p.add_argument("--out", default="")
     args = p.parse_args(argv)
 
-    task = dmc.TASKS[args.task]
+    task = _task(args.task)
     solver = SolverSettings(
         args.iterations,
         args.ls_iterations,

@@ -281,6 +281,7 @@ def evaluate(
     state, ts = env.reset(key)
     returns = jnp.zeros(env.shape)
     success = jnp.zeros(env.shape)
+    done = np.zeros(env.shape, bool)  # envs whose first episode has ended (kitchen: at success)
     cos_sum, steps = jnp.zeros(env.shape[0]), 0
     frames = []
     while True:
@@ -288,13 +289,15 @@ def evaluate(
         if video:
             frames.append((ts.frame[:, 0], ts.true_mask[:, 0], pred))
         cos_sum, steps = cos_sum + cos, steps + 1
-        if bool(np.all(state.last)):
+        done |= np.asarray(state.last)
+        if done.all():
             break
         if stop():
             raise EvalAborted
+        live = jnp.asarray(~done)  # an ended env restarts; its next episode does not count
         state, ts = env.step(state, action)
-        returns = returns + ts.reward
-        success = jnp.maximum(success, ts.success)
+        returns = returns + jnp.where(live, ts.reward, 0.0)
+        success = jnp.maximum(success, jnp.where(live, ts.success, 0.0))
     metrics = {
         "episode_return": np.asarray(returns.mean(1)),
         "cos_agent_env": np.asarray(cos_sum / steps),
@@ -478,6 +481,8 @@ class _Run:
         }
         self.lv = {  # loop variables carried between steps
             "steps_owed": 0.0,  # agent steps per seed not yet matched by updates
+            "env_steps": 0,  # agent steps taken, summed over all seeds' envs
+            "episodes_ended": 0,  # episodes ended, summed over all seeds' envs
             "metric_count": 0,
             "next_log": config.log_every_frames,
             "last_log_frame": 0,
@@ -485,7 +490,7 @@ class _Run:
             "last_eval_frame": -1,
         }
         self.metric_sum = None  # train metrics summed since the last log row
-        self.episode_returns = []  # [S] returns of the episodes ended since the last log row
+        self.episode_returns = []  # [2, S] per step: returns summed and count of ended episodes
         self.last_eval_return = None
         self.seed_frames = config.replay.seed_frames
         self.resumed_from = None
@@ -598,15 +603,16 @@ class _Run:
 
     def _step(self, pbar) -> None:
         config, programs, counters, lv = self.config, self.programs, self.counters, self.lv
-        num_envs = config.envs_per_seed
         self.key, k_act, k_learn = jax.random.split(self.key, 3)
         action, self.agent = programs.act(self.agent, self.ts.obs, k_act)
-        stepped = not np.asarray(self.state.last).all()  # all envs reset after a last step
+        # An env whose episode ended restarts this step: it shows a first frame, adds no
+        # transition and owes no update. DMC envs all end together; kitchen envs end on success.
+        stepping = ~np.asarray(self.state.last)  # [S, E]
+        steps_per_seed = stepping.sum() / config.seeds
         future = self.env.step_async(self.state, action)
-        # Updates are dispatched while the env thread renders the next observations; a reset
-        # step adds no transition, so it owes no update.
-        if counters["frame"] >= self.seed_frames and stepped:
-            lv["steps_owed"] += num_envs / config.agent.update_every_steps
+        # Updates are dispatched while the env thread renders the next observations.
+        if counters["frame"] >= self.seed_frames and steps_per_seed:
+            lv["steps_owed"] += steps_per_seed / config.agent.update_every_steps
             n = int(lv["steps_owed"])
             lv["steps_owed"] -= n
             if n and not counters["updates"]:  # once: the replay must hold a batch
@@ -627,14 +633,20 @@ class _Run:
         self._add(self.ts, action)
         self.returns = programs.accumulate(self.returns, self.ts)
         counters["iteration"] += 1
-        if stepped:  # a reset step shows the first frames; it is not a step
-            frames = num_envs * self.spec.action_repeat  # per seed, over its E envs
+        # Frames count per seed over its envs (the mean over seeds where their envs differ).
+        lv["env_steps"] += int(stepping.sum())
+        frames = lv["env_steps"] // config.seeds * self.spec.action_repeat - counters["frame"]
+        if frames:
             counters["frame"] += frames
             if pbar is not None:
                 pbar.update(frames)
-        if self.state.last.all():
-            counters["episode"] += 1
-            self.episode_returns.append(np.asarray(self.returns).mean(1))
+        ended = np.asarray(self.state.last)
+        if ended.any():
+            lv["episodes_ended"] += int(ended.sum())
+            counters["episode"] = lv["episodes_ended"] // ended.size  # per env
+            # [2, S]: the summed returns and the number of the episodes each seed ended
+            ended_returns = np.where(ended, np.asarray(self.returns), 0.0).sum(1)
+            self.episode_returns.append(np.stack([ended_returns, ended.sum(1)]))
 
     def _log(self, logger: RunLogger, pbar) -> None:
         config, counters, lv = self.config, self.counters, self.lv
@@ -651,7 +663,9 @@ class _Run:
             row.update({k: np.asarray(v) / lv["metric_count"] for k, v in self.metric_sum.items()})
             self.metric_sum, lv["metric_count"] = None, 0
         if self.episode_returns:
-            row["episode_return"] = np.mean(self.episode_returns, 0)
+            total, count = np.sum(self.episode_returns, 0)
+            with np.errstate(invalid="ignore", divide="ignore"):  # no episode ended: NaN
+                row["episode_return"] = total / count
             self.episode_returns = []
         logger.write("train", frame, row)
         if pbar is not None:
@@ -705,9 +719,12 @@ class _Run:
         lv["last_eval_frame"] = frame
         lv["next_eval"] = (frame // config.eval_every_frames + 1) * config.eval_every_frames
         log.info(
-            "eval @ %s frames: return per seed %s",
+            "eval @ %s frames: return per seed %s%s",
             f"{frame:,}",
             [round(float(r), 1) for r in metrics["episode_return"]],
+            f", success per seed {np.round(metrics['success'], 2).tolist()}"
+            if "success" in metrics
+            else "",
         )
         if pbar is not None:
             pbar.set_postfix_str(self._postfix(metrics["fps"]))
@@ -765,8 +782,17 @@ def write_summary(workdir, config, spec, counters) -> dict:
             )
         )
         rows.append([s, f"{returns[-1]:.1f}", f"{np.nanmax(returns):.1f}", f"{cos[-1]:.2e}"])
+        if spec.has_success:  # success rate of the eval episodes (kitchen)
+            success = evals.get("success", np.array([np.nan]))
+            per_seed[-1].update(
+                final_success=float(success[-1]), best_success=float(np.nanmax(success))
+            )
+            rows[-1].append(f"{success[-1]:.2f}")
     finals = np.array([p["final_return"] for p in per_seed])
     rows.append(["mean", f"{finals.mean():.1f} ± {finals.std():.1f}", "", ""])
+    if spec.has_success:
+        rates = np.array([p["final_success"] for p in per_seed])
+        rows[-1].append(f"{rates.mean():.2f} ± {rates.std():.2f}")
     summary = {
         "task": config.env.task,
         "method": config.agent.method,
@@ -783,7 +809,9 @@ def write_summary(workdir, config, spec, counters) -> dict:
         "distraction": config.env.distraction,
         "per_seed": per_seed,
     }
-    table = format_table(["seed", "final eval return", "best eval return", "cos(z_A, z_E)"], rows)
+    columns = ["seed", "final eval return", "best eval return", "cos(z_A, z_E)"]
+    columns += ["final eval success"] if spec.has_success else []
+    table = format_table(columns, rows)
     text = (
         f"# {config.agent.method} on {config.env.task}\n\n"
         f"{counters['frame']:,} frames per seed x {config.seeds} seeds, {wall:.0f} s of training "

@@ -1,4 +1,4 @@
-"""Environments: DMC tasks on MJX or CPU MuJoCo, rendered by a CPU worker pool.
+"""Environments: DMC and Franka Kitchen tasks on MJX or CPU MuJoCo, rendered by a CPU worker pool.
 
 `envs.make(name, ...)` builds a batched `Env` (envs/base.py); `envs.names()` lists the tasks.
 """

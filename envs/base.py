@@ -7,9 +7,12 @@
   composites the distraction background (`envs/distractions.py`), builds the mask variant
   (`envs/masks.py`) and rolls the frame stack; `step_async` returns at once, so the caller can
   dispatch accelerator work meanwhile;
-- episodes: auto-reset with dm_env semantics. Episode starts are drawn on the host (CPU MuJoCo,
-  `envs/dmc.py::episode_start`, dm_control's law) from a numpy RandomState seeded by the key
-  given to `reset`; both physics backends start from these qpos/qvel.
+- episodes: auto-reset with dm_env semantics, per env. Episode starts are drawn on the host (CPU
+  MuJoCo, the task's `init_episode`: dm_control's law for DMC tasks, `envs/dmc.py`) from a numpy
+  RandomState seeded by the key given to `reset`; both physics backends start from these
+  qpos/qvel. Tasks with `success_ends_episode` (the kitchen) end an env's episode on the step its
+  reward is 1 (success 1, discount 0), reading that reward on the host with the qpos the
+  renderers need anyway.
 
 State ownership: `EnvState` holds the physics state, the frame stack, the jax key and, as host
 numpy leaves, the per-env step counters and `last` flags (so auto-reset needs no device sync).
@@ -33,7 +36,7 @@ import mujoco
 import numpy as np
 
 from envs import distractions, dmc, masks
-from envs.dmc import DmcTask, render_model_fn
+from envs.dmc import DmcTask
 from envs.physics import SolverSettings, make_physics, resolve_backend
 from envs.render import RenderPool, RenderSettings
 
@@ -91,6 +94,7 @@ def _post(
     reward,
     first,
     last,
+    success,
     key,
     *,
     floor_alpha,
@@ -113,16 +117,22 @@ def _post(
         mask=mask,
         true_mask=true_mask,
         reward=reward,
-        discount=jnp.ones_like(reward),
+        # Reaching a goal is a true terminal (no bootstrap); time limits are not.
+        discount=jnp.where(success, 0.0, 1.0).astype(jnp.float32),
         first=first,
         last=last,
-        success=jnp.zeros_like(reward),
+        success=success.astype(jnp.float32),
     )
     return obs, ts
 
 
 class Env:
-    """S x E DMC envs; see notes/env_interface.md for the interface."""
+    """S x E envs of one task; see notes/env_interface.md for the interface.
+
+    task: a `DmcTask` (envs/dmc.py) or a `KitchenTask` (envs/kitchen.py); both provide the
+    models, the reward, the control mapping, the episode start and the render facts. Tasks with
+    `success_ends_episode` end an episode on the step their reward is 1 (success 1, discount 0).
+    """
 
     def __init__(
         self,
@@ -171,6 +181,7 @@ class Env:
             n_sub_steps=n_sub,
             action_repeat=action_repeat,
             solver=solver,
+            control=task.make_control(self._model),
         )
         h, w = render.height, render.width
         self.spec = EnvSpec(
@@ -179,6 +190,7 @@ class Env:
             action_repeat=action_repeat,
             episode_steps=frames // action_repeat,
             frame_shape=(h, w, 3),
+            has_success=task.success_ends_episode,
             floor_alpha=task.floor_alpha,
             num_seeds=num_seeds,
             envs_per_seed=envs_per_seed,
@@ -227,7 +239,7 @@ class Env:
         self._rng = np.random.RandomState(seed)
         self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="env")
         self._pool = RenderPool(
-            functools.partial(render_model_fn, task.name),
+            task.render_factory(),
             camera=task.camera,
             agent_geom_ids=task.agent_geom_ids(render_model),
             floor_geom_ids=task.floor_geom_ids(render_model),
@@ -321,6 +333,12 @@ class Env:
         background = self._backgrounds[jnp.asarray(video), jnp.asarray(frame_idx)]
         key, mask_key = jax.random.split(key)
         last = step >= self.spec.episode_steps
+        success = np.zeros(self.shape, bool)
+        if self.task.success_ends_episode:
+            # The reward is 1 exactly while the goal is reached; the first such step ends it.
+            success = (np.asarray(reward).reshape(self.shape) > 0) & ~first
+            last = last | success
+            reward = success.astype(np.float32)
         stack, ts = self._post(
             jnp.asarray(rgb).reshape(self.shape + (h, w, 3)),
             jnp.asarray(labels).reshape(self.shape + (h, w)),
@@ -329,6 +347,7 @@ class Env:
             jnp.asarray(reward),
             jnp.asarray(first),
             jnp.asarray(last),
+            jnp.asarray(success),
             mask_key,
         )
         state = EnvState(physics=phys, stack=stack, key=key, step=step, last=last)

@@ -377,6 +377,7 @@ class DmcTask:
     reward_range: tuple[float, float] = (0.0, 1.0)  # per control step
     edit_physics: Callable[[mujoco.MjModel], None] | None = None
     edit_render: Callable[[mujoco.MjModel], None] | None = None
+    success_ends_episode: bool = False  # DMC episodes end at the time limit only
 
     @property
     def domain(self) -> str:
@@ -396,6 +397,14 @@ class DmcTask:
         if edit is not None:
             edit(model)
         return model
+
+    def render_factory(self) -> Callable[[], mujoco.MjModel]:
+        """Picklable zero-argument model factory for the render workers."""
+        return functools.partial(render_model_fn, self.name)
+
+    def make_control(self, model: mujoco.MjModel) -> None:
+        """DMC actions are the actuator controls (the physics backends' default)."""
+        return None
 
     def n_sub_steps(self, model: mujoco.MjModel) -> int:
         if self.control_timestep is None:

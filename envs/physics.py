@@ -81,6 +81,21 @@ def resolve_backend(backend: str) -> str:
     return backend
 
 
+def _compiler_options() -> dict | None:
+    """XLA options for the MJX programs on the platform they compile for.
+
+    XLA:CPU's fusion emitters (on by default in jax 0.10) inline chains of cheap elementwise
+    ops into every consumer, so MJX's kinematics down a deep body chain recomputes each parent
+    pose exponentially often: the 10-body Franka chain of the kitchen took 23 ms per
+    `mjx.kinematics` call with them and 0.4 ms without; one kitchen agent step (2 envs, 40
+    physics steps) 2.9 s -> 0.15 s, its compile 30 -> 22 s of CPU; walker 5 -> 3 ms per step.
+    Only the CPU platform gets the option (GPU fusion is a different compiler).
+    """
+    if jax.default_backend() == "cpu":
+        return {"xla_cpu_use_fusion_emitters": False}
+    return None
+
+
 def _vmap2(fn):
     """vmap over the (S, E) leading axes."""
     return jax.vmap(jax.vmap(fn))
@@ -121,6 +136,7 @@ class MjxPhysics:
         n_sub_steps: int,
         action_repeat: int,
         solver: SolverSettings = SolverSettings(),
+        control=None,
     ):
         model = _copy_model(model)
         if solver.iterations is not None:
@@ -142,10 +158,12 @@ class MjxPhysics:
         self.solver = solver
         self.n_sub_steps = n_sub_steps
         self.action_repeat = action_repeat
+        self.control = control
         self._m = mjx.put_model(model, impl="jax")
         self._reward_fn = reward_fn
-        self._step = jax.jit(_vmap2(self._step_one))
-        self._init = jax.jit(_vmap2(self._init_one))
+        options = _compiler_options()
+        self._step = jax.jit(_vmap2(self._step_one), compiler_options=options)
+        self._init = jax.jit(_vmap2(self._init_one), compiler_options=options)
         self._where = jax.jit(
             lambda reset, new, old: jax.tree.map(
                 lambda a, b: jnp.where(reset.reshape(reset.shape + (1,) * (a.ndim - 2)), a, b),
@@ -155,9 +173,12 @@ class MjxPhysics:
         )
 
     def _init_one(self, qpos, qvel):
+        # No mjx.forward here: `mjx.step` recomputes every derived field from qpos/qvel (and
+        # forward leaves the warm start alone), so the steps are identical without it, as on
+        # the CPU backend, and the init program compiles in a moment instead of costing a
+        # second compile of the whole forward pass (40 s of CPU for the kitchen).
         d = mjx.make_data(self._m)
-        d = d.replace(qpos=qpos.astype(d.qpos.dtype), qvel=qvel.astype(d.qvel.dtype))
-        return mjx.forward(self._m, d)
+        return d.replace(qpos=qpos.astype(d.qpos.dtype), qvel=qvel.astype(d.qvel.dtype))
 
     def _step_one(self, d: mjx.Data, action: jax.Array):
         m = self._m
@@ -167,6 +188,8 @@ class MjxPhysics:
             return mjx.step(m, d), None
 
         def control_step(d, _):
+            if self.control is not None:
+                d = d.replace(ctrl=self.control(d.qpos, action, jnp).astype(d.ctrl.dtype))
             d, _ = jax.lax.scan(
                 physics_step, d, None, length=self.n_sub_steps, unroll=self.solver.unroll
             )
@@ -208,10 +231,19 @@ class CpuPhysics:
 
     name = "cpu"
 
-    def __init__(self, model: mujoco.MjModel, reward_fn, *, n_sub_steps: int, action_repeat: int):
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        reward_fn,
+        *,
+        n_sub_steps: int,
+        action_repeat: int,
+        control=None,
+    ):
         self.mj_model = model
         self.n_sub_steps = n_sub_steps
         self.action_repeat = action_repeat
+        self.control = control
         self._data = mujoco.MjData(model)
         self._reward = jax.jit(_vmap2(jax.vmap(reward_fn)))
         self._cpu = jax.devices("cpu")[0]
@@ -260,6 +292,8 @@ class CpuPhysics:
                 d.ctrl[:] = action[s, e]
                 env_views = []
                 for _ in range(self.action_repeat):
+                    if self.control is not None:
+                        d.ctrl[:] = self.control(d.qpos, action[s, e], np)
                     self._control_step(d)
                     env_views.append(view_from_mjdata(d))
                 views.append(env_views)
@@ -302,11 +336,24 @@ def make_physics(
     n_sub_steps: int,
     action_repeat: int,
     solver: SolverSettings = SolverSettings(),
+    control=None,
 ):
-    """Build the named backend ("mjx", "cpu" or "auto")."""
+    """Build the named backend ("mjx", "cpu" or "auto").
+
+    control: None (ctrl = action) or `control(qpos, action, xp) -> ctrl`, evaluated at the start
+    of every control step with xp = jax.numpy (MJX) or numpy (CPU), e.g. the kitchen's joint
+    velocity -> position target mapping.
+    """
     backend = resolve_backend(backend)
     if backend == "mjx":
         return MjxPhysics(
-            model, reward_fn, n_sub_steps=n_sub_steps, action_repeat=action_repeat, solver=solver
+            model,
+            reward_fn,
+            n_sub_steps=n_sub_steps,
+            action_repeat=action_repeat,
+            solver=solver,
+            control=control,
         )
-    return CpuPhysics(model, reward_fn, n_sub_steps=n_sub_steps, action_repeat=action_repeat)
+    return CpuPhysics(
+        model, reward_fn, n_sub_steps=n_sub_steps, action_repeat=action_repeat, control=control
+    )

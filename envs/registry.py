@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from envs import dmc
+from envs import dmc, kitchen
 
 _REGISTRY: dict[str, Callable[..., object]] = {}
 
@@ -36,5 +36,17 @@ def _dmc_builder(task: dmc.DmcTask):
     return build
 
 
+def _kitchen_builder(task: kitchen.KitchenTask):
+    def build(**kwargs):
+        from envs.base import Env
+
+        kwargs.setdefault("action_repeat", 1)  # REFERENCE 6: the kitchen acts every 0.08 s
+        return Env(task, **kwargs)
+
+    return build
+
+
 for _task in dmc.TASKS.values():
     register(_task.name, _dmc_builder(_task))
+for _task in kitchen.TASKS.values():
+    register(_task.name, _kitchen_builder(_task))

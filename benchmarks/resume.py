@@ -36,6 +36,7 @@ def _start(args, workdir: pathlib.Path) -> subprocess.Popen:
         f"--config.eval_every_frames={args.eval_every}",
         "--config.progress=False",
     ]
+    cmd += [f"--config.{kv}" for kv in args.set]
     return subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
 
 
@@ -66,6 +67,7 @@ def main():
     parser.add_argument("--kill-after-frames", type=int, default=8000, help="checkpoint interval")
     parser.add_argument("--log-every", type=int, default=2000)
     parser.add_argument("--eval-every", type=int, default=10**9, help="default: frame 0 only")
+    parser.add_argument("--set", nargs="*", default=[], help="more overrides: key=value ...")
     parser.add_argument("--timeout", type=float, default=400)
     parser.add_argument("--workdir", default=None)
     parser.add_argument("--out", default=None)
@@ -80,6 +82,7 @@ def main():
             raise RuntimeError(f"no checkpoint written:\n{log.read_text()[-3000:]}")
         time.sleep(0.5)
     t_ckpt = time.perf_counter() - t0
+    print(f"first checkpoint after {t_ckpt:.0f} s; killing the run", flush=True)
     time.sleep(5)  # it trains on past the checkpoint, as a real crash would find it
     os.kill(first.pid, signal.SIGKILL)
     first.wait()
@@ -91,6 +94,7 @@ def main():
     t_resumed, m = _wait_for(
         log, r"resumed from checkpoint (\d+).*?(\d+) rows per seed", killed_at, second, args.timeout
     )
+    print(f"resumed state restored after {t_resumed:.0f} s", flush=True)
     t_progress, _ = _wait_for(log, r"frame \d+ per seed: \d+ frames/s", killed_at, second, 300)
     second.send_signal(signal.SIGTERM)
     rc = second.wait(timeout=120)

@@ -239,7 +239,7 @@ def sample_at(
     )
     if far_key is None:
         return batch
-    offset, valid = same_episode_offsets(state, row, env, far_key)
+    offset, valid = same_episode_offsets(state, row, env, far_key, nstep)
     far_row = (row + offset) % state.rows
     return batch.replace(
         far_obs=_gather_stack(state.frames, _stack_rows(state, far_row, env, frame_stack), env),
@@ -270,20 +270,23 @@ def _episode_span(state, row, env):
     return start, end
 
 
-def same_episode_offsets(state, row, env, key):
+def same_episode_offsets(state, row, env, key, nstep: int = 1):
     """TED's same-episode negatives: an offset to a uniformly drawn stored step of the same
     episode other than t and t+-1 (as TED's reference samples them), and whether one exists.
+    With n-step transitions the positive pair is (t, t+n') for some n' <= nstep, so steps
+    t+1..t+nstep are excluded too: a frame is never both the positive and a negative.
 
     row, env [B] -> (offset int32 [B], valid bool [B]); offset is 0 where none exists.
     """
+    ahead = max(2, nstep + 1)  # the first step after t that may be a negative
     start, end = _episode_span(state, row, env)
     age = _age(state, row)
     lo, hi = start - age, end - age  # lo <= 0 <= hi
     n_before = jnp.maximum(-1 - lo, 0)  # offsets lo..-2
-    n_after = jnp.maximum(hi - 1, 0)  # offsets 2..hi
+    n_after = jnp.maximum(hi - ahead + 1, 0)  # offsets ahead..hi
     n = n_before + n_after
     u = jnp.floor(jax.random.uniform(key, row.shape) * n).astype(jnp.int32)
-    offset = jnp.where(u < n_before, lo + u, 2 + u - n_before)
+    offset = jnp.where(u < n_before, lo + u, ahead + u - n_before)
     valid = n > 0
     return jnp.where(valid, offset, 0), valid
 

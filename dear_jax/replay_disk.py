@@ -15,8 +15,9 @@ the unfinished chunk [floor(G/C) C, G) the same way (a partial file), and only t
 Resume from a checkpoint at row G: files ending after G were written after that checkpoint and
 are deleted; the ring's live rows [max(0, G - T), G) are read back from the files, each row from
 the file that ends last (full chunk or partial one), and put into an empty device replay.
-Files that end at or before G - T of the latest checkpoint are out of every ring that a resume
-could rebuild and are deleted; so are partial files of checkpoints that orbax no longer keeps.
+Files that end at or before G - T of the latest checkpoint are out of its ring and are deleted
+(so only the latest checkpoint is sure to find its whole replay); so are partial files of
+checkpoints that orbax no longer keeps.
 
 Disk: at most (T + rows between checkpoints + a chunk per checkpoint kept + 2 chunks) rows per
 seed at the uncompressed size (`disk_bound`); the trainer checks this against free space.
@@ -200,8 +201,10 @@ class ChunkStore:
                     path.unlink()
 
     def prune(self, latest_rows: int, kept_rows: set[int]) -> None:
-        """Delete what no resume can need: files out of the latest checkpoint's ring, and partial
-        files of checkpoints no longer kept (`kept_rows`: the row counts of kept checkpoints)."""
+        """Delete files out of the latest checkpoint's ring and partial files of checkpoints no
+        longer kept (`kept_rows`: the row counts of kept checkpoints). Only the latest
+        checkpoint is sure to find its whole replay: an older kept one may have lost rows that
+        fell out of the latest ring (resuming it then says which rows are missing)."""
         self._raise_failed()
         for s in range(self.num_seeds):
             for start, end, path in list_files(self.seed_dir(s)):

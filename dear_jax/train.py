@@ -55,7 +55,6 @@ RESUMABLE_CHANGES = (
     "env.render.num_workers",
     "agent.seed_axis",
     "replay.disk",
-    "replay.chunk_entries",
 )
 
 
@@ -481,6 +480,7 @@ class _Run:
         }
         self.lv = {  # loop variables carried between steps
             "steps_owed": 0.0,  # agent steps per seed not yet matched by updates
+            "seed_frames": config.replay.seed_frames,  # the frame updates start at
             "env_steps": 0,  # agent steps taken, summed over all seeds' envs
             "episodes_ended": 0,  # episodes ended, summed over all seeds' envs
             "metric_count": 0,
@@ -492,7 +492,6 @@ class _Run:
         self.metric_sum = None  # train metrics summed since the last log row
         self.episode_returns = []  # [2, S] per step: returns summed and count of ended episodes
         self.last_eval_return = None
-        self.seed_frames = config.replay.seed_frames
         self.resumed_from = None
         self.key, k_reset = jax.random.split(self.key)
         self.state, self.ts = env.reset(k_reset)
@@ -539,8 +538,16 @@ class _Run:
             self.store.save_partial(self.buffer, self.counters["rows"])
         self.ckpt.save(self.counters["frame"], self._tree(), extra=self._extra())
         if self.store is not None:
-            kept = {self.ckpt.read_meta(s)[2]["counters"]["rows"] for s in self.ckpt.all_steps()}
-            self.store.prune(max(kept), kept)
+            # Row counts of the kept checkpoints of this replay (a checkpoint saved without the
+            # replay on disk, before a resume restarted the row count, is not one of them).
+            rows = self.counters["rows"]
+            metas = (self.ckpt.read_meta(s)[2] for s in self.ckpt.all_steps())
+            kept = {
+                m["counters"]["rows"]
+                for m in metas
+                if m.get("replay_on_disk") and m["counters"]["rows"] <= rows
+            }
+            self.store.prune(rows, kept | {rows})
 
     def _restore(self) -> None:
         step, restored, extra = self.ckpt.restore(self._tree())
@@ -557,6 +564,7 @@ class _Run:
         self.counters = extra["counters"]
         self.lv.update(extra["loop"])
         frame = self.counters["frame"]
+        self.lv["last_log_frame"] = frame  # the first rate after a resume counts from here
         if self.lv["next_eval"] > frame:  # none pending: follow this run's eval interval
             self.lv["next_eval"] = (frame // self.config.eval_every_frames + 1) * (
                 self.config.eval_every_frames
@@ -587,7 +595,7 @@ class _Run:
                 frame,
                 self.config.replay.seed_frames,
             )
-            self.seed_frames += frame
+            self.lv["seed_frames"] = frame + self.config.replay.seed_frames
             self.counters["rows"] = 0
             if self.store is not None:
                 self.store.forget_after(0)
@@ -611,7 +619,7 @@ class _Run:
         steps_per_seed = stepping.sum() / config.seeds
         future = self.env.step_async(self.state, action)
         # Updates are dispatched while the env thread renders the next observations.
-        if counters["frame"] >= self.seed_frames and steps_per_seed:
+        if counters["frame"] >= lv["seed_frames"] and steps_per_seed:
             lv["steps_owed"] += steps_per_seed / config.agent.update_every_steps
             n = int(lv["steps_owed"])
             lv["steps_owed"] -= n

@@ -135,7 +135,7 @@ def test_uniform_sample_only_returns_valid_starts_and_same_episode_negatives():
         np.testing.assert_allclose(batch.reward[i], ref["reward"], rtol=1e-5)
         if batch.far_valid[i]:
             e2, g2 = values[int(batch.far_obs[i, 0, 0, -1])]
-            assert e2 == e and ep[e][g2] == ep[e][g] and abs(g2 - g) >= 2
+            assert e2 == e and ep[e][g2] == ep[e][g] and (g2 - g <= -2 or g2 - g > 2)
             valid_pairs += 1
     assert valid_pairs > 100
 
@@ -186,25 +186,28 @@ def _one_env_replay(episode_lengths, rows):
 
 
 @pytest.mark.parametrize(
-    "lengths, rows, t, expected",
+    "lengths, rows, t, nstep, expected",
     [
         # t = 6 in an episode of entries 3..14: any of 3..14 but 5, 6, 7.
-        ((3, 12, 4), 32, 6, [*range(3, 5), *range(8, 15)]),
+        ((3, 12, 4), 32, 6, 1, [*range(3, 5), *range(8, 15)]),
+        # With 3-step positives (6, 6+n'), n' <= 3: 7..9 are excluded as well.
+        ((3, 12, 4), 32, 6, 3, [*range(3, 5), *range(10, 15)]),
         # The ring (12 rows) holds steps 7..18: episode 3..14 keeps 7..14; t = 8 excludes 7..9.
-        ((3, 12, 4), 12, 8, [*range(10, 15)]),
+        ((3, 12, 4), 12, 8, 1, [*range(10, 15)]),
         # An episode of two entries has no step at distance >= 2.
-        ((2, 5), 16, 0, []),
+        ((2, 5), 16, 0, 1, []),
     ],
 )
 def test_same_episode_negatives_are_uniform_over_the_episode_but_t_and_neighbours(
-    lengths, rows, t, expected
+    lengths, rows, t, nstep, expected
 ):
     state = _one_env_replay(lengths, rows)
     draws = 4000
     row = jnp.full((draws,), t % rows)
     env = jnp.zeros((draws,), jnp.int32)
     keys = jax.random.split(jax.random.key(0), draws)
-    offset, valid = jax.jit(jax.vmap(replay.same_episode_offsets, in_axes=(None, 0, 0, 0)))(
+    draw = functools.partial(replay.same_episode_offsets, nstep=nstep)
+    offset, valid = jax.jit(jax.vmap(draw, in_axes=(None, 0, 0, 0)))(
         state, row[:, None], env[:, None], keys
     )
     offset, valid = np.asarray(offset[:, 0]), np.asarray(valid[:, 0])

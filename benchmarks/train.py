@@ -126,7 +126,7 @@ def stage_split(config, reps) -> dict:
             return metrics
 
         def act():
-            out, held["agent"] = programs.act(held["agent"], ts.obs, key)
+            out, held["agent"] = programs.act(held["agent"], ts.obs, key, ~np.asarray(state.last))
             return out
 
         def add():

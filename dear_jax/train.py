@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import functools
 import json
 import logging
 import math
@@ -178,7 +177,7 @@ def make_env(config: ConfigDict, *, envs_per_seed: int, split: str, seed: int) -
 class Programs:
     """The jitted functions of the loop, each over all seeds at once."""
 
-    act: callable  # (agent, obs [S,E,...], key) -> (actions [S,E,A], agent)
+    act: callable  # (agent, obs [S,E,...], key, stepping [S,E]) -> (actions [S,E,A], agent)
     learn: callable  # (agent, replay, key) -> (agent, metrics [S]): one update per seed
     add: callable  # (replay, ts, action) -> replay
     evaluate_step: callable  # (agent, obs) -> (actions, cos [S], predicted mask of env 0 [S,H,W])
@@ -205,10 +204,13 @@ def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigD
     num_seeds = config.seeds
     nets = update.make_networks(acfg)
 
-    def act(agent, obs, key):
+    def act(agent, obs, key, stepping):
         keys = jax.random.split(key, num_seeds)
-        per_seed = functools.partial(update.act, acfg, explore=True)
-        return jax.vmap(per_seed)(agent, obs, keys, hp)
+
+        def per_seed(agent, obs, key, hp, stepping):
+            return update.act(acfg, agent, obs, key, hp, explore=True, stepping=stepping)
+
+        return jax.vmap(per_seed)(agent, obs, keys, hp, stepping)
 
     def learn_one(agent, buffer, key, hp_seed):
         k_sample, k_update = jax.random.split(key)
@@ -612,11 +614,11 @@ class _Run:
     def _step(self, pbar) -> None:
         config, programs, counters, lv = self.config, self.programs, self.counters, self.lv
         self.key, k_act, k_learn = jax.random.split(self.key, 3)
-        action, self.agent = programs.act(self.agent, self.ts.obs, k_act)
         # An env whose episode ended restarts this step: it shows a first frame, adds no
         # transition and owes no update. DMC envs all end together; kitchen envs end on success.
         stepping = ~np.asarray(self.state.last)  # [S, E]
         steps_per_seed = stepping.sum() / config.seeds
+        action, self.agent = programs.act(self.agent, self.ts.obs, k_act, stepping)
         future = self.env.step_async(self.state, action)
         # Updates are dispatched while the env thread renders the next observations.
         if counters["frame"] >= lv["seed_frames"] and steps_per_seed:

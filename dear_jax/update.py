@@ -229,11 +229,13 @@ def act(
     hp: HParams,
     *,
     explore: bool,
+    stepping: jax.Array | None = None,
 ) -> tuple[jax.Array, AgentState]:
     """Actions for a batch of observations uint8 [N, 84, 84, 9] -> f32 [N, A].
 
     explore=True: uniform actions during the first `explore_steps` agent steps, then the policy
-    with the scheduled std; counts the N steps. explore=False: the deterministic mean.
+    with the scheduled std; counts the steps taken: all N, or where `stepping` [N] is true (an
+    env that restarts ignores its action). explore=False: the deterministic mean.
     """
     nets = make_networks(cfg)
     z = nets.encoder.apply({"params": state.params["encoder"]}, obs)
@@ -244,7 +246,8 @@ def act(
     action = sample_action(mean, std_schedule(state.steps, hp), k_noise)
     uniform = jax.random.uniform(k_uniform, mean.shape, minval=-1.0, maxval=1.0)
     action = jnp.where(state.steps < hp.explore_steps, uniform, action)
-    return action, state.replace(steps=state.steps + obs.shape[0])
+    taken = obs.shape[0] if stepping is None else jnp.sum(stepping, dtype=jnp.int32)
+    return action, state.replace(steps=state.steps + taken)
 
 
 def learner_loss(

@@ -128,6 +128,10 @@ def test_acting_phases_and_schedule(dear):
     assert int(same.steps) == 0
     a1, s1 = act(state, obs, jax.random.key(12), hp, explore=True)
     assert int(s1.steps) == 8
+    # Envs that restart this step ignore their actions: only the others count as steps.
+    stepping = jnp.array([True, False, True, True, False, True, True, False])
+    _, s5 = act(state, obs, jax.random.key(12), hp, explore=True, stepping=stepping)
+    assert int(s5.steps) == 5
     # During exploration actions are uniform, independent of the policy mean.
     assert not np.allclose(a1, mean, atol=0.3) and np.all(np.abs(np.asarray(a1)) <= 1.0)
     late = s1.replace(steps=jnp.int32(10_000))

@@ -329,8 +329,9 @@ def learner_loss(
 
 def ted_classifier_loss(ted_params, z, z_next, z_far, far_valid, key, *, nets: Networks):
     """TED's temporal loss on latents [B, F]: positives (z_t, z_t+n); negatives (z_t, z_t+n of
-    another sample) and (z_t, a frame of the same episode other than t and t+-1, where
-    far_valid [B] is 1). Mean BCE over the valid pairs; returns (loss, metrics)."""
+    another sample) and (z_t, a frame of the same episode other than t-1..t+nstep, where
+    far_valid [B] is 1: `replay.same_episode_offsets`). Mean BCE over the valid pairs; returns
+    (loss, metrics)."""
     perm = jax.random.permutation(key, z.shape[0])
     classify = lambda a, b: nets.ted.apply({"params": ted_params}, a, b)  # noqa: E731
     logits = jnp.concatenate([classify(z, z_next), classify(z, z_next[perm]), classify(z, z_far)])

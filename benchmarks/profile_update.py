@@ -97,13 +97,14 @@ def main():
 
     per_part = collections.Counter()
     per_kernel = collections.Counter()
-    kernel_part = {}
+    kernel_part, kernel_op = {}, {}
     for kernel, hlo_op, ns in device_events(trace_dir):
         part = part_of(names.get(hlo_op, hlo_op))
         per_part[part] += ns
         key = f"{hlo_op or '?'} | {kernel[:60]}"
         per_kernel[key] += ns
         kernel_part[key] = part
+        kernel_op[key] = names.get(hlo_op, "")
     scale = 1e-6 / args.iters  # ns summed over iters -> ms per call
     total = sum(per_part.values()) * scale
     device = jax.devices()[0].device_kind
@@ -125,6 +126,8 @@ def main():
             ms_per_call=total,
             parts={p: ns * scale for p, ns in per_part.most_common()},
             kernels={k: ns * scale for k, ns in per_kernel.most_common(100)},
+            # the framework op (Flax module path / JAX primitive) behind each of those kernels
+            kernel_ops={k: kernel_op[k] for k, _ in per_kernel.most_common(100)},
         ),
         args.out,
         f"benchmarks/results/profile_{args.method}_gpu.json",

@@ -7,6 +7,10 @@
 #   train     benchmarks/train.py: DEAR walker-walk, 5 seeds x 8 envs, stage split, then throughput
 #   learn     start DrQ-v2 and DEAR walker-walk (3 seeds each) detached, side by side on the GPU
 #   collect   pack the learning runs' logs (no checkpoints or videos) into $OUT/runs.tar.gz
+#   speed     the performance issue's update figures: DEAR fp32 / bf16 and DrQ-v2 bf16 at batch
+#             512 (5 seeds, loop and streams), benchmarks/overlap.py (physics beside the
+#             updates), the bf16 DEAR profile
+#   torch     benchmarks/torch_reference.py update (DEAR eager and best, batch 512)
 #   wait N    sleep N seconds (keeps the call, and so the machine, alive while runs train)
 # Results land in $OUT (or /tmp/out).
 set -u
@@ -50,6 +54,19 @@ while [ $# -gt 0 ]; do
       for f in "$runs"/*.log; do echo "--- $f"; tail -n 4 "$f"; done
       nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv
       tar -C "$runs" --exclude=checkpoints --exclude=videos -czf "$out/runs.tar.gz" . ;;
+    speed)
+      export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
+      u="timeout 240 python3 -m benchmarks.update --methods dear --seeds 5 --batch 512 --iters 20"
+      $u --seed-axis loop --dtypes float32 bfloat16 --out "$out/update_dear.json"
+      $u --seed-axis streams --dtypes bfloat16 --out "$out/update_dear_streams.json"
+      timeout 200 python3 -m benchmarks.update --methods drqv2 --seeds 5 --batch 512 --iters 20 \
+        --seed-axis loop --dtypes bfloat16 --out "$out/update_drqv2.json"
+      timeout 300 python3 -m benchmarks.overlap --out "$out/overlap.json"
+      timeout 150 python3 -m benchmarks.profile_update --method dear --batch 512 \
+        --dtype bfloat16 --out "$out/profile_dear_bf16.json" ;;
+    torch)
+      timeout 300 python3 -m benchmarks.torch_reference update --methods dear --batch 512 \
+        --iters 20 --variants eager best --out "$out/torch.json" ;;
     wait) sleep "$1"; shift ;;
   esac
   echo "=== $stage done rc=$? $(date +%T)"

@@ -39,16 +39,59 @@ def _dense(features: int, name: str | None = None, dtype=jnp.float32) -> nn.Dens
     return nn.Dense(features, kernel_init=LINEAR_INIT, bias_init=ZEROS, name=name, dtype=dtype)
 
 
-def _conv(features: int, stride: int, dtype=jnp.float32) -> nn.Conv:
-    return nn.Conv(
-        features,
-        (3, 3),
-        strides=(stride, stride),
-        padding="VALID",
-        kernel_init=CONV_INIT,
-        bias_init=ZEROS,
-        dtype=dtype,
+def tensor_core_channels() -> int:
+    """Channel multiple the platform's convolution kernels want: 8 on GPUs, 1 elsewhere.
+
+    cuDNN's tensor-core convolutions need channel counts that are multiples of 8 (bf16) or 4
+    (tf32). With 9 input channels (3 stacked RGB frames) the first encoder convolution fell back
+    to a generic kernel, 0.27 ms of a 6 ms bf16 update at batch 512 on an H100, and its filter
+    gradient padded its input on every call (benchmarks/results/profile_dear_bf16_h100.json).
+    Zero channels added at use time keep the parameters, and the function, as they are.
+    """
+    return 8 if jax.default_backend() == "gpu" else 1
+
+
+def _pad_axis(x: jax.Array, axis: int, multiple: int) -> jax.Array:
+    """`x` with zeros appended along `axis` up to a multiple of `multiple`."""
+    extra = -x.shape[axis] % multiple
+    if not extra:
+        return x
+    widths = [(0, 0)] * x.ndim
+    widths[axis] = (0, extra)
+    return jnp.pad(x, widths)
+
+
+def _conv2d(x: jax.Array, kernel: jax.Array, stride: int, dtype, channels: int) -> jax.Array:
+    """VALID NHWC convolution of [..., H, W, C] with a [kh, kw, C, F] kernel, in `dtype`.
+
+    Input and output channels are zero-padded to a multiple of `channels` for the convolution
+    itself (padded outputs are sliced off), which leaves the result unchanged.
+    """
+    features = kernel.shape[-1]
+    lead = x.shape[:-3]
+    x = _pad_axis(x.astype(dtype).reshape(-1, *x.shape[-3:]), -1, channels)
+    kernel = _pad_axis(_pad_axis(kernel.astype(dtype), 2, channels), 3, channels)
+    y = jax.lax.conv_general_dilated(
+        x, kernel, (stride, stride), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC")
     )
+    return y[..., :features].reshape(*lead, *y.shape[-3:-1], features)
+
+
+class Conv(nn.Module):
+    """`nn.Conv(features, (3, 3), strides, padding="VALID")` with DrQ-v2's init: the same
+    parameters (kernel [3, 3, in, out], bias), computed by `_conv2d` (tensor-core channels)."""
+
+    features: int
+    stride: int = 1
+    dtype: Any = jnp.float32
+    channels: int | None = None  # channel multiple; None: tensor_core_channels()
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        kernel = self.param("kernel", CONV_INIT, (3, 3, x.shape[-1], self.features))
+        bias = self.param("bias", ZEROS, (self.features,))
+        channels = self.channels or tensor_core_channels()
+        return _conv2d(x, kernel, self.stride, self.dtype, channels) + bias.astype(self.dtype)
 
 
 class ConvTranspose(nn.Module):
@@ -69,6 +112,7 @@ class ConvTranspose(nn.Module):
     stride: int = 1
     output_padding: int = 0
     dtype: Any = jnp.float32
+    channels: int | None = None  # see Conv
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -100,13 +144,7 @@ class ConvTranspose(nn.Module):
         # ran 2-3x slower on an H100 (benchmarks/results/decoder_h100.json; DEAR update at batch
         # 512: 15.5 -> 10.3 ms per seed, benchmarks/results/update_h100_512.json).
         x = jax.lax.optimization_barrier(jnp.pad(x, ((0, 0),) * (x.ndim - 3) + (pad, pad, (0, 0))))
-        y = jax.lax.conv_general_dilated(
-            x.astype(self.dtype).reshape(-1, *x.shape[-3:]),
-            w.astype(self.dtype),
-            (1, 1),
-            "VALID",
-            dimension_numbers=("NHWC", "HWIO", "NHWC"),
-        )
+        y = _conv2d(x, w, 1, self.dtype, self.channels or tensor_core_channels())
         # [N, m, m, (ry, rx, c)] -> [N, (m, ry), (m, rx), c], cropped to the output size.
         y = y.reshape(-1, phases, phases, s, s, self.features).transpose(0, 1, 3, 2, 4, 5)
         y = y.reshape(*x.shape[:-3], phases * s, phases * s, self.features)[..., :size, :size, :]
@@ -122,13 +160,14 @@ class ConvTrunk(nn.Module):
     """The four DrQ-v2 convolutions: 84 -> 41 -> 39 -> 37 -> 35, 32 channels, ReLU after each."""
 
     dtype: Any = jnp.float32  # computation dtype (parameters stay float32)
+    channels: int | None = None  # see Conv
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
         x = preprocess(obs).astype(self.dtype)
-        x = nn.relu(_conv(32, 2, self.dtype)(x))
+        x = nn.relu(Conv(32, 2, self.dtype, self.channels)(x))
         for _ in range(3):
-            x = nn.relu(_conv(32, 1, self.dtype)(x))
+            x = nn.relu(Conv(32, 1, self.dtype, self.channels)(x))
         return x
 
 

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
+from jax.experimental.compute_on import compute_on
 
 from dear_jax import augment, losses, networks
 from dear_jax.replay import Batch
@@ -177,25 +178,35 @@ def init_seeds(cfg: AgentConfig, keys: jax.Array) -> AgentState:
     return jax.lax.map(functools.partial(init, cfg), keys)
 
 
-SEED_AXES = ("vmap", "loop")
+SEED_AXES = ("vmap", "loop", "streams")
+GPU_STREAMS = 2  # seed_axis="streams": seeds take turns on this many extra GPU streams
 
 
 def over_seeds(fn, how: str = "vmap"):
     """`fn` of one seed applied to every seed of a leading [S] axis, in one traced program.
 
-    how="vmap": `jax.vmap(fn)`. how="loop": one traced call per seed, results stacked. Both give
-    the same numbers; they differ in speed only. A vmapped convolution whose weights differ per
-    seed becomes one grouped convolution, which an H100 ran ~1.5x slower than S plain ones
-    (benchmarks/results/update_h100.json), so the trainer loops on GPUs.
+    how="vmap": `jax.vmap(fn)`. how="loop": one traced call per seed, results stacked.
+    how="streams": as "loop", with seed i's call on GPU stream i % GPU_STREAMS + 1, so that XLA
+    may run the seeds' kernels concurrently (the annotation is ignored off GPUs).
+    All give the same numbers; they differ in speed only. A vmapped convolution whose weights
+    differ per seed becomes one grouped convolution, which an H100 ran ~1.5x slower than S plain
+    ones (benchmarks/results/update_h100.json), so the trainer loops on GPUs.
     """
     if how == "vmap":
         return jax.vmap(fn)
-    if how != "loop":
+    if how not in SEED_AXES:
         raise ValueError(f"unknown seed axis {how!r}; valid: {SEED_AXES}")
 
     def looped(*args):
         num_seeds = jax.tree.leaves(args)[0].shape[0]
-        outs = [fn(*jax.tree.map(lambda x, i=i: x[i], args)) for i in range(num_seeds)]
+        outs = []
+        for i in range(num_seeds):
+            seed_args = jax.tree.map(lambda x, i=i: x[i], args)
+            if how == "streams":
+                with compute_on(f"gpu_stream:{i % GPU_STREAMS + 1}"):
+                    outs.append(jax.jit(fn)(*seed_args))
+            else:
+                outs.append(fn(*seed_args))
         return jax.tree.map(lambda *xs: jnp.stack(xs), *outs)
 
     return looped

@@ -1,5 +1,6 @@
 """Architecture: parameter counts of the reference, output shapes, DrQ-v2 initialisation."""
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -71,8 +72,9 @@ def test_decoder_and_actor_values():
     assert out.shape == (2, 84, 84, 3) and np.all(np.isfinite(np.asarray(out)))
 
 
+@pytest.mark.parametrize("channels", [1, 8])
 @pytest.mark.parametrize("stride, output_padding", [(1, 0), (2, 1), (4, 3)])
-def test_transposed_convolutions_equal_pytorch_sizes_and_lax(stride, output_padding):
+def test_transposed_convolutions_equal_pytorch_sizes_and_lax(stride, output_padding, channels):
     """Each decoder layer is PyTorch's ConvTranspose2d: (in-1)*stride + k + output_padding.
 
     Written per output phase, it must compute lax.conv_transpose with the same kernel and bias,
@@ -81,7 +83,7 @@ def test_transposed_convolutions_equal_pytorch_sizes_and_lax(stride, output_padd
     k = 4 if stride == 4 else 3
     kx, kk, kb, kg = jax.random.split(jax.random.key(0), 4)
     x = jax.random.normal(kx, (2, 9, 9, 5))
-    layer = networks.ConvTranspose(7, k, stride, output_padding)
+    layer = networks.ConvTranspose(7, k, stride, output_padding, channels=channels)
     params = {
         "kernel": jax.random.normal(kk, (k, k, 5, 7)),
         "bias": jax.random.normal(kb, (7,)),
@@ -106,6 +108,37 @@ def test_transposed_convolutions_equal_pytorch_sizes_and_lax(stride, output_padd
     grads, expected = (jax.grad(loss(f), argnums=(0, 1))(params, x) for f in (ours, reference))
     for g, e in zip(jax.tree.leaves(grads), jax.tree.leaves(expected)):
         np.testing.assert_allclose(g, e, rtol=1e-4, atol=1e-3)
+
+
+@pytest.mark.parametrize("stride, cin", [(2, 9), (1, 32)])
+def test_convolution_is_flax_conv_with_or_without_channel_padding(stride, cin):
+    """`networks.Conv` has nn.Conv's parameters, initial values and function, and the same
+    gradients, with its channels zero-padded to multiples of 8 (as on GPUs) or not."""
+    x = jax.random.normal(jax.random.key(0), (2, 13, 13, cin))
+    flax_conv = nn.Conv(
+        32,
+        (3, 3),
+        strides=(stride, stride),
+        padding="VALID",
+        kernel_init=networks.CONV_INIT,
+        bias_init=networks.ZEROS,
+    )
+    expected_params = flax_conv.init(jax.random.key(1), x)["params"]
+    probe = jax.random.normal(
+        jax.random.key(2), flax_conv.apply({"params": expected_params}, x).shape
+    )
+    bias = jax.random.normal(jax.random.key(3), (32,))
+    for channels in (1, 8):
+        ours = networks.Conv(32, stride, channels=channels)
+        params = ours.init(jax.random.key(1), x)["params"]
+        assert jax.tree.map(jnp.shape, params) == jax.tree.map(jnp.shape, expected_params)
+        np.testing.assert_array_equal(params["kernel"], expected_params["kernel"])
+        p = {**params, "bias": bias}
+        fns = [lambda p, x, m=m: m.apply({"params": p}, x) for m in (ours, flax_conv)]
+        np.testing.assert_allclose(fns[0](p, x), fns[1](p, x), rtol=1e-5, atol=1e-5)
+        grads = [jax.grad(lambda p, x, f=f: jnp.sum(probe * f(p, x)), (0, 1))(p, x) for f in fns]
+        for g, e in zip(jax.tree.leaves(grads[0]), jax.tree.leaves(grads[1])):
+            np.testing.assert_allclose(g, e, rtol=1e-4, atol=1e-4)
 
 
 def _torch_layout(path, kernel):

@@ -23,7 +23,6 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.experimental.compute_on import compute_on
 
 from benchmarks.common import save_json
 from benchmarks.envs import _initial_states
@@ -89,9 +88,7 @@ def main():
         return physics(state, action), updates(agents, keys)
 
     def concurrent(state, action, agents, keys):
-        with compute_on("gpu_stream:1"):
-            out = jax.jit(physics)(state, action)
-        return out, updates(agents, keys)
+        return update.on_gpu_stream(physics, 1)(state, action), updates(agents, keys)
 
     programs = {
         "physics": (jax.jit(physics), (state, action)),

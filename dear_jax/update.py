@@ -21,7 +21,8 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
-from jax.experimental.compute_on import compute_on
+from jax._src import core as jax_core
+from jax.experimental import compute_on as compute_on_lib
 
 from dear_jax import augment, losses, networks
 from dear_jax.replay import Batch
@@ -182,6 +183,15 @@ SEED_AXES = ("vmap", "loop", "streams")
 GPU_STREAMS = 2  # seed_axis="streams": seeds take turns on this many extra GPU streams
 
 
+def on_gpu_stream(fn, stream: int):
+    """`fn` as a call that XLA runs on GPU stream `stream` (ignored off GPUs), outputs in device
+    memory. `jax.experimental.compute_on`'s function form: named compute_on2 in jax 0.10,
+    compute_on from 0.11 on."""
+    call = getattr(compute_on_lib, "compute_on2", None) or compute_on_lib.compute_on
+    device_memory = jax_core.MemorySpace.Device
+    return call(fn, compute_type=f"gpu_stream:{stream}", out_memory_spaces=device_memory)
+
+
 def over_seeds(fn, how: str = "vmap"):
     """`fn` of one seed applied to every seed of a leading [S] axis, in one traced program.
 
@@ -202,11 +212,8 @@ def over_seeds(fn, how: str = "vmap"):
         outs = []
         for i in range(num_seeds):
             seed_args = jax.tree.map(lambda x, i=i: x[i], args)
-            if how == "streams":
-                with compute_on(f"gpu_stream:{i % GPU_STREAMS + 1}"):
-                    outs.append(jax.jit(fn)(*seed_args))
-            else:
-                outs.append(fn(*seed_args))
+            call = on_gpu_stream(fn, i % GPU_STREAMS + 1) if how == "streams" else fn
+            outs.append(call(*seed_args))
         return jax.tree.map(lambda *xs: jnp.stack(xs), *outs)
 
     return looped

@@ -8,8 +8,8 @@
 #   learn     start DrQ-v2 and DEAR walker-walk (3 seeds each) detached, side by side on the GPU
 #   collect   pack the learning runs' logs (no checkpoints or videos) into $OUT/runs.tar.gz
 #   speed     the performance issue's update figures: DEAR fp32 / bf16 and DrQ-v2 bf16 at batch
-#             512 (5 seeds, loop and streams), benchmarks/overlap.py (physics beside the
-#             updates), the bf16 DEAR profile
+#             512 (5 seeds), the first conv's input paths (benchmarks/encoder_input.py), the
+#             bf16 DEAR profile
 #   torch     benchmarks/torch_reference.py update (DEAR eager and best, batch 512)
 #   wait N    sleep N seconds (keeps the call, and so the machine, alive while runs train)
 # Results land in $OUT (or /tmp/out).
@@ -58,10 +58,10 @@ while [ $# -gt 0 ]; do
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       u="timeout 240 python3 -m benchmarks.update --methods dear --seeds 5 --batch 512 --iters 20"
       $u --seed-axis loop --dtypes float32 bfloat16 --out "$out/update_dear.json"
-      $u --seed-axis streams --dtypes bfloat16 --out "$out/update_dear_streams.json"
       timeout 200 python3 -m benchmarks.update --methods drqv2 --seeds 5 --batch 512 --iters 20 \
         --seed-axis loop --dtypes bfloat16 --out "$out/update_drqv2.json"
-      timeout 300 python3 -m benchmarks.overlap --out "$out/overlap.json"
+      timeout 150 python3 -m benchmarks.encoder_input --dtypes bfloat16 float32 \
+        --out "$out/encoder_input.json"
       timeout 150 python3 -m benchmarks.profile_update --method dear --batch 512 \
         --dtype bfloat16 --out "$out/profile_dear_bf16.json" ;;
     torch)

@@ -39,16 +39,19 @@ def _dense(features: int, name: str | None = None, dtype=jnp.float32) -> nn.Dens
     return nn.Dense(features, kernel_init=LINEAR_INIT, bias_init=ZEROS, name=name, dtype=dtype)
 
 
-def tensor_core_channels() -> int:
-    """Channel multiple the platform's convolution kernels want: 8 on GPUs, 1 elsewhere.
+def tensor_core_channels(dtype) -> int:
+    """Channel multiple the convolutions compute with: 8 for bf16 on GPUs, 1 otherwise.
 
-    cuDNN's tensor-core convolutions need channel counts that are multiples of 8 (bf16) or 4
-    (tf32). With 9 input channels (3 stacked RGB frames) the first encoder convolution fell back
-    to a generic kernel, 0.27 ms of a 6 ms bf16 update at batch 512 on an H100, and its filter
-    gradient padded its input on every call (benchmarks/results/profile_dear_bf16_h100.json).
-    Zero channels added at use time keep the parameters, and the function, as they are.
+    cuDNN's bf16 tensor-core convolutions need channel counts that are multiples of 8. With 9
+    input channels (3 stacked RGB frames) the first encoder convolution fell back to a generic
+    kernel (0.27 ms of a 6 ms bf16 DEAR update at batch 512 on an H100) and its filter gradient
+    padded its input on every call (benchmarks/results/profile_dear_bf16_h100.json). Zero
+    channels added at use time keep the parameters and the function as they are. On an H100
+    (benchmarks/results/encoder_input_h100.json, the conv trunk on obs and next_obs at batch
+    512) this took the bf16 trunk from 2.05 to 1.78 ms; in float32 the unpadded path was the
+    fastest (3.88 ms against 4.01), so float32 keeps it.
     """
-    return 8 if jax.default_backend() == "gpu" else 1
+    return 8 if jnp.dtype(dtype) == jnp.bfloat16 and jax.default_backend() == "gpu" else 1
 
 
 def _pad_axis(x: jax.Array, axis: int, multiple: int) -> jax.Array:
@@ -84,13 +87,13 @@ class Conv(nn.Module):
     features: int
     stride: int = 1
     dtype: Any = jnp.float32
-    channels: int | None = None  # channel multiple; None: tensor_core_channels()
+    channels: int | None = None  # channel multiple; None: tensor_core_channels(dtype)
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         kernel = self.param("kernel", CONV_INIT, (3, 3, x.shape[-1], self.features))
         bias = self.param("bias", ZEROS, (self.features,))
-        channels = self.channels or tensor_core_channels()
+        channels = self.channels or tensor_core_channels(self.dtype)
         return _conv2d(x, kernel, self.stride, self.dtype, channels) + bias.astype(self.dtype)
 
 
@@ -144,7 +147,7 @@ class ConvTranspose(nn.Module):
         # ran 2-3x slower on an H100 (benchmarks/results/decoder_h100.json; DEAR update at batch
         # 512: 15.5 -> 10.3 ms per seed, benchmarks/results/update_h100_512.json).
         x = jax.lax.optimization_barrier(jnp.pad(x, ((0, 0),) * (x.ndim - 3) + (pad, pad, (0, 0))))
-        y = _conv2d(x, w, 1, self.dtype, self.channels or tensor_core_channels())
+        y = _conv2d(x, w, 1, self.dtype, self.channels or tensor_core_channels(self.dtype))
         # [N, m, m, (ry, rx, c)] -> [N, (m, ry), (m, rx), c], cropped to the output size.
         y = y.reshape(-1, phases, phases, s, s, self.features).transpose(0, 1, 3, 2, 4, 5)
         y = y.reshape(*x.shape[:-3], phases * s, phases * s, self.features)[..., :size, :size, :]
@@ -164,6 +167,11 @@ class ConvTrunk(nn.Module):
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
+        if (self.channels or tensor_core_channels(self.dtype)) > 1:
+            # XLA fuses the random shift's gather with the conversion to float and the channel
+            # padding into one slow kernel; kept apart, the bf16 trunk took 1.78 instead of
+            # 2.36 ms (H100, benchmarks/results/encoder_input_h100.json: shift_apart vs pad).
+            obs = jax.lax.optimization_barrier(obs)
         x = preprocess(obs).astype(self.dtype)
         x = nn.relu(Conv(32, 2, self.dtype, self.channels)(x))
         for _ in range(3):

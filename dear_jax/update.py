@@ -21,8 +21,6 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
-from jax._src import core as jax_core
-from jax.experimental import compute_on as compute_on_lib
 
 from dear_jax import augment, losses, networks
 from dear_jax.replay import Batch
@@ -179,41 +177,25 @@ def init_seeds(cfg: AgentConfig, keys: jax.Array) -> AgentState:
     return jax.lax.map(functools.partial(init, cfg), keys)
 
 
-SEED_AXES = ("vmap", "loop", "streams")
-GPU_STREAMS = 2  # seed_axis="streams": seeds take turns on this many extra GPU streams
-
-
-def on_gpu_stream(fn, stream: int):
-    """`fn` as a call that XLA runs on GPU stream `stream` (ignored off GPUs), outputs in device
-    memory. `jax.experimental.compute_on`'s function form: named compute_on2 in jax 0.10,
-    compute_on from 0.11 on."""
-    call = getattr(compute_on_lib, "compute_on2", None) or compute_on_lib.compute_on
-    device_memory = jax_core.MemorySpace.Device
-    return call(fn, compute_type=f"gpu_stream:{stream}", out_memory_spaces=device_memory)
+SEED_AXES = ("vmap", "loop")
 
 
 def over_seeds(fn, how: str = "vmap"):
     """`fn` of one seed applied to every seed of a leading [S] axis, in one traced program.
 
-    how="vmap": `jax.vmap(fn)`. how="loop": one traced call per seed, results stacked.
-    how="streams": as "loop", with seed i's call on GPU stream i % GPU_STREAMS + 1, so that XLA
-    may run the seeds' kernels concurrently (the annotation is ignored off GPUs).
-    All give the same numbers; they differ in speed only. A vmapped convolution whose weights
-    differ per seed becomes one grouped convolution, which an H100 ran ~1.5x slower than S plain
-    ones (benchmarks/results/update_h100.json), so the trainer loops on GPUs.
+    how="vmap": `jax.vmap(fn)`. how="loop": one traced call per seed, results stacked. Both give
+    the same numbers; they differ in speed only. A vmapped convolution whose weights differ per
+    seed becomes one grouped convolution, which an H100 ran ~1.5x slower than S plain ones
+    (benchmarks/results/update_h100.json), so the trainer loops on GPUs.
     """
     if how == "vmap":
         return jax.vmap(fn)
-    if how not in SEED_AXES:
+    if how != "loop":
         raise ValueError(f"unknown seed axis {how!r}; valid: {SEED_AXES}")
 
     def looped(*args):
         num_seeds = jax.tree.leaves(args)[0].shape[0]
-        outs = []
-        for i in range(num_seeds):
-            seed_args = jax.tree.map(lambda x, i=i: x[i], args)
-            call = on_gpu_stream(fn, i % GPU_STREAMS + 1) if how == "streams" else fn
-            outs.append(call(*seed_args))
+        outs = [fn(*jax.tree.map(lambda x, i=i: x[i], args)) for i in range(num_seeds)]
         return jax.tree.map(lambda *xs: jnp.stack(xs), *outs)
 
     return looped

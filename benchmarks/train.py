@@ -42,8 +42,9 @@ def bench_config(args):
     c.replay.seed_frames = args.warmup_frames // 2
     c.total_frames = args.warmup_frames + args.frames
     c.log_every_frames = args.log_every
-    c.eval_every_frames = 10**9  # only the closing evaluation
-    c.num_eval_episodes = 1
+    c.eval_every_frames = args.eval_every or 10**9  # 0: only the closing evaluation
+    c.num_eval_episodes = args.eval_episodes if args.eval_every else 1
+    c.eval_in_background = not args.eval_foreground
     c.env.episode_frames = 0
     c.checkpoint_every_frames = 0
     c.save_video = False
@@ -61,8 +62,14 @@ def throughput(config, warmup_frames) -> dict:
         logs = [read_csv(p) for p in sorted(pathlib.Path(workdir).glob("seed_0/train.csv"))][0]
     frames, fps = logs["frame"], logs["fps"]
     after = frames > warmup_frames + config.log_every_frames  # skip the interval with the compile
+    # Each row's rate covers the frames since the row before; evaluations (in the background, or
+    # holding up the loop) fall inside those intervals. Over the measured span: frames / time.
+    span = np.diff(frames, prepend=0)[after] * config.seeds
+    span_fps = float(span.sum() / (span / fps[after]).sum()) if after.any() else float("nan")
     return dict(
         aggregate_fps=float(np.mean(fps[after])) if after.any() else float("nan"),
+        median_row_fps=float(np.median(fps[after])) if after.any() else float("nan"),
+        span_fps_with_evaluations=span_fps,
         fps_rows=fps[after].tolist(),
         total_s=total_s,
         updates_per_seed=summary["updates_per_seed"],
@@ -154,6 +161,9 @@ def main():
     p.add_argument("--log-every", type=int, default=2000)
     p.add_argument("--capacity", type=int, default=100_000)
     p.add_argument("--dtype", default="float32", choices=["float32", "bfloat16"])
+    p.add_argument("--eval-every", type=int, default=0, help="frames per seed; 0: at the end")
+    p.add_argument("--eval-episodes", type=int, default=10)
+    p.add_argument("--eval-foreground", action="store_true", help="training waits for evals")
     p.add_argument("--reps", type=int, default=10)
     p.add_argument("--skip", nargs="*", default=[], choices=["throughput", "split"])
     p.add_argument("--out", default=None)
@@ -204,6 +214,14 @@ def main():
             f"{config.env.task}); {tp['aggregate_fps'] / PYTORCH_ANCHOR_FPS:.1f}x the PyTorch "
             f"pipeline's {PYTORCH_ANCHOR_FPS:.0f} frames/s (DESIGN.md)"
         )
+        if args.eval_every:
+            print(
+                f"evaluating {config.num_eval_episodes} episodes per seed every "
+                f"{args.eval_every} frames ({'foreground' if args.eval_foreground else 'background'}"
+                f", {config.env.eval_backend} physics): {tp['span_fps_with_evaluations']:.0f} "
+                f"frames/s over the measured span against a median row of "
+                f"{tp['median_row_fps']:.0f}: x{tp['median_row_fps'] / tp['span_fps_with_evaluations']:.2f}"
+            )
         save()
 
 

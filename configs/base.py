@@ -18,6 +18,9 @@ def get_config() -> ConfigDict:
     c.total_frames = 1_000_000  # environment frames per seed
     c.eval_every_frames = 10_000  # per seed
     c.num_eval_episodes = 10  # per seed, run in parallel
+    # Evaluate in a background thread on a copy of the parameters while training goes on (the
+    # row is logged with the frame it started at); False: training waits for each evaluation.
+    c.eval_in_background = True
     c.log_every_frames = 5_000  # per seed: train metrics to CSV / TensorBoard
     c.checkpoint_every_frames = 100_000  # per seed; 0 disables periodic checkpoints
     c.keep_checkpoints = 3
@@ -27,6 +30,9 @@ def get_config() -> ConfigDict:
     c.env = ConfigDict()
     c.env.task = "walker-walk"  # python -c "import envs; print(envs.names())" lists them
     c.env.backend = "auto"  # "mjx" | "cpu" | "auto" (MJX when an accelerator is present)
+    # Physics of the evaluation episodes: "cpu" (CPU MuJoCo, dm_control's own solver and
+    # stepping, on CPU cores beside the GPU's training) or "train" (env.backend's).
+    c.env.eval_backend = "cpu"
     c.env.distraction = "none"  # "none" | "easy" | "medium" | "hard" (Distracting Control Suite)
     c.env.dynamic = False  # distractions move during the episode
     c.env.background_dir = ""  # DAVIS-2017 root; "" = built-in procedural videos (logged)

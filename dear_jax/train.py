@@ -15,6 +15,7 @@ SIGTERM / SIGINT checkpoint and stop (`dear_jax/signals.py`).
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import dataclasses
 import json
@@ -52,6 +53,8 @@ RESUMABLE_CHANGES = (
     "save_video",
     "progress",
     "env.render.num_workers",
+    "env.eval_backend",
+    "eval_in_background",
     "agent.seed_axis",
     "replay.disk",
 )
@@ -88,6 +91,7 @@ def validate(config: ConfigDict) -> None:
         "agent.ortho_form": losses.ORTHOGONALITY_FORMS,
         "agent.seed_axis": update.SEED_AXES,
         "env.backend": ("auto", "mjx", "cpu"),
+        "env.eval_backend": ("cpu", "train"),
         "env.distraction": ("none", "easy", "medium", "hard"),
         "env.mask": ("true", "noisy", "approximate"),
     }
@@ -152,13 +156,16 @@ def hparams(config: ConfigDict) -> update.HParams:
     return update.HParams(**{n: float(a[n]) for n in names})
 
 
-def make_env(config: ConfigDict, *, envs_per_seed: int, split: str, seed: int) -> envs.Env:
+def make_env(
+    config: ConfigDict, *, envs_per_seed: int, split: str, seed: int, backend: str | None = None
+) -> envs.Env:
+    """The batched env of the config (`backend` overrides env.backend)."""
     e = config.env
     env = envs.make(
         e.task,
         num_seeds=config.seeds,
         envs_per_seed=envs_per_seed,
-        backend=e.backend,
+        backend=backend or e.backend,
         distraction=e.distraction,
         dynamic=e.dynamic,
         background_dir=e.background_dir or None,
@@ -180,7 +187,7 @@ class Programs:
     act: callable  # (agent, obs [S,E,...], key, stepping [S,E]) -> (actions [S,E,A], agent)
     learn: callable  # (agent, replay, key) -> (agent, metrics [S]): one update per seed
     add: callable  # (replay, ts, action) -> replay
-    evaluate_step: callable  # (agent, obs) -> (actions, cos [S], predicted mask of env 0 [S,H,W])
+    evaluate_step: callable  # (params, obs) -> (actions, cos [S], predicted mask of env 0 [S,H,W])
     accumulate: callable  # (returns [S,E], ts) -> returns
     add_metrics: callable  # (metrics, metrics) -> elementwise sum
 
@@ -237,22 +244,20 @@ def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigD
             buffer, ts.frame, ts.mask, action, ts.reward, ts.discount, ts.first
         )
 
-    def evaluate_step(agent, obs):
-        def one(agent, obs):
-            z = nets.encoder.apply({"params": agent.params["encoder"]}, obs)
-            action = nets.actor.apply({"params": agent.params["actor"]}, z)
+    def evaluate_step(params, obs):
+        def one(params, obs):
+            z = nets.encoder.apply({"params": params["encoder"]}, obs)
+            action = nets.actor.apply({"params": params["actor"]}, z)
             z_env, z_agent = losses.split_latent(z)
             cos = jnp.mean(losses.cosine_similarity(z_agent, z_env))
             if nets.mask_decoder is None:
                 pred = jnp.zeros(obs.shape[1:3])
             else:  # newest frame's channel of env 0
-                logits = nets.mask_decoder.apply(
-                    {"params": agent.params["mask_decoder"]}, z_agent[:1]
-                )
+                logits = nets.mask_decoder.apply({"params": params["mask_decoder"]}, z_agent[:1])
                 pred = jax.nn.sigmoid(logits[0, ..., -1])
             return action, cos, pred
 
-        return jax.vmap(one)(agent, obs)
+        return jax.vmap(one)(params, obs)
 
     def accumulate(returns, ts):
         return jnp.where(ts.first, 0.0, returns) + ts.reward
@@ -272,9 +277,10 @@ class EvalAborted(Exception):
 
 
 def evaluate(
-    env: envs.Env, programs: Programs, agent, key, *, video: bool, stop=lambda: False
+    env: envs.Env, programs: Programs, params, key, *, video: bool, stop=lambda: False
 ) -> tuple[dict, dict]:
-    """One episode in each of the eval env's E envs per seed, deterministic actions.
+    """One episode in each of the eval env's E envs per seed, deterministic actions of the
+    policy with `params` (the agent's, [S]-stacked).
 
     Returns per-seed metrics ([S] arrays) and, if asked, video frames of env 0 per seed.
     Raises EvalAborted when `stop()` turns true (checked every step).
@@ -286,7 +292,7 @@ def evaluate(
     cos_sum, steps = jnp.zeros(env.shape[0]), 0
     frames = []
     while True:
-        action, cos, pred = programs.evaluate_step(agent, ts.obs)
+        action, cos, pred = programs.evaluate_step(params, ts.obs)
         if video:
             frames.append((ts.frame[:, 0], ts.true_mask[:, 0], pred))
         cos_sum, steps = cos_sum + cos, steps + 1
@@ -408,7 +414,11 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
             stack.callback(store.close)
         eval_env = stack.enter_context(
             make_env(
-                config, envs_per_seed=config.num_eval_episodes, split="val", seed=config.seed + 1
+                config,
+                envs_per_seed=config.num_eval_episodes,
+                split="val",
+                seed=config.seed + 1,
+                backend="cpu" if config.env.eval_backend == "cpu" else None,
             )
         )
         run = _Run(config, spec, ckpt, store, env, eval_env)
@@ -494,6 +504,12 @@ class _Run:
         self.metric_sum = None  # train metrics summed since the last log row
         self.episode_returns = []  # [2, S] per step: returns summed and count of ended episodes
         self.last_eval_return = None
+        self._pending_eval = None  # the evaluation in flight (see _evaluate_if_due)
+        self._eval_thread = (
+            concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="eval")
+            if config.eval_in_background
+            else None
+        )
         self.resumed_from = None
         self.key, k_reset = jax.random.split(self.key)
         self.state, self.ts = env.reset(k_reset)
@@ -535,6 +551,7 @@ class _Run:
         }
 
     def save(self, wall_s: float) -> None:
+        self._finish_evaluation(wait=True)  # its row and eval-env state belong to this checkpoint
         self.counters["wall_s"] = wall_s
         if self.store is not None:
             self.store.save_partial(self.buffer, self.counters["rows"])
@@ -696,38 +713,74 @@ class _Run:
             parts.append(f"eval return {self.last_eval_return:.1f}")
         return ", ".join(parts)
 
-    def _evaluate_if_due(self, logger, workdir, wall_s, pbar, stop) -> None:
+    def _evaluate_if_due(self, wall_s, stop) -> None:
+        """Start the evaluation due at this frame, if any: in a background thread on a copy of
+        the parameters (`eval_in_background`, the default) while training goes on, or now. Its
+        row is logged by `_finish_evaluation`, with the frame and wall time of its start."""
+        self._finish_evaluation(wait=False)
         config, lv, frame = self.config, self.lv, self.counters["frame"]
         due = frame >= lv["next_eval"] or frame >= config.total_frames
         if not due or lv["last_eval_frame"] == frame or stop:
             return
-        snapshot = self.eval_env.host_state()
-        t0 = time.perf_counter()
-        try:
+        self._finish_evaluation(wait=True)  # one evaluation at a time, in order
+        background = self._eval_thread is not None
+        # A copy: the loop donates the agent's buffers to its next update.
+        params = jax.tree.map(jnp.copy, self.agent.params) if background else self.agent.params
+        key = jax.random.fold_in(self.eval_root, frame)
+
+        def run():
+            t0 = time.perf_counter()
+            # A stop cuts short an evaluation that holds up the loop; one in the background
+            # runs to its end first, so the checkpoint after it holds its row.
+            abort = (lambda: False) if background else (lambda: bool(stop))
             metrics, clips = evaluate(
-                self.eval_env,
-                self.programs,
-                self.agent,
-                jax.random.fold_in(self.eval_root, frame),
-                video=config.save_video,
-                stop=lambda: bool(stop),
+                self.eval_env, self.programs, params, key, video=config.save_video, stop=abort
             )
-        except EvalAborted:
-            self.eval_env.set_host_state(snapshot)  # the resumed run evaluates from here again
+            return metrics, clips, time.perf_counter() - t0
+
+        pending = {
+            "frame": frame,
+            "wall_s": wall_s,
+            "env_state": self.eval_env.host_state(),
+            "loop": {k: lv[k] for k in ("last_eval_frame", "next_eval")},
+        }
+        lv["last_eval_frame"] = frame
+        lv["next_eval"] = (frame // config.eval_every_frames + 1) * config.eval_every_frames
+        if background:
+            pending["future"] = self._eval_thread.submit(run)
+        else:
+            pending["future"] = future = concurrent.futures.Future()
+            try:
+                future.set_result(run())
+            except EvalAborted as e:
+                future.set_exception(e)
+        self._pending_eval = pending
+        self._finish_evaluation(wait=not background)
+
+    def _finish_evaluation(self, *, wait: bool) -> None:
+        """Log the evaluation in flight once it has ended (`wait`: block until it has)."""
+        pending = self._pending_eval
+        if pending is None or not (wait or pending["future"].done()):
             return
-        fps_per_seed = frame / wall_s if frame else np.nan  # nothing trained before frame 0
+        self._pending_eval = None
+        config, lv, frame = self.config, self.lv, pending["frame"]
+        try:
+            metrics, clips, eval_s = pending["future"].result()
+        except EvalAborted:  # the resumed run evaluates from here again
+            self.eval_env.set_host_state(pending["env_state"])
+            lv.update(pending["loop"])
+            return
+        fps_per_seed = frame / pending["wall_s"] if frame else np.nan  # nothing trained at 0
         metrics.update(
-            wall_s=wall_s,
-            eval_s=time.perf_counter() - t0,
+            wall_s=pending["wall_s"],
+            eval_s=eval_s,
             fps=fps_per_seed * config.seeds,
             sec_per_1000_frames=1000.0 / fps_per_seed,
         )
-        logger.write("eval", frame, metrics)
+        self._logger.write("eval", frame, metrics)
         for s, clip in clips.items():
-            write_video(workdir / "videos" / f"eval_{frame}_seed{s}.mp4", clip, fps=30)
+            write_video(self._workdir / "videos" / f"eval_{frame}_seed{s}.mp4", clip, fps=30)
         self.last_eval_return = float(np.mean(metrics["episode_return"]))
-        lv["last_eval_frame"] = frame
-        lv["next_eval"] = (frame // config.eval_every_frames + 1) * config.eval_every_frames
         log.info(
             "eval @ %s frames: return per seed %s%s",
             f"{frame:,}",
@@ -736,8 +789,8 @@ class _Run:
             if "success" in metrics
             else "",
         )
-        if pbar is not None:
-            pbar.set_postfix_str(self._postfix(metrics["fps"]))
+        if self._pbar is not None:
+            self._pbar.set_postfix_str(self._postfix(metrics["fps"]))
 
     # -- the loop ----------------------------------------------------------------------------
     def loop(self, logger: RunLogger, workdir, stop: StopRequest) -> None:
@@ -746,16 +799,17 @@ class _Run:
         every = lambda n: (counters["frame"] // n + 1) * n  # noqa: E731
         next_ckpt = every(ckpt_every) if ckpt_every else None
         pbar = _pbar(config, config.total_frames, counters["frame"])
+        self._logger, self._workdir, self._pbar = logger, pathlib.Path(workdir), pbar
         t_start, wall0 = time.perf_counter(), counters["wall_s"]
         self._log_t = t_start
         wall = lambda: wall0 + time.perf_counter() - t_start  # noqa: E731
         try:
             # An evaluation a stop cut short runs first (the resumed run continues from there).
-            self._evaluate_if_due(logger, workdir, wall(), pbar, stop)
+            self._evaluate_if_due(wall(), stop)
             while counters["frame"] < config.total_frames and not stop:
                 self._step(pbar)
                 self._log(logger, pbar)
-                self._evaluate_if_due(logger, workdir, wall(), pbar, stop)
+                self._evaluate_if_due(wall(), stop)
                 if next_ckpt is not None and counters["frame"] >= next_ckpt:
                     self.save(wall())
                     next_ckpt = every(ckpt_every)
@@ -767,8 +821,11 @@ class _Run:
                 )
             if self.ckpt.latest_step() != counters["frame"]:
                 self.save(wall())
+            self._finish_evaluation(wait=True)
             counters["wall_s"] = wall()
         finally:
+            if self._eval_thread is not None:
+                self._eval_thread.shutdown(wait=False, cancel_futures=True)
             if pbar is not None:
                 pbar.close()
 

@@ -443,7 +443,7 @@ def test_evaluation_counts_each_envs_first_episode():
             return self._ts(state.step + 1)
 
     programs = types.SimpleNamespace(
-        evaluate_step=lambda agent, obs: (jnp.zeros((1, 3, 9)), jnp.zeros(1), jnp.zeros((4, 4)))
+        evaluate_step=lambda params, obs: (jnp.zeros((1, 3, 9)), jnp.zeros(1), jnp.zeros((4, 4)))
     )
     metrics, _ = train.evaluate(FakeEnv(), programs, None, None, video=False)
     np.testing.assert_allclose(metrics["episode_return"], [2 / 3])

@@ -30,6 +30,7 @@ import numpy as np
 from benchmarks.common import save_json
 from dear_jax import replay, train, update
 from dear_jax.logger import format_table, read_csv
+from dear_jax.signals import Stopped
 
 PYTORCH_ANCHOR_FPS = (
     262.0  # DESIGN.md: PyTorch pipeline of the reference's shape, 5 processes, H100
@@ -57,7 +58,11 @@ def bench_config(args):
 def throughput(config, warmup_frames) -> dict:
     with tempfile.TemporaryDirectory() as workdir:
         t0 = time.perf_counter()
-        summary = train.train(config, workdir)
+        try:
+            updates = train.train(config, workdir)["updates_per_seed"]
+        except Stopped as e:  # cut short (a time limit's SIGTERM): the rows so far still count
+            print(e)
+            updates = None
         total_s = time.perf_counter() - t0
         logs = [read_csv(p) for p in sorted(pathlib.Path(workdir).glob("seed_0/train.csv"))][0]
     frames, fps = logs["frame"], logs["fps"]
@@ -72,7 +77,7 @@ def throughput(config, warmup_frames) -> dict:
         span_fps_with_evaluations=span_fps,
         fps_rows=fps[after].tolist(),
         total_s=total_s,
-        updates_per_seed=summary["updates_per_seed"],
+        updates_per_seed=updates,
     )
 
 

@@ -6,6 +6,8 @@
 #             DEAR / DrQ-v2 at walker's batch 512 (5 seeds, loop)
 #   train     benchmarks/train.py: DEAR walker-walk, 5 seeds x 8 envs, stage split, then throughput
 #   learn     start DrQ-v2 and DEAR walker-walk (3 seeds each) detached, side by side on the GPU
+#   paper     start the learning check detached: configs/walker_drqv2_paper.py, 3 seeds, 500k
+#             frames per seed (keep the machine with `wait`, then `collect`)
 #   collect   pack the learning runs' logs (no checkpoints or videos) into $OUT/runs.tar.gz
 #   speed     the performance issue's update figures: DEAR fp32 / bf16 and DrQ-v2 bf16 at batch
 #             512 (5 seeds), the first conv's input paths (benchmarks/encoder_input.py), the
@@ -49,6 +51,11 @@ while [ $# -gt 0 ]; do
           --config.seeds=3 --config.progress=False \
           > "$runs/walker_$method.log" 2>&1 < /dev/null &
       done
+      sleep 5; nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv ;;
+    paper)
+      setsid nohup python3 run.py --config configs/walker_drqv2_paper.py \
+        --workdir "$runs/walker_drqv2_paper" --config.seeds=3 --config.progress=False \
+        > "$runs/walker_drqv2_paper.log" 2>&1 < /dev/null &
       sleep 5; nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv ;;
     collect)
       for f in "$runs"/*.log; do echo "--- $f"; tail -n 4 "$f"; done

@@ -172,6 +172,16 @@ def test_resumed_run_equals_the_uninterrupted_one(run):
     assert replay_disk.file_name(0, chunk) in names and len(names) >= 3
 
 
+def test_evaluating_in_the_background_changes_nothing_but_timing(run, tmp_path):
+    """The fixture's runs evaluate in a background thread on a copy of the parameters while
+    training goes on; a run whose loop waits for each evaluation logs the same eval rows and
+    trains exactly the same run."""
+    workdir = tmp_path / "foreground"
+    train.train(tiny_config(total_frames=280, eval_in_background=False), workdir)
+    assert_same_run(run[-1], workdir, 280)
+    assert len(read_csv(workdir / "seed_0" / "eval.csv")["frame"]) >= 3
+
+
 def test_changed_learning_fields_are_refused_naming_them(run):
     workdir = run[0]
     changed = {"agent.batch_size": 4, "agent.alpha": 0.5, "total_frames": 400}

@@ -162,10 +162,7 @@ class MjxPhysics:
         self._m = mjx.put_model(model, impl="jax")
         self._reward_fn = reward_fn
         options = _compiler_options()
-        # The pure (state, action) -> (state, reward) over (S, E), for callers that put the
-        # physics inside a larger program; `step` is it jitted on its own.
-        self.step_fn = _vmap2(self._step_one)
-        self._step = jax.jit(self.step_fn, compiler_options=options)
+        self._step = jax.jit(_vmap2(self._step_one), compiler_options=options)
         self._init = jax.jit(_vmap2(self._init_one), compiler_options=options)
         self._where = jax.jit(
             lambda reset, new, old: jax.tree.map(

@@ -1,17 +1,38 @@
-"""Command-line reports about the agent: `python -m dear_jax.report params [--action-dim 6]`.
+"""Command-line reports about the agent and about finished runs.
+
+    python -m dear_jax.report params [--action-dim 6]
+    python -m dear_jax.report table RUN [RUN ...] [--threshold 500] [--out results/table]
 
 `params` prints the parameter count of every module per method (walker: |A| = 6), computed from
 shapes only (jax.eval_shape), so it is instant and allocates nothing.
+
+`table` is the paper's Table II for the given run workdirs (what `run.py` writes), one row per
+run, beside the paper's figures (REFERENCE.md section 3, walker on a 1080Ti/3080):
+  params (M)          the run's agent (encoder, actor, critic and its method's heads)
+  s / 1000 frames     wall-clock seconds per 1000 frames of one seed, amortised over the seeds
+                      trained together (the paper runs one seed per process): "training" from
+                      the median train-log rate (rows an evaluation slowed are the exceptions),
+                      "with eval" from the whole run's wall clock (summary.json)
+  cos(z_A, z_E)       mean cosine between the latent halves on the last evaluation's batches
+  final return        last evaluation, mean ± std over seeds
+  frames to T         first evaluated frame at which a seed's return reaches --threshold (the
+                      median over the seeds that reach it; "k/S" says how many did)
+It prints Markdown and, with --out PREFIX, writes PREFIX.md and PREFIX.csv.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import functools
+import json
 import math
+import pathlib
 
 import jax
+import numpy as np
 
+from dear_jax.logger import format_table, read_csv
 from dear_jax.update import METHODS, AgentConfig, init_params
 
 MODULES = ("encoder", "actor", "critic", "mask_decoder", "recon_decoder", "ted")
@@ -48,12 +69,139 @@ def format_params_table(rows) -> str:
     return "\n".join([fmt(lines[0]), sep, *map(fmt, lines[1:])])
 
 
+# REFERENCE.md section 3 (walker-walk, the paper's 1080Ti/3080) and section 2 (cos).
+PAPER = {
+    "drqv2": {"params_m": 12.86, "s_per_1000": 12.55},
+    "sear": {"params_m": 16.21, "s_per_1000": 18.02, "cos": 0.1},
+    "ted": {"params_m": 12.87, "s_per_1000": 16.19},
+    "dear": {"params_m": 14.09, "s_per_1000": 16.11, "cos": 1e-7},
+}
+TABLE_COLUMNS = (
+    "run",
+    "method",
+    "task",
+    "seeds",
+    "params (M)",
+    "paper params (M)",
+    "s / 1000 frames, training",
+    "s / 1000 frames, with eval",
+    "paper s / 1000 frames",
+    "cos(z_A, z_E)",
+    "paper cos",
+    "final return",
+    "frames to threshold",
+)
+
+
+def _action_dim(summary: dict, task: str) -> int:
+    if "action_dim" in summary:
+        return int(summary["action_dim"])
+    from envs import dmc, kitchen  # runs written before summaries held it
+
+    tasks = {**dmc.TASKS, **kitchen.TASKS}
+    return int(tasks[task].physics_model().nu)
+
+
+def run_row(workdir, threshold: float) -> dict:
+    """Table II's numbers for one run workdir (config.json, summary.json, seed_*/*.csv)."""
+    workdir = pathlib.Path(workdir)
+    for name in ("config.json", "summary.json"):
+        if not (workdir / name).is_file():
+            raise FileNotFoundError(
+                f"{workdir / name} not found: give the workdir of a finished run (run.py writes "
+                "summary.json at its end)"
+            )
+    config = json.loads((workdir / "config.json").read_text())
+    summary = json.loads((workdir / "summary.json").read_text())
+    agent, seeds = config["agent"], int(config["seeds"])
+    cfg = AgentConfig(
+        action_dim=_action_dim(summary, config["env"]["task"]),
+        method=agent["method"],
+        encoder=agent["encoder"],
+        latent_dim=agent["latent_dim"],
+        feature_dim=agent["feature_dim"],
+        hidden_dim=agent["hidden_dim"],
+    )
+    evals = [read_csv(workdir / f"seed_{s}" / "eval.csv") for s in range(seeds)]
+    trains = [read_csv(workdir / f"seed_{s}" / "train.csv") for s in range(seeds)]
+    finals = np.array([e["episode_return"][-1] for e in evals])
+    reached = []
+    for e in evals:
+        hit = np.nonzero(e["episode_return"] >= threshold)[0]
+        if hit.size:
+            reached.append(e["frame"][hit[0]])
+    fps_rows = trains[0]["fps"][np.isfinite(trains[0]["fps"])]
+    frames = summary["frames_per_seed"] * seeds  # frames of all seeds together
+    return {
+        "run": workdir.name,
+        "method": agent["method"],
+        "task": config["env"]["task"],
+        "seeds": seeds,
+        "params_m": sum(param_counts(cfg).values()) / 1e6,
+        "s_per_1000_training": 1000.0 / np.median(fps_rows) if fps_rows.size else math.nan,
+        "s_per_1000_with_eval": 1000.0 * summary["wall_s"] / frames if frames else math.nan,
+        "cos": float(np.mean([e["cos_agent_env"][-1] for e in evals])),
+        "final_return_mean": float(finals.mean()),
+        "final_return_std": float(finals.std()),
+        "frames_to_threshold": float(np.median(reached)) if reached else math.nan,
+        "seeds_reaching_threshold": len(reached),
+        "threshold": threshold,
+    }
+
+
+def _cells(r: dict) -> list:
+    paper = PAPER.get(r["method"], {})
+    fmt = lambda x, f: "-" if x is None or not np.isfinite(x) else format(x, f)  # noqa: E731
+    reached = f"{r['seeds_reaching_threshold']}/{r['seeds']}"
+    return [
+        r["run"],
+        r["method"],
+        r["task"],
+        r["seeds"],
+        fmt(r["params_m"], ".2f"),
+        fmt(paper.get("params_m"), ".2f"),
+        fmt(r["s_per_1000_training"], ".2f"),
+        fmt(r["s_per_1000_with_eval"], ".2f"),
+        fmt(paper.get("s_per_1000"), ".2f"),
+        fmt(r["cos"], ".2e"),
+        fmt(paper.get("cos"), ".0e"),
+        f"{r['final_return_mean']:.1f} ± {r['final_return_std']:.1f}",
+        f"{fmt(r['frames_to_threshold'], ',.0f')} ({reached})",
+    ]
+
+
+def runs_table(workdirs, threshold: float, out: str | None = None) -> tuple[list[dict], str]:
+    """Rows and the Markdown text of Table II; with `out`, also writes out.md and out.csv."""
+    rows = [run_row(w, threshold) for w in workdirs]
+    text = (
+        f"Table II: {len(rows)} run(s); s / 1000 frames per seed amortised over the seeds "
+        f"trained together; frames to a return of {threshold:g}\n\n"
+        + format_table(TABLE_COLUMNS, [_cells(r) for r in rows])
+        + "\n"
+    )
+    if out:
+        path = pathlib.Path(out)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.with_suffix(".md").write_text(text)
+        with path.with_suffix(".csv").open("w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+    return rows, text
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m dear_jax.report", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("params", help="parameter counts per method and module")
     p.add_argument("--action-dim", type=int, default=6, help="|A| (walker: 6)")
+    t = sub.add_parser("table", help="Table II for finished runs")
+    t.add_argument("runs", nargs="+", help="run workdirs")
+    t.add_argument("--threshold", type=float, default=500.0, help="return for sample efficiency")
+    t.add_argument("--out", default=None, help="also write OUT.md and OUT.csv")
     args = parser.parse_args(argv)
+    if args.command == "table":
+        print(runs_table(args.runs, args.threshold, args.out)[1])
     if args.command == "params":
         print(f"Parameters per module, |A| = {args.action_dim}")
         print(format_params_table(params_table(args.action_dim)))

@@ -863,6 +863,7 @@ def write_summary(workdir, config, spec, counters) -> dict:
     summary = {
         "task": config.env.task,
         "method": config.agent.method,
+        "action_dim": spec.action_dim,
         "seeds": config.seeds,
         "envs_per_seed": config.envs_per_seed,
         "frames_per_seed": counters["frame"],

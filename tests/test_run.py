@@ -182,6 +182,38 @@ def test_evaluating_in_the_background_changes_nothing_but_timing(run, tmp_path):
     assert len(read_csv(workdir / "seed_0" / "eval.csv")["frame"]) >= 3
 
 
+def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):
+    """`python -m dear_jax.report table` on a run the trainer wrote: every number recomputed here
+    from that run's CSVs, summary and config."""
+    from dear_jax import report
+
+    whole = run[-1]
+    threshold = 1.0
+    rows, text = report.runs_table([whole], threshold, out=str(tmp_path / "table"))
+    (row,) = rows
+    c = tiny_config(total_frames=280)
+    evals = [read_csv(whole / f"seed_{s}" / "eval.csv") for s in range(c.seeds)]
+    finals = np.array([e["episode_return"][-1] for e in evals])
+    assert row["final_return_mean"] == pytest.approx(finals.mean())
+    assert row["final_return_std"] == pytest.approx(finals.std())
+    assert row["cos"] == pytest.approx(np.mean([e["cos_agent_env"][-1] for e in evals]))
+    firsts = [e["frame"][np.argmax(e["episode_return"] >= threshold)] for e in evals]
+    reaching = [f for f, e in zip(firsts, evals) if (e["episode_return"] >= threshold).any()]
+    assert row["seeds_reaching_threshold"] == len(reaching)
+    if reaching:
+        assert row["frames_to_threshold"] == np.median(reaching)
+    summary = json.loads((whole / "summary.json").read_text())
+    assert row["s_per_1000_with_eval"] == pytest.approx(1000 * summary["wall_s"] / (280 * c.seeds))
+    fps = read_csv(whole / "seed_0" / "train.csv")["fps"]
+    assert row["s_per_1000_training"] == pytest.approx(1000 / np.median(fps[np.isfinite(fps)]))
+    acfg = train.agent_config(c, summary["action_dim"])
+    assert row["params_m"] == pytest.approx(sum(report.param_counts(acfg).values()) / 1e6)
+    assert "| dear " in text and (tmp_path / "table.md").read_text() == text
+    assert read_csv(tmp_path / "table.csv")["final_return_mean"][0] == pytest.approx(finals.mean())
+    with pytest.raises(FileNotFoundError, match="config.json not found"):
+        report.run_row(tmp_path, threshold)
+
+
 def test_changed_learning_fields_are_refused_naming_them(run):
     workdir = run[0]
     changed = {"agent.batch_size": 4, "agent.alpha": 0.5, "total_frames": 400}

@@ -181,3 +181,18 @@ def test_pixels_are_centred():
     np.testing.assert_allclose(
         networks.preprocess(jnp.array([128], jnp.uint8)), [128 / 255 - 0.5], atol=1e-7
     )
+
+
+def test_trunk_with_tensor_core_channels_is_the_same_function():
+    """The conv trunk as GPUs run it in bf16 (pixels kept apart by a barrier, channels padded to
+    8) computes what the plain trunk computes, gradients included (here in float32)."""
+    obs = jax.random.randint(jax.random.key(0), (2, 84, 84, 9), 0, 256).astype(jnp.uint8)
+    plain, padded = networks.ConvTrunk(channels=1), networks.ConvTrunk(channels=8)
+    params = plain.init(jax.random.key(1), obs)
+    assert jax.tree.map(jnp.shape, params) == jax.tree.map(
+        jnp.shape, padded.init(jax.random.key(1), obs)
+    )
+    loss = lambda m: lambda p: jnp.sum(jnp.sin(m.apply(p, obs)))  # noqa: E731
+    np.testing.assert_allclose(loss(padded)(params), loss(plain)(params), rtol=1e-5)
+    for g, e in zip(*(jax.tree.leaves(jax.grad(loss(m))(params)) for m in (padded, plain))):
+        np.testing.assert_allclose(g, e, rtol=1e-4, atol=1e-4)

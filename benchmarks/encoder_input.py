@@ -25,19 +25,9 @@ import jax.numpy as jnp
 
 from benchmarks.common import save_json
 from dear_jax import augment
-from dear_jax.networks import preprocess
+from dear_jax.networks import _conv2d, _pad_axis, preprocess
 
 VARIANTS = ("plain", "pad", "pad_uint8", "shift_apart", "space_to_depth")
-
-
-def _conv(x, w, stride):
-    return jax.lax.conv_general_dilated(
-        x, w.astype(x.dtype), (stride, stride), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC")
-    )
-
-
-def _pad_channels(x, to):
-    return jnp.pad(x, ((0, 0),) * (x.ndim - 1) + ((0, to - x.shape[-1]),))
 
 
 def _space_to_depth_conv(x, w):
@@ -47,18 +37,18 @@ def _space_to_depth_conv(x, w):
     blocks = blocks.reshape(b, h // 2, wd // 2, 4 * c)
     w4 = jnp.zeros((4, 4, c, w.shape[-1]), w.dtype).at[:3, :3].set(w)  # taps 3 are zero
     w2 = w4.reshape(2, 2, 2, 2, c, -1).transpose(0, 2, 1, 3, 4, 5).reshape(2, 2, 4 * c, -1)
-    return _conv(_pad_channels(blocks, 40), _pad_in(w2, 40), 1)
+    return _conv2d(blocks, w2, 1, x.dtype, 8)  # 36 channels padded to 40
 
 
 def first_layer_input(obs, key, variant, dtype):
     if variant == "pad_uint8":
-        obs = jax.lax.optimization_barrier(_pad_channels(obs, 16))
+        obs = jax.lax.optimization_barrier(_pad_axis(obs, -1, 8))
     x = augment.random_shift_batch(obs, key)
     if variant == "shift_apart":
         x = jax.lax.optimization_barrier(x)
     x = preprocess(x).astype(dtype)
     if variant in ("pad", "shift_apart"):
-        x = _pad_channels(x, 16)
+        x = _pad_axis(x, -1, 8)
     return x
 
 
@@ -68,15 +58,12 @@ def trunk(params, obs, key, variant, dtype):
     if variant == "space_to_depth":
         y = _space_to_depth_conv(x, w1.astype(dtype))
     else:
-        y = _conv(x, _pad_in(w1, x.shape[-1]), 2)
+        # The kernel's input channels are zero-padded to match padded pixels (16), if any.
+        y = _conv2d(x, w1, 2, dtype, 8 if x.shape[-1] != w1.shape[2] else 1)
     x = jax.nn.relu(y + params[0][1].astype(dtype))
     for w, b in params[1:]:
-        x = jax.nn.relu(_conv(x, w, 1) + b.astype(dtype))
+        x = jax.nn.relu(_conv2d(x, w, 1, dtype, 1) + b.astype(dtype))
     return x
-
-
-def _pad_in(w, cin):
-    return jnp.pad(w, ((0, 0), (0, 0), (0, cin - w.shape[2]), (0, 0)))
 
 
 def make_step(variant, dtype):

@@ -98,7 +98,7 @@ def stage_split(config, reps) -> dict:
     try:
         spec = env.spec
         acfg = train.agent_config(config, spec.action_dim)
-        hp = train.hparams(config).for_seeds(num_seeds)
+        hp = train.hparams(config)
         programs = train.build_programs(acfg, hp, config)
         agent = jax.jit(functools.partial(update.init_seeds, acfg))(
             jax.random.split(jax.random.key(0), num_seeds)

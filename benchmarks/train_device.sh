@@ -8,6 +8,8 @@
 #   learn     start DrQ-v2 and DEAR walker-walk (3 seeds each) detached, side by side on the GPU
 #   paper     start the learning check detached: configs/walker_drqv2_paper.py, 3 seeds, 500k
 #             frames per seed (keep the machine with `wait`, then `collect`)
+#   kitchen   start DEAR on kitchen-light detached (3 seeds x 8 envs, bf16, eval every 10k
+#             frames) from a copy of the tree, so a later call's tree sync cannot touch it
 #   collect   pack the learning runs' logs (no checkpoints or videos) into $OUT/runs.tar.gz
 #   speed     the performance issue's update figures: DEAR fp32 / bf16 and DrQ-v2 bf16 at batch
 #             512 (5 seeds), the first conv's input paths (benchmarks/encoder_input.py), the
@@ -56,6 +58,13 @@ while [ $# -gt 0 ]; do
       setsid nohup python3 run.py --config configs/walker_drqv2_paper.py \
         --workdir "$runs/walker_drqv2_paper" --config.seeds=3 --config.progress=False \
         > "$runs/walker_drqv2_paper.log" 2>&1 < /dev/null &
+      sleep 5; nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv ;;
+    kitchen)
+      rm -rf /tmp/kitchen_tree; cp -r "$PWD" /tmp/kitchen_tree
+      (cd /tmp/kitchen_tree && setsid nohup python3 run.py --config configs/kitchen_light_dear.py \
+        --workdir "$runs/kitchen_light_dear" --config.seeds=3 --config.total_frames=300000 \
+        --config.agent.compute_dtype=bfloat16 --config.progress=False \
+        > "$runs/kitchen_light_dear.log" 2>&1 < /dev/null &)
       sleep 5; nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv ;;
     collect)
       for f in "$runs"/*.log; do echo "--- $f"; tail -n 4 "$f"; done

@@ -6,6 +6,8 @@ overridden on the command line: `python run.py --config configs/walker_dear.py -
 
 from ml_collections import ConfigDict
 
+from dear_jax.lanes import default_sweep
+
 TASK_SHORT_NAMES = {"walker": "walker-walk", "cup": "ball_in_cup-catch", "finger": "finger-spin"}
 
 
@@ -76,6 +78,10 @@ def get_config() -> ConfigDict:
     c.agent.nstep = 3
     c.agent.discount = 0.99
     c.agent.update_every_steps = 2  # one update per this many agent steps per seed
+
+    # Settings trained side by side as lanes of one program, crossed with the seeds: comma-
+    # separated values of agent fields, e.g. --config.sweep.beta=-1,0,1,10,100 (dear_jax/lanes.py).
+    c.sweep = default_sweep()
 
     c.replay = ConfigDict()
     c.replay.capacity = (

@@ -3,6 +3,7 @@
 Layout under a run's workdir:
   seed_<i>/train.csv, seed_<i>/eval.csv   one row per `write`: frame first, then the metrics
   seed_<i>/tb/                            tensorboardX events, tags "<kind>/<metric>", step = frame
+(a sweep's lanes use their names, `dear_jax/lanes.py`, in place of seed_<i>).
 
 Every write is flushed, so a killed run keeps its logs. A resumed run (`resume_frame`) keeps the
 rows up to the checkpoint's frame and drops the later ones, which the resumed run will log again;
@@ -96,7 +97,8 @@ class _EventWriter:
 
 
 class RunLogger:
-    """CSV + TensorBoard logs of `num_seeds` seeds trained together."""
+    """CSV + TensorBoard logs of `num_seeds` seeds (or lanes) trained together; `names` are
+    their folders (default seed_<i>)."""
 
     def __init__(
         self,
@@ -105,9 +107,13 @@ class RunLogger:
         *,
         tensorboard: bool = True,
         resume_frame: int | None = None,
+        names: Sequence[str] | None = None,
     ):
         if num_seeds < 1:
             raise ValueError(f"num_seeds must be >= 1, got {num_seeds}")
+        self.names = list(names) if names is not None else [f"seed_{s}" for s in range(num_seeds)]
+        if len(self.names) != num_seeds:
+            raise ValueError(f"{len(self.names)} names for {num_seeds} seeds")
         self.workdir = pathlib.Path(workdir)
         self.num_seeds = num_seeds
         self._columns: dict[tuple[str, int], list[str]] = {}
@@ -139,7 +145,7 @@ class RunLogger:
                 self._writers.append(_EventWriter(tb_dir, purge_step=purge))
 
     def seed_dir(self, seed: int) -> pathlib.Path:
-        return self.workdir / f"seed_{seed}"
+        return self.workdir / self.names[seed]
 
     def csv_path(self, kind: str, seed: int) -> pathlib.Path:
         return self.seed_dir(seed) / f"{kind}.csv"

@@ -1,8 +1,9 @@
 """Learning curves from run workdirs: `python -m dear_jax.plot WORKDIR [WORKDIR ...]`.
 
-Reads WORKDIR/config.json (agent.method, env.task) and every WORKDIR/seed_*/eval.csv, and draws
+Reads WORKDIR/config.json (agent.method, env.task, the sweep) and its lanes' eval.csv, and draws
 the mean over seeds of one eval metric against frames, with a shaded band (min..max over seeds, or
-mean ± std), one line per workdir and one subplot per task.
+mean ± std), one line per workdir (per setting of a sweep: `dear_jax/lanes.py`) and one subplot
+per task. `python -m dear_jax.report curves` draws the same figure.
 """
 
 from __future__ import annotations
@@ -11,12 +12,12 @@ import argparse
 import json
 import os
 import pathlib
-import re
 import warnings
 from collections.abc import Sequence
 
 import numpy as np
 
+from dear_jax import lanes
 from dear_jax.logger import read_csv
 
 BANDS = ("minmax", "std")
@@ -24,34 +25,44 @@ _BAND_TEXT = {"minmax": "shaded: min..max over seeds", "std": "shaded: mean ± s
 
 
 class Curve:
-    """One workdir's metric per seed on a shared x grid."""
+    """One workdir's (one setting's) metric per seed on a shared x grid."""
 
-    def __init__(self, workdir: pathlib.Path, task: str, method: str, x: np.ndarray, y: np.ndarray):
-        self.workdir, self.task, self.method = workdir, task, method
+    def __init__(
+        self,
+        workdir: pathlib.Path,
+        task: str,
+        method: str,
+        x: np.ndarray,
+        y: np.ndarray,
+        setting: str = "",
+    ):
+        self.workdir, self.task, self.method, self.setting = workdir, task, method, setting
         self.x = x  # [N] sorted union of the seeds' x values
         self.y = y  # [S, N], NaN where a seed has no row at that x
-        self.label = method
+        self.label = f"{method} {setting}".strip()
 
 
-def _seed_index(path: pathlib.Path) -> int:
-    match = re.fullmatch(r"seed_(\d+)", path.parent.name)
-    return int(match.group(1)) if match else -1
-
-
-def load_curve(workdir: str | os.PathLike, metric: str, x: str = "frame") -> Curve:
+def load_curves(workdir: str | os.PathLike, metric: str, x: str = "frame") -> list[Curve]:
+    """The curves of a workdir: one, or one per setting of its sweep."""
     workdir = pathlib.Path(workdir)
-    config_path = workdir / "config.json"
-    if not config_path.is_file():
-        raise FileNotFoundError(f"{config_path} not found: is {workdir} a run's workdir?")
-    config = json.loads(config_path.read_text())
+    groups = lanes.groups(workdir)
+    config = json.loads((workdir / "config.json").read_text())
     method = config.get("agent", {}).get("method", "?")
     task = config.get("env", {}).get("task", "?")
-    paths = sorted(workdir.glob("seed_*/eval.csv"), key=_seed_index)
-    if not paths:
-        raise FileNotFoundError(
-            f"no eval logs in {workdir}: expected {workdir / 'seed_0' / 'eval.csv'} "
-            "(written after the first evaluation)"
-        )
+    curves = []
+    for setting, dirs in groups.items():
+        paths = [d / "eval.csv" for d in dirs if (d / "eval.csv").is_file()]
+        if not paths:
+            raise FileNotFoundError(
+                f"no eval logs in {workdir}: expected {dirs[0] / 'eval.csv'} "
+                "(written after the first evaluation)"
+            )
+        x_grid, y = _series(paths, metric, x)
+        curves.append(Curve(workdir, task, method, x_grid, y, setting))
+    return curves
+
+
+def _series(paths: list[pathlib.Path], metric: str, x: str) -> tuple[np.ndarray, np.ndarray]:
     series = []
     for path in paths:
         cols = read_csv(path)
@@ -64,13 +75,14 @@ def load_curve(workdir: str | os.PathLike, metric: str, x: str = "frame") -> Cur
     for s, (xs, ys) in enumerate(series):
         ok = np.isfinite(xs)
         y[s, np.searchsorted(grid, xs[ok])] = ys[ok]
-    return Curve(workdir, task, method, grid, y)
+    return grid, y
 
 
 def _set_labels(curves: list[Curve]) -> None:
     several_tasks = len({c.task for c in curves}) > 1
     for c in curves:
-        c.label = f"{c.task} {c.method}" if several_tasks else c.method
+        name = f"{c.method} {c.setting}".strip()
+        c.label = f"{c.task} {name}" if several_tasks else name
     counts = {}
     for c in curves:
         counts[c.label] = counts.get(c.label, 0) + 1
@@ -97,7 +109,7 @@ def plot(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    curves = [load_curve(w, metric, x) for w in workdirs]
+    curves = [c for w in workdirs for c in load_curves(w, metric, x)]
     _set_labels(curves)
     if out is None:
         out = pathlib.Path(workdirs[0]) / "curves.png" if len(workdirs) == 1 else "curves.png"

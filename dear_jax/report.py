@@ -2,6 +2,7 @@
 
     python -m dear_jax.report params [--action-dim 6]
     python -m dear_jax.report table RUN [RUN ...] [--threshold 500] [--out results/table]
+    python -m dear_jax.report curves RUN [RUN ...] [--out results/curves.png] [--band std]
 
 `params` prints the parameter count of every module per method (walker: |A| = 6), computed from
 shapes only (jax.eval_shape), so it is instant and allocates nothing.
@@ -17,7 +18,12 @@ run, beside the paper's figures (REFERENCE.md section 3, walker on a 1080Ti/3080
   final return        last evaluation, mean ± std over seeds
   frames to T         first evaluated frame at which a seed's return reaches --threshold (the
                       median over the seeds that reach it; "k/S" says how many did)
-It prints Markdown and, with --out PREFIX, writes PREFIX.md and PREFIX.csv.
+It prints Markdown and, with --out PREFIX, writes PREFIX.md and PREFIX.csv. A sweep's run
+(`dear_jax/lanes.py`) gives one row per setting, its seeds pooled.
+
+`curves` is the paper's learning-curve figure (`dear_jax/plot.py`): one panel per task, one line
+per method (per setting of a sweep: the beta-sweep figure from the sweep's run), the mean over
+seeds with the spread shaded.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ import pathlib
 import jax
 import numpy as np
 
+from dear_jax import lanes, plot
 from dear_jax.logger import format_table, read_csv
 from dear_jax.update import METHODS, AgentConfig, init_params
 
@@ -102,8 +109,9 @@ def _action_dim(summary: dict, task: str) -> int:
     return int(tasks[task].physics_model().nu)
 
 
-def run_row(workdir, threshold: float) -> dict:
-    """Table II's numbers for one run workdir (config.json, summary.json, seed_*/*.csv)."""
+def run_rows(workdir, threshold: float) -> list[dict]:
+    """Table II's numbers for one run workdir (config.json, summary.json, its lanes' CSVs): one
+    row, or one per setting of a sweep (`dear_jax/lanes.py`)."""
     workdir = pathlib.Path(workdir)
     for name in ("config.json", "summary.json"):
         if not (workdir / name).is_file():
@@ -113,7 +121,7 @@ def run_row(workdir, threshold: float) -> dict:
             )
     config = json.loads((workdir / "config.json").read_text())
     summary = json.loads((workdir / "summary.json").read_text())
-    agent, seeds = config["agent"], int(config["seeds"])
+    agent = config["agent"]
     cfg = AgentConfig(
         action_dim=_action_dim(summary, config["env"]["task"]),
         method=agent["method"],
@@ -122,31 +130,39 @@ def run_row(workdir, threshold: float) -> dict:
         feature_dim=agent["feature_dim"],
         hidden_dim=agent["hidden_dim"],
     )
-    evals = [read_csv(workdir / f"seed_{s}" / "eval.csv") for s in range(seeds)]
-    trains = [read_csv(workdir / f"seed_{s}" / "train.csv") for s in range(seeds)]
-    finals = np.array([e["episode_return"][-1] for e in evals])
-    reached = []
-    for e in evals:
-        hit = np.nonzero(e["episode_return"] >= threshold)[0]
-        if hit.size:
-            reached.append(e["frame"][hit[0]])
-    fps_rows = trains[0]["fps"][np.isfinite(trains[0]["fps"])]
-    frames = summary["frames_per_seed"] * seeds  # frames of all seeds together
-    return {
-        "run": workdir.name,
-        "method": agent["method"],
-        "task": config["env"]["task"],
-        "seeds": seeds,
-        "params_m": sum(param_counts(cfg).values()) / 1e6,
-        "s_per_1000_training": 1000.0 / np.median(fps_rows) if fps_rows.size else math.nan,
-        "s_per_1000_with_eval": 1000.0 * summary["wall_s"] / frames if frames else math.nan,
-        "cos": float(np.mean([e["cos_agent_env"][-1] for e in evals])),
-        "final_return_mean": float(finals.mean()),
-        "final_return_std": float(finals.std()),
-        "frames_to_threshold": float(np.median(reached)) if reached else math.nan,
-        "seeds_reaching_threshold": len(reached),
-        "threshold": threshold,
-    }
+    params_m = sum(param_counts(cfg).values()) / 1e6
+    groups = lanes.groups(workdir)
+    # Rates are of all lanes together (each log row's fps; the run's wall clock).
+    fps = read_csv(next(iter(groups.values()))[0] / "train.csv")["fps"]
+    fps = fps[np.isfinite(fps)]
+    frames = summary["frames_per_seed"] * sum(map(len, groups.values()))
+    rows = []
+    for label, dirs in groups.items():
+        evals = [read_csv(d / "eval.csv") for d in dirs]
+        finals = np.array([e["episode_return"][-1] for e in evals])
+        reached = []
+        for e in evals:
+            hit = np.nonzero(e["episode_return"] >= threshold)[0]
+            if hit.size:
+                reached.append(e["frame"][hit[0]])
+        rows.append(
+            {
+                "run": f"{workdir.name} {label}".strip(),
+                "method": agent["method"],
+                "task": config["env"]["task"],
+                "seeds": len(dirs),
+                "params_m": params_m,
+                "s_per_1000_training": 1000.0 / np.median(fps) if fps.size else math.nan,
+                "s_per_1000_with_eval": 1000.0 * summary["wall_s"] / frames if frames else math.nan,
+                "cos": float(np.mean([e["cos_agent_env"][-1] for e in evals])),
+                "final_return_mean": float(finals.mean()),
+                "final_return_std": float(finals.std()),
+                "frames_to_threshold": float(np.median(reached)) if reached else math.nan,
+                "seeds_reaching_threshold": len(reached),
+                "threshold": threshold,
+            }
+        )
+    return rows
 
 
 def _cells(r: dict) -> list:
@@ -172,7 +188,7 @@ def _cells(r: dict) -> list:
 
 def runs_table(workdirs, threshold: float, out: str | None = None) -> tuple[list[dict], str]:
     """Rows and the Markdown text of Table II; with `out`, also writes out.md and out.csv."""
-    rows = [run_row(w, threshold) for w in workdirs]
+    rows = [row for w in workdirs for row in run_rows(w, threshold)]
     text = (
         f"Table II: {len(rows)} run(s); s / 1000 frames per seed amortised over the seeds "
         f"trained together; frames to a return of {threshold:g}\n\n"
@@ -199,7 +215,19 @@ def main(argv=None):
     t.add_argument("runs", nargs="+", help="run workdirs")
     t.add_argument("--threshold", type=float, default=500.0, help="return for sample efficiency")
     t.add_argument("--out", default=None, help="also write OUT.md and OUT.csv")
+    c = sub.add_parser("curves", help="learning curves: a panel per task, a line per method")
+    c.add_argument("runs", nargs="+", help="run workdirs")
+    c.add_argument("--out", default="curves.png", help="PNG path")
+    c.add_argument("--metric", default="episode_return", help="eval.csv column (e.g. success)")
+    c.add_argument("--band", default="std", choices=plot.BANDS, help="shaded spread over seeds")
     args = parser.parse_args(argv)
+    if args.command == "curves":
+        try:
+            path = plot.plot(args.runs, args.out, metric=args.metric, band=args.band)
+        except (FileNotFoundError, KeyError, ValueError) as e:
+            parser.error(e.args[0] if e.args else str(e))
+        print(path)
+        return path
     if args.command == "table":
         print(runs_table(args.runs, args.threshold, args.out)[1])
     if args.command == "params":

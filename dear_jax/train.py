@@ -1,4 +1,5 @@
-"""The training loop: S seeds as a vmapped axis, E environments per seed, one process.
+"""The training loop: S lanes (seeds, or settings x seeds: `dear_jax/lanes.py`) as a vmapped
+axis, E environments per lane, one process.
 
 One iteration (DESIGN.md): act for every seed and env on the accelerator -> dispatch physics ->
 dispatch E / update_every_steps updates per seed while a background thread renders the new
@@ -31,7 +32,7 @@ import numpy as np
 from ml_collections import ConfigDict
 
 import envs
-from dear_jax import losses, replay, replay_disk, update
+from dear_jax import lanes, losses, replay, replay_disk, update
 from dear_jax.checkpoint import Checkpointer
 from dear_jax.lock import WorkdirLock
 from dear_jax.logger import RunLogger, format_table, read_csv
@@ -126,6 +127,7 @@ def validate(config: ConfigDict) -> None:
             f"agent.batch_size={a.batch_size} is larger than the replay "
             f"(replay.capacity={r.capacity}); lower the batch or raise the capacity"
         )
+    lanes.sweep_values(config)  # unknown or ineffective sweep keys
     if config.env.background_dir and not pathlib.Path(config.env.background_dir).is_dir():
         raise FileNotFoundError(
             f"env.background_dir {config.env.background_dir!r} is not a folder; give a DAVIS-2017 "
@@ -151,9 +153,13 @@ def agent_config(config: ConfigDict, action_dim: int) -> update.AgentConfig:
 
 
 def hparams(config: ConfigDict) -> update.HParams:
+    """The update's per-lane numbers: [lanes] arrays, the config's values and the sweep's."""
     a = config.agent
+    runs = lanes.lanes(config)
     names = [f.name for f in dataclasses.fields(update.HParams)]
-    return update.HParams(**{n: float(a[n]) for n in names})
+    return update.HParams(
+        **{n: jnp.array([dict(r.settings).get(n, a[n]) for r in runs], jnp.float32) for n in names}
+    )
 
 
 def make_env(
@@ -163,7 +169,7 @@ def make_env(
     e = config.env
     env = envs.make(
         e.task,
-        num_seeds=config.seeds,
+        num_seeds=len(lanes.lanes(config)),
         envs_per_seed=envs_per_seed,
         backend=backend or e.backend,
         distraction=e.distraction,
@@ -198,9 +204,10 @@ _PROGRAMS: dict = {}
 def cached_programs(acfg: update.AgentConfig, config: ConfigDict) -> Programs:
     """build_programs, reused by later runs of this process with the same agent and seeds (tests,
     resumes in one process): their jitted functions are then compiled once."""
-    key = (acfg, config.seeds, json.dumps(config.agent.to_dict(), sort_keys=True))
+    settings = {k: config[k].to_dict() for k in ("agent", "sweep")}
+    key = (acfg, config.seeds, json.dumps(settings, sort_keys=True))
     if key not in _PROGRAMS:
-        hp = hparams(config).for_seeds(config.seeds)
+        hp = hparams(config)
         _PROGRAMS.clear()  # one entry: a process runs one experiment at a time
         _PROGRAMS[key] = build_programs(acfg, hp, config)
     return _PROGRAMS[key]
@@ -208,7 +215,7 @@ def cached_programs(acfg: update.AgentConfig, config: ConfigDict) -> Programs:
 
 def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigDict) -> Programs:
     a = config.agent
-    num_seeds = config.seeds
+    num_seeds = len(lanes.lanes(config))
     nets = update.make_networks(acfg)
 
     def act(agent, obs, key, stepping):
@@ -348,7 +355,7 @@ def _replay_store(config: ConfigDict, spec: envs.EnvSpec, workdir: pathlib.Path)
     ckpt_every = config.checkpoint_every_frames
     between = math.ceil(ckpt_every * per_frame) + 1 if ckpt_every else total_rows
     need = replay_disk.disk_bound(
-        num_seeds=config.seeds,
+        num_seeds=len(lanes.lanes(config)),
         rows=rows,
         chunk_rows=chunk_rows,
         num_envs=num_envs,
@@ -368,7 +375,7 @@ def _replay_store(config: ConfigDict, spec: envs.EnvSpec, workdir: pathlib.Path)
         more / gib,
         free / gib,
     )
-    return replay_disk.ChunkStore(directory, config.seeds, rows, chunk_rows)
+    return replay_disk.ChunkStore(directory, len(lanes.lanes(config)), rows, chunk_rows)
 
 
 def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
@@ -407,7 +414,8 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 f"agent.nstep={config.agent.nstep} is longer than an episode of {spec.name} "
                 f"({spec.episode_steps} agent steps); lower agent.nstep"
             )
-        replay.check_fits(config.seeds, config.replay.capacity, spec.frame_shape, spec.action_dim)
+        runs = lanes.lanes(config)
+        replay.check_fits(len(runs), config.replay.capacity, spec.frame_shape, spec.action_dim)
         ckpt = ckpt or checkpointer()  # a new run's folder: only once the config is known to work
         store = _replay_store(config, spec, workdir)
         if store is not None:
@@ -423,7 +431,12 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
         )
         run = _Run(config, spec, ckpt, store, env, eval_env)
         (workdir / "config.json").write_text(config.to_json(indent=1))
-        logger = RunLogger(workdir, config.seeds, resume_frame=run.resumed_from)
+        names = [lane.name for lane in runs]
+        logger = RunLogger(workdir, len(runs), names=names, resume_frame=run.resumed_from)
+        if len(runs) > 1 or runs[0].settings:  # each lane's own settings beside its logs
+            for lane in runs:
+                text = lanes.lane_config(config, lane).to_json(indent=1)
+                (logger.seed_dir(lane.index) / "config.json").write_text(text)
         stack.callback(logger.close)
         run.loop(logger, workdir, stop)
     if stop:
@@ -465,11 +478,14 @@ class _Run:
     def __init__(self, config, spec, ckpt: Checkpointer, store, env: envs.Env, eval_env: envs.Env):
         self.config, self.spec, self.ckpt, self.store = config, spec, ckpt, store
         self.env, self.eval_env = env, eval_env
-        num_seeds, num_envs = config.seeds, config.envs_per_seed
+        self.lanes = lanes.lanes(config)
+        num_seeds, num_envs = len(self.lanes), config.envs_per_seed
         self.acfg = agent_config(config, spec.action_dim)
         self.programs = cached_programs(self.acfg, config)
         root = jax.random.key(config.seed)
-        seed_keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.arange(num_seeds))
+        # Lanes of one seed (a sweep's settings) start from the same parameters.
+        lane_seeds = jnp.array([lane.seed for lane in self.lanes])
+        seed_keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(lane_seeds)
         self.agent = _init_seeds(self.acfg, seed_keys)
         self.buffer = replay.init(
             config.replay.capacity,
@@ -634,7 +650,7 @@ class _Run:
         # An env whose episode ended restarts this step: it shows a first frame, adds no
         # transition and owes no update. DMC envs all end together; kitchen envs end on success.
         stepping = ~np.asarray(self.state.last)  # [S, E]
-        steps_per_seed = stepping.sum() / config.seeds
+        steps_per_seed = stepping.sum() / len(self.lanes)
         action, self.agent = programs.act(self.agent, self.ts.obs, k_act, stepping)
         future = self.env.step_async(self.state, action)
         # Updates are dispatched while the env thread renders the next observations.
@@ -662,7 +678,7 @@ class _Run:
         counters["iteration"] += 1
         # Frames count per seed over its envs (the mean over seeds where their envs differ).
         lv["env_steps"] += int(stepping.sum())
-        frames = lv["env_steps"] // config.seeds * self.spec.action_repeat - counters["frame"]
+        frames = lv["env_steps"] // len(self.lanes) * self.spec.action_repeat - counters["frame"]
         if frames:
             counters["frame"] += frames
             if pbar is not None:
@@ -684,7 +700,7 @@ class _Run:
         row = {
             "episode": counters["episode"],
             "updates": counters["updates"],
-            "fps": (frame - lv["last_log_frame"]) * config.seeds / max(now - self._log_t, 1e-9),
+            "fps": (frame - lv["last_log_frame"]) * len(self.lanes) / max(now - self._log_t, 1e-9),
         }
         if lv["metric_count"]:
             row.update({k: np.asarray(v) / lv["metric_count"] for k, v in self.metric_sum.items()})
@@ -774,12 +790,13 @@ class _Run:
         metrics.update(
             wall_s=pending["wall_s"],
             eval_s=eval_s,
-            fps=fps_per_seed * config.seeds,
+            fps=fps_per_seed * len(self.lanes),
             sec_per_1000_frames=1000.0 / fps_per_seed,
         )
         self._logger.write("eval", frame, metrics)
         for s, clip in clips.items():
-            write_video(self._workdir / "videos" / f"eval_{frame}_seed{s}.mp4", clip, fps=30)
+            name = self.lanes[s].name
+            write_video(self._workdir / "videos" / f"eval_{frame}_{name}.mp4", clip, fps=30)
         self.last_eval_return = float(np.mean(metrics["episode_return"]))
         log.info(
             "eval @ %s frames: return per seed %s%s",
@@ -833,38 +850,47 @@ class _Run:
 def write_summary(workdir, config, spec, counters) -> dict:
     """Summary per seed from the eval logs (printed, and saved as summary.md / summary.json)."""
     wall = counters["wall_s"]
-    fps = counters["frame"] * config.seeds / max(wall, 1e-9)
+    runs = lanes.lanes(config)
+    fps = counters["frame"] * len(runs) / max(wall, 1e-9)
     rows, per_seed = [], []
-    for s in range(config.seeds):
-        path = workdir / f"seed_{s}" / "eval.csv"
+    for lane in runs:
+        path = workdir / lane.name / "eval.csv"
         evals = read_csv(path) if path.exists() else {}
         returns = evals.get("episode_return", np.array([np.nan]))
         cos = evals.get("cos_agent_env", np.array([np.nan]))
         per_seed.append(
             dict(
-                seed=s,
+                seed=lane.seed,
+                lane=lane.name,
+                settings=dict(lane.settings),
                 final_return=float(returns[-1]),
                 best_return=float(np.nanmax(returns)),
                 cos_agent_env=float(cos[-1]),
             )
         )
-        rows.append([s, f"{returns[-1]:.1f}", f"{np.nanmax(returns):.1f}", f"{cos[-1]:.2e}"])
+        rows.append(
+            [lane.name, f"{returns[-1]:.1f}", f"{np.nanmax(returns):.1f}", f"{cos[-1]:.2e}"]
+        )
         if spec.has_success:  # success rate of the eval episodes (kitchen)
             success = evals.get("success", np.array([np.nan]))
             per_seed[-1].update(
                 final_success=float(success[-1]), best_success=float(np.nanmax(success))
             )
             rows[-1].append(f"{success[-1]:.2f}")
-    finals = np.array([p["final_return"] for p in per_seed])
-    rows.append(["mean", f"{finals.mean():.1f} ± {finals.std():.1f}", "", ""])
-    if spec.has_success:
-        rates = np.array([p["final_success"] for p in per_seed])
-        rows[-1].append(f"{rates.mean():.2f} ± {rates.std():.2f}")
+    for label in dict.fromkeys(lane.label for lane in runs):  # mean over each setting's seeds
+        group = [p for p, lane in zip(per_seed, runs) if lane.label == label]
+        finals = np.array([p["final_return"] for p in group])
+        rows.append([f"mean {label}".strip(), f"{finals.mean():.1f} ± {finals.std():.1f}", "", ""])
+        if spec.has_success:
+            rates = np.array([p["final_success"] for p in group])
+            rows[-1].append(f"{rates.mean():.2f} ± {rates.std():.2f}")
     summary = {
         "task": config.env.task,
         "method": config.agent.method,
         "action_dim": spec.action_dim,
         "seeds": config.seeds,
+        "lanes": len(runs),
+        "sweep": {k: list(v) for k, v in lanes.sweep_values(config).items()},
         "envs_per_seed": config.envs_per_seed,
         "frames_per_seed": counters["frame"],
         "updates_per_seed": counters["updates"],
@@ -877,12 +903,13 @@ def write_summary(workdir, config, spec, counters) -> dict:
         "distraction": config.env.distraction,
         "per_seed": per_seed,
     }
-    columns = ["seed", "final eval return", "best eval return", "cos(z_A, z_E)"]
+    columns = ["lane", "final eval return", "best eval return", "cos(z_A, z_E)"]
     columns += ["final eval success"] if spec.has_success else []
     table = format_table(columns, rows)
+    unit = "lane" if runs[0].settings else "seed"
     text = (
         f"# {config.agent.method} on {config.env.task}\n\n"
-        f"{counters['frame']:,} frames per seed x {config.seeds} seeds, {wall:.0f} s of training "
+        f"{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, {wall:.0f} s of training "
         f"({fps:.0f} frames/s in all) on {summary['device']} ({spec.backend} physics); "
         f"render settings {summary['render']}\n\n{table}\n"
     )

@@ -13,9 +13,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from ml_collections import ConfigDict
 from tensorboardX.proto import event_pb2
 
-from dear_jax import plot, update
+from dear_jax import lanes, plot, report, update
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.logger import RunLogger, format_table, read_csv
 from dear_jax.video import SEPARATOR_RGB, side_by_side, write_video
@@ -389,15 +390,19 @@ def test_video_errors(tmp_path, monkeypatch):
 # ---------------------------------------------------------------- plots
 
 
-def _fake_workdir(root, name, method, task="walker-walk", offset=0.0):
+def _fake_workdir(root, name, method, task="walker-walk", offset=0.0, sweep=None):
+    """A workdir as the trainer leaves it: config.json, and eval logs of 3 seeds per setting
+    (seed s of setting i returns offset + 100 i + frame / 100 + (0, 10, 50)[s])."""
     workdir = root / name
     workdir.mkdir()
-    (workdir / "config.json").write_text(
-        json.dumps({"agent": {"method": method}, "env": {"task": task}})
-    )
-    with RunLogger(workdir, 3, tensorboard=False) as log:
+    config = {"seeds": 3, "agent": {"method": method}, "env": {"task": task}}
+    config["sweep"] = sweep or {}
+    (workdir / "config.json").write_text(json.dumps(config))
+    names = [lane.name for lane in lanes.lanes(ConfigDict(config))]
+    with RunLogger(workdir, len(names), tensorboard=False, names=names) as log:
         for frame in (10_000, 20_000, 30_000):
-            returns = offset + frame / 100 + np.array([0.0, 10.0, 50.0])
+            returns = offset + frame / 100 + np.array([0.0, 10.0, 50.0] * (len(names) // 3))
+            returns += np.repeat(100.0 * np.arange(len(names) // 3), 3)
             log.write("eval", frame, {"episode_return": returns, "cos_agent_env": 0.01})
     return workdir
 
@@ -405,7 +410,7 @@ def _fake_workdir(root, name, method, task="walker-walk", offset=0.0):
 def test_plot_two_workdirs(tmp_path):
     dear = _fake_workdir(tmp_path, "a", "dear")
     drq = _fake_workdir(tmp_path, "b", "drqv2", offset=-50)
-    curve = plot.load_curve(dear, "episode_return")
+    (curve,) = plot.load_curves(dear, "episode_return")
     np.testing.assert_array_equal(curve.x, [10_000, 20_000, 30_000])
     np.testing.assert_array_equal(curve.y[:, 0], [100, 110, 150])  # seeds in rows
     out = plot.main([str(dear), str(drq), "--out", str(tmp_path / "c.png")])
@@ -415,6 +420,19 @@ def test_plot_two_workdirs(tmp_path):
     # One workdir: the PNG goes into it by default.
     assert plot.plot([dear], band="std") == dear / "curves.png"
     assert (dear / "curves.png").stat().st_size > 1000
+
+
+def test_plot_draws_a_line_per_setting_of_a_sweep(tmp_path):
+    run = _fake_workdir(tmp_path, "sweep", "dear", sweep={"beta": "0,100"})
+    assert sorted(p.name for p in run.iterdir() if p.is_dir()) == [
+        *(f"beta=0_seed_{s}" for s in range(3)),
+        *(f"beta=100_seed_{s}" for s in range(3)),
+    ]
+    curves = plot.load_curves(run, "episode_return")
+    assert [c.label for c in curves] == ["dear beta=0", "dear beta=100"]
+    np.testing.assert_array_equal(curves[1].y[:, 0], [200, 210, 250])
+    out = report.main(["curves", str(run), "--out", str(tmp_path / "beta.png")])
+    assert cv2.imread(str(out)).std() > 0
 
 
 def test_plot_labels():
@@ -433,7 +451,7 @@ def test_plot_labels():
 def test_plot_errors(tmp_path, capsys):
     empty = tmp_path / "empty"
     empty.mkdir()
-    (empty / "config.json").write_text("{}")
+    (empty / "config.json").write_text('{"seeds": 1}')
     with pytest.raises(FileNotFoundError, match=r"expected .*seed_0.eval\.csv"):
         plot.plot([empty])
     with pytest.raises(FileNotFoundError, match="config.json not found"):

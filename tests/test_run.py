@@ -114,7 +114,7 @@ def test_outputs_exist_and_parse(run):
         assert {"episode_return", "cos_agent_env", "fps", "sec_per_1000_frames"} <= set(eval_log)
         assert list(eval_log["frame"][:3]) == [0, 120, 240]  # frame 0: the untrained policy
         assert any((workdir / f"seed_{seed}" / "tb").iterdir())
-    video = workdir / "videos" / "eval_240_seed0.mp4"
+    video = workdir / "videos" / "eval_240_seed_0.mp4"
     cap = cv2.VideoCapture(str(video))
     ok, frame = cap.read()
     assert ok and frame.shape[1] >= 3 * frame.shape[0]  # RGB | true mask | predicted mask
@@ -211,7 +211,33 @@ def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):
     assert "| dear " in text and (tmp_path / "table.md").read_text() == text
     assert read_csv(tmp_path / "table.csv")["final_return_mean"][0] == pytest.approx(finals.mean())
     with pytest.raises(FileNotFoundError, match="config.json not found"):
-        report.run_row(tmp_path, threshold)
+        report.run_rows(tmp_path, threshold)
+
+
+def test_a_sweep_trains_each_lane_with_its_own_settings(tmp_path):
+    """`sweep.beta = "0,100"` with one seed: two lanes in one program, each logging under its
+    settings' name with its own config.json; every logged loss is L_critic + alpha L_mask +
+    beta L_dis with its lane's beta; the summary and Table II have a row per setting."""
+    from dear_jax import report
+
+    c = tiny_config(seeds=1, total_frames=160)
+    c.sweep.beta = "0,100"
+    summary = train.train(c, tmp_path)
+    assert [p["lane"] for p in summary["per_seed"]] == ["beta=0_seed_0", "beta=100_seed_0"]
+    assert summary["lanes"] == 2 and summary["sweep"] == {"beta": [0.0, 100.0]}
+    for beta in (0, 100):
+        lane = tmp_path / f"beta={beta}_seed_0"
+        config = json.loads((lane / "config.json").read_text())
+        assert config["agent"]["beta"] == beta and config["lane"]["settings"] == {"beta": beta}
+        log = read_csv(lane / "train.csv")
+        rows = np.isfinite(log["loss"])
+        assert rows.sum() >= 1 and np.all(log["ortho_loss"][rows] > 0)
+        want = log["critic_loss"] + c.agent.alpha * log["mask_loss"] + beta * log["ortho_loss"]
+        np.testing.assert_allclose(log["loss"][rows], want[rows], rtol=1e-4)
+        assert (lane / "eval.csv").is_file() and (lane / "tb").is_dir()
+    assert sorted(p.name for p in (tmp_path / "videos").iterdir())[0].endswith("_seed_0.mp4")
+    rows, _ = report.runs_table([tmp_path], threshold=1.0)
+    assert [r["run"] for r in rows] == [f"{tmp_path.name} beta=0", f"{tmp_path.name} beta=100"]
 
 
 def test_changed_learning_fields_are_refused_naming_them(run):

@@ -1,0 +1,143 @@
+"""Lanes: the settings x seeds that one run trains side by side in one compiled program.
+
+A run trains `seeds` seeds of one setting, or, with a sweep, every combination of the swept
+values crossed with the seeds:
+
+    python run.py --config walker_dear_distracting --config.sweep.beta=-1,0,1,10,100
+
+trains 5 x 3 = 15 lanes. A sweep can only vary the per-seed numbers of the update (the fields of
+`update.HParams`, taken from `config.agent`): they are arrays with a lane axis in the compiled
+program, so every lane runs the same code with its own weights. Lane i is setting i // seeds and
+seed i % seeds; lanes of the same seed start from the same parameters (paired comparisons). Each
+lane logs under its own folder, named by its settings ("beta=-1_seed_0"; "seed_0" without a
+sweep), with its own config.json.
+
+No jax here: run.py checks the config before the slow imports.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import pathlib
+
+from ml_collections import ConfigDict
+
+# The fields of update.HParams (tests/test_lanes.py checks they match): numbers each lane of the
+# compiled update can hold its own value of.
+SWEEPABLE = (
+    "alpha",
+    "beta",
+    "recon_weight",
+    "ted_weight",
+    "tau",
+    "stddev_clip",
+    "std_init",
+    "std_final",
+    "std_steps",
+    "explore_steps",
+)
+# The methods whose losses read a weight; sweeping it for another method changes nothing.
+USED_BY = {
+    "alpha": ("dear", "sear"),
+    "beta": ("dear",),
+    "recon_weight": ("sear",),
+    "ted_weight": ("ted",),
+}
+
+
+def default_sweep() -> ConfigDict:
+    """configs/base.py's `sweep`: every sweepable key, empty (not swept)."""
+    return ConfigDict(dict.fromkeys(SWEEPABLE, ""))
+
+
+@dataclasses.dataclass(frozen=True)
+class Lane:
+    index: int  # position on the lane axis of the run's arrays
+    seed: int  # seed index: parameters and exploration start from fold_in(key(config.seed), seed)
+    settings: tuple[tuple[str, float], ...]  # the swept values of this lane, in sweep order
+
+    @property
+    def label(self) -> str:
+        """The settings part of the name ("beta=-1"; "" without a sweep)."""
+        return "_".join(f"{k}={v:g}" for k, v in self.settings)
+
+    @property
+    def name(self) -> str:
+        return f"{self.label}_seed_{self.seed}" if self.settings else f"seed_{self.seed}"
+
+
+def _values(key: str, text) -> tuple[float, ...]:
+    if isinstance(text, (int, float)):
+        return (float(text),)
+    try:
+        values = tuple(float(v) for v in str(text).split(",") if v.strip())
+    except ValueError:
+        raise ValueError(
+            f"sweep.{key}={text!r}: give comma-separated numbers, e.g. --config.sweep.{key}=0,1,10"
+        ) from None
+    if len(set(values)) != len(values):
+        raise ValueError(f"sweep.{key}={text!r} repeats a value")
+    return values
+
+
+def sweep_values(config: ConfigDict) -> dict[str, tuple[float, ...]]:
+    """The swept keys and their values; unknown keys and keys the method ignores are refused."""
+    sweep = config.get("sweep") or {}
+    out = {}
+    for key, text in sweep.items():
+        if key not in SWEEPABLE:
+            raise ValueError(
+                f"unknown sweep key {key!r}; a sweep varies the update's per-lane numbers: "
+                f"{', '.join(SWEEPABLE)}"
+            )
+        values = _values(key, text)
+        if not values:
+            continue
+        method = config.agent.method
+        if method not in USED_BY.get(key, (method,)):
+            raise ValueError(
+                f"sweep.{key} has no effect on agent.method={method!r}: only "
+                f"{', '.join(USED_BY[key])} use agent.{key}"
+            )
+        out[key] = values
+    return out
+
+
+def lanes(config: ConfigDict) -> list[Lane]:
+    """Every (setting, seed) of the run, in the order of the lane axis."""
+    sweep = sweep_values(config)
+    settings = [tuple(zip(sweep, combo)) for combo in itertools.product(*sweep.values())]
+    return [
+        Lane(index=i * config.seeds + s, seed=s, settings=setting)
+        for i, setting in enumerate(settings)
+        for s in range(config.seeds)
+    ]
+
+
+def lane_config(config: ConfigDict, lane: Lane) -> ConfigDict:
+    """The config of one lane on its own: its swept values in `agent`, one seed, no sweep."""
+    c = ConfigDict(config.to_dict())
+    for key, value in lane.settings:
+        c.agent[key] = type(c.agent[key])(value)
+    c.sweep = default_sweep()
+    c.seeds = 1
+    c.lane = ConfigDict({"name": lane.name, "seed": lane.seed, "settings": dict(lane.settings)})
+    return c
+
+
+def groups(workdir: str | pathlib.Path) -> dict[str, list[pathlib.Path]]:
+    """A run workdir's lane folders grouped by setting ("" without a sweep), in lane order,
+    from the config.json the trainer wrote there."""
+    workdir = pathlib.Path(workdir)
+    path = workdir / "config.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} not found: is {workdir} a run's workdir?")
+    config = ConfigDict(json.loads(path.read_text()))
+    if "seeds" not in config:
+        raise ValueError(f"{path} has no 'seeds' field: it is not a config the trainer wrote")
+    out: dict[str, list[pathlib.Path]] = {}
+    for lane in lanes(config):
+        out.setdefault(lane.label, []).append(workdir / lane.name)
+    return out

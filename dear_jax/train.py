@@ -779,7 +779,7 @@ class _Run:
         if pending is None or not (wait or pending["future"].done()):
             return
         self._pending_eval = None
-        config, lv, frame = self.config, self.lv, pending["frame"]
+        lv, frame = self.lv, pending["frame"]
         try:
             metrics, clips, eval_s = pending["future"].result()
         except EvalAborted:  # the resumed run evaluates from here again

@@ -6,11 +6,11 @@ import functools
 import jax
 import numpy as np
 import pytest
+from test_update import SMALL, _batch
 
 from configs import base
 from dear_jax import lanes, losses, train, update
 from dear_jax.config import check_override_keys
-from test_update import SMALL, _batch
 
 
 def sweep_config(seeds=2, method="dear", **sweep):
@@ -41,7 +41,9 @@ def test_lanes_cross_settings_with_seeds():
     hp = train.hparams(c)
     np.testing.assert_array_equal(hp.beta, [-1, -1, 0, 0, 100, 100] * 2)
     np.testing.assert_array_equal(hp.alpha, [0.25] * 6 + [0.0] * 6)
-    np.testing.assert_array_equal(hp.tau, np.float32([c.agent.tau] * 12))  # not swept: the config's value
+    np.testing.assert_array_equal(
+        hp.tau, np.float32([c.agent.tau] * 12)
+    )  # not swept: the config's value
     one = lanes.lane_config(c, runs[3])
     assert (one.agent.beta, one.agent.alpha, one.seeds, one.lane.seed) == (0.0, 0.25, 1, 1)
     assert not any(one.sweep.values())

@@ -1,6 +1,7 @@
 """Train DEAR or a baseline: `python run.py --config walker_dear.py [--workdir DIR]`.
 
-`--config` takes a file path or a bare name of a file in configs/. Any config field can be
+`--config` takes a file path or a bare name of a file in configs/, with an optional config
+string after a colon (`--config paper.py:cup,sear,hard`). Any config field can be
 overridden: `--config.seeds=5 --config.agent.beta=10`. Rerunning the same command on the same
 workdir resumes from its latest checkpoint. SIGTERM or Ctrl-C checkpoints, then exits (with
 128 + the signal's number); `--verbose` shows libraries' INFO logs, which otherwise go only to
@@ -35,16 +36,17 @@ def _resolve_argv(argv: list[str]) -> list[str]:
     argv = list(argv)
     for i, arg in enumerate(argv):
         if arg.startswith("--config="):
-            path = resolve_config_path(arg.split("=", 1)[1], ROOT / "configs")
-            argv[i] = f"--config={path}"
+            prefix, value = "--config=", arg.split("=", 1)[1]
             break
         if arg == "--config" and i + 1 < len(argv):
-            path = resolve_config_path(argv[i + 1], ROOT / "configs")
-            argv[i + 1] = str(path)
+            i, prefix, value = i + 1, "", argv[i + 1]
             break
     else:
         return argv
-    check_override_keys(runpy.run_path(str(path))["get_config"](), argv)
+    name, *spec = value.split(":", 1)  # a config string after the colon goes to get_config
+    path = resolve_config_path(name, ROOT / "configs")
+    argv[i] = prefix + ":".join([str(path), *spec])
+    check_override_keys(runpy.run_path(str(path))["get_config"](*spec), argv)
     return argv
 
 
@@ -53,8 +55,9 @@ def main(argv):
     from dear_jax import console
     from dear_jax.lock import WorkdirLock, WorkdirLocked
 
-    config_path = flags.FLAGS["config"].config_filename
-    workdir = _WORKDIR.value or str(pathlib.Path("runs") / pathlib.Path(config_path).stem)
+    path, _, spec = flags.FLAGS["config"].config_filename.partition(":")
+    name = "_".join([pathlib.Path(path).stem, *filter(None, map(str.strip, spec.split(",")))])
+    workdir = _WORKDIR.value or str(pathlib.Path("runs") / name)
     try:
         lock = WorkdirLock(workdir)
         lock.acquire()  # before the slow imports: a second run on a workdir fails at once
@@ -82,6 +85,6 @@ if __name__ == "__main__":
     sys.path.insert(0, str(ROOT))
     try:
         sys.argv[1:] = _resolve_argv(sys.argv[1:])
-    except (KeyError, FileNotFoundError) as e:
+    except (KeyError, FileNotFoundError, ValueError) as e:
         sys.exit(f"error: {e.args[0]}")
     app.run(main)

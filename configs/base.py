@@ -95,14 +95,14 @@ def get_config() -> ConfigDict:
     return c
 
 
-def make(task: str, method: str, distracting: bool) -> ConfigDict:
-    """The config of one experiment of the paper's grid (task short name, method, distraction)."""
+def make(task: str, method: str, distraction: str = "none") -> ConfigDict:
+    """The config of one experiment of the paper's grid: task short name (walker, cup, finger),
+    method, Distracting Control difficulty ("none", "easy", "medium", "hard")."""
     c = get_config()
     c.env.task = TASK_SHORT_NAMES[task]
     c.agent.method = method
     if task == "walker":  # DrQ-v2's walker settings
         c.agent.nstep = 1
         c.agent.batch_size = 512
-    if distracting:
-        c.env.distraction = "medium"
+    c.env.distraction = distraction
     return c

@@ -4,4 +4,4 @@ import functools
 
 from configs.base import make
 
-get_config = functools.partial(make, "cup", "dear", distracting=True)
+get_config = functools.partial(make, "cup", "dear", distraction="medium")

@@ -4,4 +4,4 @@ import functools
 
 from configs.base import make
 
-get_config = functools.partial(make, "cup", "sear", distracting=False)
+get_config = functools.partial(make, "cup", "sear", distraction="none")

@@ -4,4 +4,4 @@ import functools
 
 from configs.base import make
 
-get_config = functools.partial(make, "finger", "ted", distracting=True)
+get_config = functools.partial(make, "finger", "ted", distraction="medium")

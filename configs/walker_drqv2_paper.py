@@ -12,7 +12,7 @@ from configs.base import make
 
 
 def get_config():
-    c = make("walker", "drqv2", distracting=False)
+    c = make("walker", "drqv2", distraction="none")
     c.agent.encoder = "plain"
     c.agent.std_steps = 100_000
     c.agent.nstep = 1

@@ -4,4 +4,4 @@ import functools
 
 from configs.base import make
 
-get_config = functools.partial(make, "walker", "sear", distracting=False)
+get_config = functools.partial(make, "walker", "sear", distraction="none")

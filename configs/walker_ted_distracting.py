@@ -4,4 +4,4 @@ import functools
 
 from configs.base import make
 
-get_config = functools.partial(make, "walker", "ted", distracting=True)
+get_config = functools.partial(make, "walker", "ted", distraction="medium")

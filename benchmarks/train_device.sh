@@ -10,7 +10,7 @@
 #             frames per seed (keep the machine with `wait`, then `collect`)
 #   kitchen   start DEAR on kitchen-light detached (3 seeds x 8 envs, bf16, eval every 10k
 #             frames) from a copy of the tree, so a later call's tree sync cannot touch it
-#   collect   pack the learning runs' logs (no checkpoints or videos) into $OUT/runs.tar.gz
+#   collect   pack the learning runs' logs (no checkpoints, videos or replay) into $OUT/runs.tar.gz
 #   speed     the performance issue's update figures: DEAR fp32 / bf16 and DrQ-v2 bf16 at batch
 #             512 (5 seeds), the first conv's input paths (benchmarks/encoder_input.py), the
 #             bf16 DEAR profile
@@ -69,7 +69,7 @@ while [ $# -gt 0 ]; do
     collect)
       for f in "$runs"/*.log; do echo "--- $f"; tail -n 4 "$f"; done
       nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv
-      tar -C "$runs" --exclude=checkpoints --exclude=videos -czf "$out/runs.tar.gz" . ;;
+      tar -C "$runs" --exclude=checkpoints --exclude=videos --exclude=replay -czf "$out/runs.tar.gz" . ;;
     speed)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       u="timeout 240 python3 -m benchmarks.update --methods dear --seeds 5 --batch 512 --iters 20"

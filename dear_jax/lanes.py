@@ -116,6 +116,10 @@ def lanes(config: ConfigDict) -> list[Lane]:
     ]
 
 
+def num_lanes(config: ConfigDict) -> int:
+    return len(lanes(config))
+
+
 def lane_config(config: ConfigDict, lane: Lane) -> ConfigDict:
     """The config of one lane on its own: its swept values in `agent`, one seed, no sweep."""
     c = ConfigDict(config.to_dict())

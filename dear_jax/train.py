@@ -169,7 +169,7 @@ def make_env(
     e = config.env
     env = envs.make(
         e.task,
-        num_seeds=len(lanes.lanes(config)),
+        num_seeds=lanes.num_lanes(config),
         envs_per_seed=envs_per_seed,
         backend=backend or e.backend,
         distraction=e.distraction,
@@ -215,7 +215,7 @@ def cached_programs(acfg: update.AgentConfig, config: ConfigDict) -> Programs:
 
 def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigDict) -> Programs:
     a = config.agent
-    num_seeds = len(lanes.lanes(config))
+    num_seeds = lanes.num_lanes(config)
     nets = update.make_networks(acfg)
 
     def act(agent, obs, key, stepping):
@@ -355,7 +355,7 @@ def _replay_store(config: ConfigDict, spec: envs.EnvSpec, workdir: pathlib.Path)
     ckpt_every = config.checkpoint_every_frames
     between = math.ceil(ckpt_every * per_frame) + 1 if ckpt_every else total_rows
     need = replay_disk.disk_bound(
-        num_seeds=len(lanes.lanes(config)),
+        num_seeds=lanes.num_lanes(config),
         rows=rows,
         chunk_rows=chunk_rows,
         num_envs=num_envs,
@@ -375,7 +375,7 @@ def _replay_store(config: ConfigDict, spec: envs.EnvSpec, workdir: pathlib.Path)
         more / gib,
         free / gib,
     )
-    return replay_disk.ChunkStore(directory, len(lanes.lanes(config)), rows, chunk_rows)
+    return replay_disk.ChunkStore(directory, lanes.num_lanes(config), rows, chunk_rows)
 
 
 def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:

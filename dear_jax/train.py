@@ -253,14 +253,15 @@ _PROGRAMS: dict = {}
 def cached_programs(
     acfg: update.AgentConfig, config: ConfigDict, mesh: Mesh | None = None
 ) -> Programs:
-    """build_programs, reused by later runs of this process with the same agent, seeds and mesh
-    (tests, resumes in one process): their jitted functions are then compiled once."""
-    key = (acfg, config.seeds, json.dumps(config.agent.to_dict(), sort_keys=True), mesh)
-    if key not in _PROGRAMS:
+    """build_programs, reused by later runs of this process with the same agent and seeds (tests,
+    resumes in one process): their jitted functions are then compiled once per mesh."""
+    experiment = (acfg, config.seeds, json.dumps(config.agent.to_dict(), sort_keys=True))
+    if (experiment, mesh) not in _PROGRAMS:
         hp = hparams(config).for_seeds(config.seeds)
-        _PROGRAMS.clear()  # one entry: a process runs one experiment at a time
-        _PROGRAMS[key] = build_programs(acfg, hp, config, mesh)
-    return _PROGRAMS[key]
+        for key in [k for k in _PROGRAMS if k[0] != experiment]:
+            del _PROGRAMS[key]  # a process runs one experiment at a time
+        _PROGRAMS[experiment, mesh] = build_programs(acfg, hp, config, mesh)
+    return _PROGRAMS[experiment, mesh]
 
 
 def build_programs(

@@ -103,9 +103,10 @@ def num_devices(devices, seeds: int, available: int) -> int:
     else:
         raise ValueError(f"devices must be 'all' or an int >= 1, got {devices!r}")
     if n > available:
+        counts = "1" if available == 1 else f"1 to {available}"
         raise ValueError(
             f"devices={devices} but {available} {jax.default_backend()} device(s) exist here; "
-            f"valid: 1 to {available}, or 'all'"
+            f"valid: {counts}, or 'all'"
         )
     if seeds % n:
         valid = [d for d in range(1, available + 1) if seeds % d == 0]

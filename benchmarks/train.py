@@ -156,10 +156,10 @@ def stage_split(config, reps) -> dict:
         env.close()
 
 
-def main():
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+def add_run_arguments(p: argparse.ArgumentParser, seeds: int = 5) -> None:
+    """The flags `bench_config` reads (also benchmarks/scaling.py's)."""
     p.add_argument("--config", default="configs/walker_dear.py")
-    p.add_argument("--seeds", type=int, default=5)
+    p.add_argument("--seeds", type=int, default=seeds)
     p.add_argument("--envs", type=int, default=8)
     p.add_argument("--frames", type=int, default=20_000, help="measured frames per seed")
     p.add_argument("--warmup-frames", type=int, default=4000)
@@ -169,6 +169,11 @@ def main():
     p.add_argument("--eval-every", type=int, default=0, help="frames per seed; 0: at the end")
     p.add_argument("--eval-episodes", type=int, default=10)
     p.add_argument("--eval-foreground", action="store_true", help="training waits for evals")
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    add_run_arguments(p)
     p.add_argument("--reps", type=int, default=10)
     p.add_argument("--skip", nargs="*", default=[], choices=["throughput", "split"])
     p.add_argument("--out", default=None)

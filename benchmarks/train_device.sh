@@ -15,6 +15,8 @@
 #             512 (5 seeds), the first conv's input paths (benchmarks/encoder_input.py), the
 #             bf16 DEAR profile
 #   torch     benchmarks/torch_reference.py update (DEAR eager and best, batch 512)
+#   scaling   benchmarks/scaling.py: DEAR walker-walk, 5 seeds x 8 envs per GPU on 1 and 2 GPUs
+#             (a machine with 2 GPUs)
 #   wait N    sleep N seconds (keeps the call, and so the machine, alive while runs train)
 # Results land in $OUT (or /tmp/out).
 set -u
@@ -83,6 +85,11 @@ while [ $# -gt 0 ]; do
     torch)
       timeout 300 python3 -m benchmarks.torch_reference update --methods dear --batch 512 \
         --iters 20 --variants eager best --out "$out/torch.json" ;;
+    scaling)
+      timeout 590 python3 -m benchmarks.scaling --config configs/walker_dear.py --devices 1 2 \
+        --seeds-per-device 5 --envs 8 --warmup-frames 2400 --frames 6400 --log-every 1600 \
+        --out "$out/scaling.json" > "$out/scaling.log" 2>&1
+      grep -v warp "$out/scaling.log" | tail -n 8 ;;
     wait) sleep "$1"; shift ;;
   esac
   echo "=== $stage done rc=$? $(date +%T)"

@@ -4,7 +4,7 @@ Experiment files import `get_config` from here and override a few fields; every 
 overridden on the command line: `python run.py --config configs/walker_dear.py --config.seeds=5`.
 """
 
-from ml_collections import ConfigDict
+from ml_collections import ConfigDict, config_dict
 
 from dear_jax.lanes import default_sweep
 
@@ -15,6 +15,9 @@ def get_config() -> ConfigDict:
     c = ConfigDict()
     c.seed = 0  # base seed; seed i of the run uses fold_in(key(seed), i)
     c.seeds = 3  # seeds trained together in one process (a vmapped axis)
+    # Devices the seeds are split over (an int, or "all": every local device); seeds must be a
+    # multiple of it. Each device runs its block of seeds (agent, replay, envs); 1: one device.
+    c.devices = config_dict.FieldReference(1, field_type=object)  # int or "all"
     c.envs_per_seed = 8  # parallel environments per seed; E / update_every_steps updates per step
     # Frames count per seed, summed over its envs: frames = agent steps (all E envs) x action repeat.
     c.total_frames = 1_000_000  # environment frames per seed

@@ -282,8 +282,16 @@ class Checkpointer:
         without a template (to inspect or compare checkpoints)."""
         self.wait()
         step = self._resolve(step)
+        # Onto one device, whatever devices the run that saved them had split them over.
+        stored = self._manager.item_metadata(step)[_STATE]
+        one = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+        abstract = jax.tree.map(
+            lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype, sharding=one),
+            getattr(stored, "tree", stored),
+            is_leaf=lambda m: hasattr(m, "shape") and hasattr(m, "dtype"),
+        )
         restored = self._manager.restore(
-            step, args=ocp.args.Composite(**{_STATE: ocp.args.StandardRestore()})
+            step, args=ocp.args.Composite(**{_STATE: ocp.args.StandardRestore(abstract)})
         )[_STATE]
         return jax.tree.map(np.asarray, restored)
 

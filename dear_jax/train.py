@@ -12,6 +12,14 @@ continues exactly where the checkpoint left off (`_Run` says what a checkpoint h
 comes back from its chunk files, `dear_jax/replay_disk.py`), and is refused if a config field
 that changes learning differs (all but RESUMABLE_CHANGES). One run per workdir (`run.lock`);
 SIGTERM / SIGINT checkpoint and stop (`dear_jax/signals.py`).
+
+Several devices (`config.devices`): the seeds axis of every array the loop carries (agent,
+replay, env states and timesteps, returns) is split over a 1-D mesh of N local devices, axis
+"seeds", each device holding S / N seeds; act, learn and add run per device (`jax.shard_map`,
+no collectives: seeds are independent), physics and the env's device half stay where their seeds
+live, and one render pool on the host feeds them all. Each seed gets the key it gets on one
+device, so its run is the same bit for bit. `devices=1` keeps arrays uncommitted on the default
+device, with no mesh.
 """
 
 from __future__ import annotations
@@ -19,6 +27,7 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import dataclasses
+import functools
 import json
 import logging
 import math
@@ -29,6 +38,8 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 from ml_collections import ConfigDict
 
 import envs
@@ -58,6 +69,7 @@ RESUMABLE_CHANGES = (
     "eval_in_background",
     "agent.seed_axis",
     "replay.disk",
+    "devices",
 )
 
 
@@ -80,6 +92,42 @@ def _get(config: ConfigDict, dotted: str):
     for part in dotted.split("."):
         config = config[part]
     return config
+
+
+def num_devices(devices, seeds: int, available: int) -> int:
+    """`config.devices` ("all" or an int) as a device count, refused unless it fits the host's
+    `available` devices and splits the `seeds` evenly (a sweep's lanes: seeds x settings)."""
+    if devices == "all":
+        n = available
+    elif isinstance(devices, int) and not isinstance(devices, bool) and devices >= 1:
+        n = devices
+    else:
+        raise ValueError(f"devices must be 'all' or an int >= 1, got {devices!r}")
+    if n > available:
+        counts = "1" if available == 1 else f"1 to {available}"
+        raise ValueError(
+            f"devices={devices} but {available} {jax.default_backend()} device(s) exist here; "
+            f"valid: {counts}, or 'all'"
+        )
+    if seeds % n:
+        valid = [d for d in range(1, available + 1) if seeds % d == 0]
+        raise ValueError(
+            f"seeds={seeds} cannot be split evenly over devices={devices} ({n} devices); valid "
+            f"devices for {seeds} seeds: {', '.join(map(str, valid))}; or make seeds a multiple "
+            f"of {n}"
+        )
+    return n
+
+
+def seed_mesh(config: ConfigDict) -> Mesh | None:
+    """The 1-D mesh ("seeds") of the first `config.devices` local devices; None for one device."""
+    n = num_devices(config.devices, lanes.num_lanes(config), jax.local_device_count())
+    return None if n == 1 else Mesh(np.array(jax.local_devices()[:n]), ("seeds",))
+
+
+def seed_sharding(mesh: Mesh | None) -> NamedSharding | None:
+    """Arrays with a leading seeds axis split over `mesh` (None: no mesh, the default device)."""
+    return None if mesh is None else NamedSharding(mesh, P("seeds"))
 
 
 def validate(config: ConfigDict) -> None:
@@ -128,6 +176,7 @@ def validate(config: ConfigDict) -> None:
             f"(replay.capacity={r.capacity}); lower the batch or raise the capacity"
         )
     lanes.sweep_values(config)  # unknown or ineffective sweep keys
+    num_devices(config.devices, lanes.num_lanes(config), jax.local_device_count())
     if config.env.background_dir and not pathlib.Path(config.env.background_dir).is_dir():
         raise FileNotFoundError(
             f"env.background_dir {config.env.background_dir!r} is not a folder; give a DAVIS-2017 "
@@ -163,9 +212,15 @@ def hparams(config: ConfigDict) -> update.HParams:
 
 
 def make_env(
-    config: ConfigDict, *, envs_per_seed: int, split: str, seed: int, backend: str | None = None
+    config: ConfigDict,
+    *,
+    envs_per_seed: int,
+    split: str,
+    seed: int,
+    backend: str | None = None,
+    mesh: Mesh | None = None,
 ) -> envs.Env:
-    """The batched env of the config (`backend` overrides env.backend)."""
+    """The batched env of the config (`backend` overrides env.backend; seeds split over `mesh`)."""
     e = config.env
     env = envs.make(
         e.task,
@@ -182,6 +237,7 @@ def make_env(
         seed=seed,
         action_repeat=e.action_repeat,
         episode_frames=e.episode_frames or None,
+        sharding=seed_sharding(mesh),
     )
     return env
 
@@ -201,22 +257,42 @@ class Programs:
 _PROGRAMS: dict = {}
 
 
-def cached_programs(acfg: update.AgentConfig, config: ConfigDict) -> Programs:
+def cached_programs(
+    acfg: update.AgentConfig, config: ConfigDict, mesh: Mesh | None = None
+) -> Programs:
     """build_programs, reused by later runs of this process with the same agent and seeds (tests,
-    resumes in one process): their jitted functions are then compiled once."""
+    resumes in one process): their jitted functions are then compiled once per mesh."""
     settings = {k: config[k].to_dict() for k in ("agent", "sweep")}
-    key = (acfg, config.seeds, json.dumps(settings, sort_keys=True))
-    if key not in _PROGRAMS:
+    experiment = (acfg, config.seeds, json.dumps(settings, sort_keys=True))
+    if (experiment, mesh) not in _PROGRAMS:
         hp = hparams(config)
-        _PROGRAMS.clear()  # one entry: a process runs one experiment at a time
-        _PROGRAMS[key] = build_programs(acfg, hp, config)
-    return _PROGRAMS[key]
+        for key in [k for k in _PROGRAMS if k[0] != experiment]:
+            del _PROGRAMS[key]  # a process runs one experiment at a time
+        _PROGRAMS[experiment, mesh] = build_programs(acfg, hp, config, mesh)
+    return _PROGRAMS[experiment, mesh]
 
 
-def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigDict) -> Programs:
+def build_programs(
+    acfg: update.AgentConfig, hp: update.HParams, config: ConfigDict, mesh: Mesh | None = None
+) -> Programs:
+    """The loop's programs; with a `mesh`, act, learn and add run each device's block of seeds
+    on that device. Per-seed keys are split before the split over devices, so a seed draws the
+    same numbers on any number of devices."""
     a = config.agent
     num_seeds = lanes.num_lanes(config)
     nets = update.make_networks(acfg)
+
+    def per_device(fn):
+        """`fn` of a block of seeds ([S / N, ...] arguments), run where the block lives."""
+        if mesh is None:
+            return fn
+        return jax.shard_map(fn, mesh=mesh, in_specs=P("seeds"), out_specs=P("seeds"))
+
+    # Every program runs its seeds as agent.seed_axis says. With "loop", a seed's computation is
+    # the same however many seeds share its device, so a split run is the same bit for bit; a
+    # vmapped convolution of S seeds is one grouped convolution whose rounding depends on S.
+    def over_seeds(fn):
+        return per_device(update.over_seeds(fn, a.seed_axis))
 
     def act(agent, obs, key, stepping):
         keys = jax.random.split(key, num_seeds)
@@ -224,7 +300,7 @@ def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigD
         def per_seed(agent, obs, key, hp, stepping):
             return update.act(acfg, agent, obs, key, hp, explore=True, stepping=stepping)
 
-        return jax.vmap(per_seed)(agent, obs, keys, hp, stepping)
+        return over_seeds(per_seed)(agent, obs, keys, hp, stepping)
 
     def learn_one(agent, buffer, key, hp_seed):
         k_sample, k_update = jax.random.split(key)
@@ -244,10 +320,10 @@ def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigD
     # on CPU (its fixture: 298 s with the scan, 97 s without; pytest --durations).
     def learn(agent, buffer, key):
         keys = jax.random.split(key, num_seeds)
-        return update.over_seeds(learn_one, a.seed_axis)(agent, buffer, keys, hp)
+        return over_seeds(learn_one)(agent, buffer, keys, hp)
 
     def add(buffer, ts, action):
-        return jax.vmap(replay.add)(
+        return per_device(jax.vmap(replay.add))(
             buffer, ts.frame, ts.mask, action, ts.reward, ts.discount, ts.first
         )
 
@@ -264,7 +340,7 @@ def build_programs(acfg: update.AgentConfig, hp: update.HParams, config: ConfigD
                 pred = jax.nn.sigmoid(logits[0, ..., -1])
             return action, cos, pred
 
-        return jax.vmap(one)(params, obs)
+        return over_seeds(one)(params, obs)
 
     def accumulate(returns, ts):
         return jnp.where(ts.first, 0.0, returns) + ts.reward
@@ -384,6 +460,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
     SIGTERM or SIGINT: the run checkpoints at the end of its step and raises signals.Stopped.
     """
     validate(config)
+    mesh = seed_mesh(config)
     workdir = pathlib.Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     with contextlib.ExitStack() as stack:
@@ -406,7 +483,13 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 step, saved, _ = ckpt.read_meta()
                 ckpt.check_fingerprint(saved, step)
         env = stack.enter_context(
-            make_env(config, envs_per_seed=config.envs_per_seed, split="train", seed=config.seed)
+            make_env(
+                config,
+                envs_per_seed=config.envs_per_seed,
+                split="train",
+                seed=config.seed,
+                mesh=mesh,
+            )
         )
         spec = env.spec
         if config.agent.nstep > spec.episode_steps:
@@ -415,7 +498,10 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 f"({spec.episode_steps} agent steps); lower agent.nstep"
             )
         runs = lanes.lanes(config)
-        replay.check_fits(len(runs), config.replay.capacity, spec.frame_shape, spec.action_dim)
+        lanes_per_device = len(runs) // (1 if mesh is None else mesh.size)
+        replay.check_fits(
+            lanes_per_device, config.replay.capacity, spec.frame_shape, spec.action_dim
+        )
         ckpt = ckpt or checkpointer()  # a new run's folder: only once the config is known to work
         store = _replay_store(config, spec, workdir)
         if store is not None:
@@ -427,9 +513,18 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 split="val",
                 seed=config.seed + 1,
                 backend="cpu" if config.env.eval_backend == "cpu" else None,
+                mesh=mesh,
             )
         )
-        run = _Run(config, spec, ckpt, store, env, eval_env)
+        if mesh is not None:
+            log.info(
+                "%d lanes split over %d devices (%d each): %s",
+                len(runs),
+                mesh.size,
+                lanes_per_device,
+                ", ".join(str(d) for d in mesh.devices),
+            )
+        run = _Run(config, spec, ckpt, store, env, eval_env, mesh)
         (workdir / "config.json").write_text(config.to_json(indent=1))
         names = [lane.name for lane in runs]
         logger = RunLogger(workdir, len(runs), names=names, resume_frame=run.resumed_from)
@@ -475,26 +570,40 @@ class _Run:
     uninterrupted one: same updates, same parameters bit for bit, same log rows.
     """
 
-    def __init__(self, config, spec, ckpt: Checkpointer, store, env: envs.Env, eval_env: envs.Env):
+    def __init__(
+        self,
+        config,
+        spec,
+        ckpt: Checkpointer,
+        store,
+        env: envs.Env,
+        eval_env: envs.Env,
+        mesh: Mesh | None = None,
+    ):
         self.config, self.spec, self.ckpt, self.store = config, spec, ckpt, store
-        self.env, self.eval_env = env, eval_env
+        self.env, self.eval_env, self.mesh = env, eval_env, mesh
         self.lanes = lanes.lanes(config)
         num_seeds, num_envs = len(self.lanes), config.envs_per_seed
         self.acfg = agent_config(config, spec.action_dim)
-        self.programs = cached_programs(self.acfg, config)
+        self.programs = cached_programs(self.acfg, config, mesh)
         root = jax.random.key(config.seed)
         # Lanes of one seed (a sweep's settings) start from the same parameters.
         lane_seeds = jnp.array([lane.seed for lane in self.lanes])
         seed_keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(lane_seeds)
-        self.agent = _init_seeds(self.acfg, seed_keys)
-        self.buffer = replay.init(
-            config.replay.capacity,
-            num_envs,
-            spec.frame_shape,
-            spec.action_dim,
-            leading=(num_seeds,),
-        )
-        self.key = jax.random.fold_in(root, 1_000_003)
+        self.agent = self._split(_init_seeds(self.acfg, seed_keys))
+        # Made where it lives: the replay of all lanes may not fit on one device.
+        self.buffer = jax.jit(
+            functools.partial(
+                replay.init,
+                config.replay.capacity,
+                num_envs,
+                spec.frame_shape,
+                spec.action_dim,
+                leading=(num_seeds,),
+            ),
+            **({} if mesh is None else {"out_shardings": seed_sharding(mesh)}),
+        )()
+        self.key = self._everywhere(jax.random.fold_in(root, 1_000_003))
         # Evaluations draw from their own stream (one key per frame), so how often a run
         # evaluates never changes its training.
         self.eval_root = jax.random.fold_in(root, 2_000_003)
@@ -529,14 +638,24 @@ class _Run:
         self.resumed_from = None
         self.key, k_reset = jax.random.split(self.key)
         self.state, self.ts = env.reset(k_reset)
-        self.returns = jnp.zeros((num_seeds, num_envs))
-        self._no_action = jnp.zeros((num_seeds, num_envs, spec.action_dim))
+        self.returns = self._split(jnp.zeros((num_seeds, num_envs)))
+        self._no_action = self._split(jnp.zeros((num_seeds, num_envs, spec.action_dim)))
         if ckpt.latest_step() is None:
             if store is not None:
                 store.forget_after(0)  # files of an earlier run whose checkpoints were deleted
             self._add(self.ts, self._no_action)
         else:
             self._restore()
+
+    def _split(self, tree):
+        """`tree`, whose leaves lead with the seeds axis, split over the devices (if several)."""
+        return tree if self.mesh is None else jax.device_put(tree, seed_sharding(self.mesh))
+
+    def _everywhere(self, tree):
+        """`tree` (no seeds axis) on every device of the mesh (if any)."""
+        if self.mesh is None:
+            return tree
+        return jax.device_put(tree, NamedSharding(self.mesh, P()))
 
     # -- checkpoints -------------------------------------------------------------------------
     def _tree(self) -> dict:
@@ -585,8 +704,11 @@ class _Run:
             self.store.prune(rows, kept | {rows})
 
     def _restore(self) -> None:
+        # orbax places arrays as the template's are: on several devices, the current split,
+        # whatever the split of the run that saved them.
         step, restored, extra = self.ckpt.restore(self._tree())
-        restored = jax.tree.map(_uncommitted, restored)
+        if self.mesh is None:
+            restored = jax.tree.map(_uncommitted, restored)
         self.agent, self.key = restored["agent"], restored["key"]
         self.ts, self.returns = restored["ts"], restored["returns"]
         leaves, treedef = jax.tree.flatten(self.state)
@@ -612,7 +734,8 @@ class _Run:
         if self.store is not None and extra["replay_on_disk"]:
             self.store.forget_after(rows)
             t0 = time.perf_counter()
-            self.buffer = self.store.restore(self.buffer, rows).replace(**restored["replay"])
+            buffer = self.store.restore(self.buffer, rows).replace(**restored["replay"])
+            self.buffer = self._split(buffer)
             log.info(
                 "resumed from checkpoint %d (frame %d per seed); replay: %d rows per seed read "
                 "back from %s in %.0f s",
@@ -891,6 +1014,7 @@ def write_summary(workdir, config, spec, counters) -> dict:
         "seeds": config.seeds,
         "lanes": len(runs),
         "sweep": {k: list(v) for k, v in lanes.sweep_values(config).items()},
+        "devices": num_devices(config.devices, len(runs), jax.local_device_count()),
         "envs_per_seed": config.envs_per_seed,
         "frames_per_seed": counters["frame"],
         "updates_per_seed": counters["updates"],

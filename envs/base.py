@@ -20,6 +20,11 @@ The per-env distraction draws (colours, camera, background frame) and the host R
 Env object and advance with every step: an Env is stepped along one trajectory, not branched.
 `host_state()` / `set_host_state()` read and restore them (numpy arrays and python numbers), so
 a checkpointed run continues exactly.
+
+Devices: with `sharding` (a NamedSharding of the seeds axis, `dear_jax/train.py`), every host ->
+device upload (frames, labels, rewards, flags, episode starts) lands split over the devices by
+seed and the device programs keep it so: the one render pool feeds every device, and no array is
+gathered onto one device. Without it, arrays go to the default device, uncommitted.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from jax.sharding import PartitionSpec as P
 
 from envs import distractions, dmc, masks
 from envs.dmc import DmcTask
@@ -152,6 +158,7 @@ class Env:
         action_repeat: int = 2,
         solver: SolverSettings | None = None,
         episode_frames: int | None = None,
+        sharding: jax.sharding.NamedSharding | None = None,
     ):
         render = render or RenderSettings()
         solver = solver or SolverSettings()
@@ -166,6 +173,7 @@ class Env:
         self.task = task
         self.shape = (num_seeds, envs_per_seed)
         self.batch = num_seeds * envs_per_seed
+        self.sharding = sharding
         self._model = task.physics_model()
         self._data = mujoco.MjData(self._model)
         n_sub = task.n_sub_steps(self._model)
@@ -182,6 +190,7 @@ class Env:
             action_repeat=action_repeat,
             solver=solver,
             control=task.make_control(self._model),
+            sharding=sharding,
         )
         h, w = render.height, render.width
         self.spec = EnvSpec(
@@ -204,7 +213,7 @@ class Env:
 
         render_model = task.render_model()
         if distraction == "none":
-            self._backgrounds = jnp.zeros((1, 1, h, w, 3), jnp.uint8)
+            videos = np.zeros((1, 1, h, w, 3), np.uint8)
             num_videos, num_frames = 0, 1
         else:
             videos = distractions.load_backgrounds(
@@ -214,8 +223,13 @@ class Env:
                 size=h,
                 seed=seed,
             )
-            self._backgrounds = jnp.asarray(videos)
             num_videos, num_frames = videos.shape[:2]
+        # Every device holds all videos: each looks up its own seeds' background frames.
+        self._backgrounds = (
+            jnp.asarray(videos)
+            if sharding is None
+            else jax.device_put(videos, jax.sharding.NamedSharding(sharding.mesh, P()))
+        )
         self._distractor = distractions.Distractor(
             render_model,
             task.camera,
@@ -234,7 +248,8 @@ class Env:
                 drop_prob=mask_drop_prob,
                 composite=distraction != "none",
                 frame_stack=self.spec.frame_stack,
-            )
+            ),
+            **({} if sharding is None else {"out_shardings": sharding}),
         )
         self._rng = np.random.RandomState(seed)
         self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="env")
@@ -245,6 +260,12 @@ class Env:
             floor_geom_ids=task.floor_geom_ids(render_model),
             settings=render,
         )
+
+    def _upload(self, x) -> jax.Array:
+        """A host array [S, E, ...] on the device(s): split by seed when the env has a sharding."""
+        if self.sharding is None:
+            return jnp.asarray(x)
+        return jax.device_put(x, self.sharding)
 
     # -- episode starts (host) --------------------------------------------------------------
     def _initial_states(self, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -265,12 +286,14 @@ class Env:
         phys = self.physics.init(*self._initial_states(everyone))
         self._distractor.reset(None)
         step = np.zeros(self.shape, np.int64)
-        stack = jnp.zeros(
-            self.shape + self.spec.frame_shape[:2] + (3 * self.spec.frame_stack,), jnp.uint8
+        stack = self._upload(
+            np.zeros(
+                self.shape + self.spec.frame_shape[:2] + (3 * self.spec.frame_stack,), np.uint8
+            )
         )
         return self._finish(
             phys,
-            jnp.zeros(self.shape, jnp.float32),
+            np.zeros(self.shape, np.float32),
             everyone,
             step,
             stack,
@@ -284,7 +307,7 @@ class Env:
         reset = np.asarray(state.last, bool)
         if reset.all():
             phys = self.physics.init(*self._initial_states(reset))
-            reward = jnp.zeros(self.shape, jnp.float32)
+            reward = np.zeros(self.shape, np.float32)
         else:
             phys, reward = self.physics.step(state.physics, action)
             if reset.any():
@@ -330,7 +353,10 @@ class Env:
         rgb, labels = self._pool.render(qpos, perturb=perturb)
         h, w, _ = self.spec.frame_shape
         video, frame_idx = bg_index
-        background = self._backgrounds[jnp.asarray(video), jnp.asarray(frame_idx)]
+        background = self._backgrounds[
+            self._upload(np.reshape(video, self.shape)),
+            self._upload(np.reshape(frame_idx, self.shape)),
+        ]
         key, mask_key = jax.random.split(key)
         last = step >= self.spec.episode_steps
         success = np.zeros(self.shape, bool)
@@ -340,14 +366,14 @@ class Env:
             last = last | success
             reward = success.astype(np.float32)
         stack, ts = self._post(
-            jnp.asarray(rgb).reshape(self.shape + (h, w, 3)),
-            jnp.asarray(labels).reshape(self.shape + (h, w)),
-            background.reshape(self.shape + (h, w, 3)),
+            self._upload(np.reshape(rgb, self.shape + (h, w, 3))),
+            self._upload(np.reshape(labels, self.shape + (h, w))),
+            background,
             stack,
-            jnp.asarray(reward),
-            jnp.asarray(first),
-            jnp.asarray(last),
-            jnp.asarray(success),
+            self._upload(reward),
+            self._upload(first),
+            self._upload(last),
+            self._upload(success),
             mask_key,
         )
         state = EnvState(physics=phys, stack=stack, key=key, step=step, last=last)

@@ -11,6 +11,9 @@ Interface (both backends):
     state = backend.where(reset, new, old)    # per-env select, reset: bool [S,E] numpy
     backend.qpos(state)                       # [S,E,nq] (device array or numpy)
 
+With `sharding` (a NamedSharding of the seeds axis, `dear_jax/train.py`), MJX uploads its starts
+with it and its programs return states with it, so each device steps its block of seeds.
+
 MJX solver settings (`SolverSettings`) are the speed knob. dm_control's XMLs use MuJoCo's
 defaults (Newton, 100 iterations, 50 line-search iterations; finger 200). Measured on CPU for
 walker-walk with a fixed sinusoidal action sequence (4 envs, 25 agent steps, against CPU MuJoCo
@@ -137,6 +140,7 @@ class MjxPhysics:
         action_repeat: int,
         solver: SolverSettings = SolverSettings(),
         control=None,
+        sharding: jax.sharding.Sharding | None = None,
     ):
         model = _copy_model(model)
         if solver.iterations is not None:
@@ -159,17 +163,22 @@ class MjxPhysics:
         self.n_sub_steps = n_sub_steps
         self.action_repeat = action_repeat
         self.control = control
+        self.sharding = sharding
         self._m = mjx.put_model(model, impl="jax")
         self._reward_fn = reward_fn
         options = _compiler_options()
-        self._step = jax.jit(_vmap2(self._step_one), compiler_options=options)
-        self._init = jax.jit(_vmap2(self._init_one), compiler_options=options)
+        # Every output leaf leads with (S, E): pinning the outputs keeps each seed's state on
+        # its device, constants (fresh data's zeros) included.
+        placed = {} if sharding is None else {"out_shardings": sharding}
+        self._step = jax.jit(_vmap2(self._step_one), compiler_options=options, **placed)
+        self._init = jax.jit(_vmap2(self._init_one), compiler_options=options, **placed)
         self._where = jax.jit(
             lambda reset, new, old: jax.tree.map(
                 lambda a, b: jnp.where(reset.reshape(reset.shape + (1,) * (a.ndim - 2)), a, b),
                 new,
                 old,
-            )
+            ),
+            **placed,
         )
 
     def _init_one(self, qpos, qvel):
@@ -198,14 +207,19 @@ class MjxPhysics:
         d, rewards = jax.lax.scan(control_step, d, None, length=self.action_repeat)
         return d, rewards.sum().astype(jnp.float32)
 
+    def _upload(self, x: np.ndarray, dtype) -> jax.Array:
+        if self.sharding is None:
+            return jnp.asarray(x, dtype)
+        return jax.device_put(np.asarray(x, dtype), self.sharding)
+
     def init(self, qpos: np.ndarray, qvel: np.ndarray) -> mjx.Data:
-        return self._init(jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32))
+        return self._init(self._upload(qpos, np.float32), self._upload(qvel, np.float32))
 
     def step(self, state: mjx.Data, action: jax.Array):
         return self._step(state, action)
 
     def where(self, reset: np.ndarray, new: mjx.Data, old: mjx.Data) -> mjx.Data:
-        return self._where(jnp.asarray(reset), new, old)
+        return self._where(self._upload(reset, bool), new, old)
 
     def qpos(self, state: mjx.Data) -> jax.Array:
         return state.qpos
@@ -337,12 +351,14 @@ def make_physics(
     action_repeat: int,
     solver: SolverSettings = SolverSettings(),
     control=None,
+    sharding: jax.sharding.Sharding | None = None,
 ):
     """Build the named backend ("mjx", "cpu" or "auto").
 
     control: None (ctrl = action) or `control(qpos, action, xp) -> ctrl`, evaluated at the start
     of every control step with xp = jax.numpy (MJX) or numpy (CPU), e.g. the kitchen's joint
-    velocity -> position target mapping.
+    velocity -> position target mapping. sharding: where MJX keeps the (S, E) states (None: the
+    default device); CPU MuJoCo's state is on the host.
     """
     backend = resolve_backend(backend)
     if backend == "mjx":
@@ -353,6 +369,7 @@ def make_physics(
             action_repeat=action_repeat,
             solver=solver,
             control=control,
+            sharding=sharding,
         )
     return CpuPhysics(
         model, reward_fn, n_sub_steps=n_sub_steps, action_repeat=action_repeat, control=control

@@ -1,0 +1,206 @@
+"""Seeds split over devices (`config.devices`): the same run bit for bit, resumable across device
+counts, arrays living where their seeds are, and splits that cannot work refused by name.
+
+A CPU process has several devices only if an XLA flag says so before jax starts, so the runs
+happen in one child process (this file run as a script) with 4 virtual CPU devices, and the
+tests read what it wrote: checkpoints, logs and the placements it recorded. XLA:CPU's fusion
+emitters are off in the child: on, they may fuse the per-seed code of a 2-seed program
+differently from that of a 1-seed program, which then rounds differently after a few updates
+(jax 0.10.2); off, a seed's code is the same on any split, which is what is checked here.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+FLAGS = "--xla_force_host_platform_device_count=4 --xla_cpu_use_fusion_emitters=false"
+CUT, END = 160, 200  # frames per seed: the first runs stop at CUT (updates start at 120)
+
+
+def config(**overrides):
+    """test_run's tiny config, evaluating and saving at CUT (where the first runs stop)."""
+    from test_run import tiny_config
+
+    return tiny_config(eval_every_frames=CUT, checkpoint_every_frames=CUT, **overrides)
+
+
+def _where(tree) -> list:
+    """The distinct (partition spec, device count) of the device leaves of `tree` that have an
+    axis (all lead with the seeds axis); 0-d leaves are keys, checked on their own."""
+    import jax
+
+    leaves = [x for x in jax.tree.leaves(tree) if isinstance(x, jax.Array) and x.ndim]
+    return sorted(
+        {(str(getattr(x.sharding, "spec", None)), len(x.sharding.device_set)) for x in leaves}
+    )
+
+
+def _placements(run) -> dict:
+    return {
+        "agent": _where(run.agent),
+        "replay": _where(run.buffer),
+        "env": _where(run.state),
+        "timestep": _where(run.ts),
+        "returns": _where(run.returns),
+        "key": sorted({(str(run.key.sharding.spec), len(run.key.sharding.device_set))})
+        if run.mesh is not None
+        else [],
+    }
+
+
+def _child(root: pathlib.Path) -> None:
+    """The runs of this module, in a process with 4 devices; writes root/placements.json."""
+    import jax
+    from jax.sharding import Mesh, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    from dear_jax import train
+    from envs import dmc
+    from envs.physics import MjxPhysics
+
+    assert len(jax.devices()) == 4, jax.devices()
+    placements = []
+    save = train._Run.save
+
+    def recording_save(run, wall_s):  # every checkpoint: after the start and after resuming
+        devices = 1 if run.mesh is None else run.mesh.size
+        placements.append({"devices": devices, **_placements(run)})
+        save(run, wall_s)
+
+    train._Run.save = recording_save
+    # Grouped by device count: the compiled programs of a process are those of its last mesh.
+    train.train(config(total_frames=END), root / "whole")
+    train.train(config(total_frames=CUT), root / "to_split")
+    train.train(config(total_frames=CUT, devices=2), root / "from_split")
+    train.train(config(total_frames=END, devices=2), root / "to_split")
+    train.train(config(total_frames=END), root / "from_split")
+
+    # MJX physics keeps each seed's state on its device (CPU runs use CPU physics).
+    mesh = Mesh(np.array(jax.devices()), ("seeds",))
+    task = dmc.TASKS["walker-walk"]
+    model = task.physics_model()
+    physics = MjxPhysics(
+        model,
+        task.make_reward(model),
+        n_sub_steps=task.n_sub_steps(model),
+        action_repeat=1,
+        sharding=NamedSharding(mesh, P("seeds")),
+    )
+    shape = (4, 1)
+    state = physics.init(np.tile(model.qpos0, shape + (1,)), np.zeros(shape + (model.nv,)))
+    action = jax.device_put(np.full(shape + (model.nu,), 0.5, np.float32), physics.sharding)
+    state, reward = physics.step(state, action)
+    state = physics.where(np.array([[True], [False], [True], [False]]), state, state)
+    mjx = {"state": _where(state), "reward": _where(reward)}
+    (root / "placements.json").write_text(json.dumps({"runs": placements, "mjx": mjx}))
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sharding")
+    env = dict(os.environ, XLA_FLAGS=FLAGS, JAX_PLATFORMS="cpu", MUJOCO_GL="egl")
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(ROOT / "tests")])
+    out = subprocess.run(
+        [sys.executable, __file__, str(root)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert out.returncode == 0, out.stderr[-5000:]
+    return root, json.loads((root / "placements.json").read_text())
+
+
+def test_a_split_run_is_the_same_run(runs):
+    """Seeds split over 2 devices learn exactly what they learn on one: the checkpoint at CUT
+    of the split run equals the one-device run's, bit for bit, after some updates."""
+    from dear_jax.checkpoint import Checkpointer
+
+    root, _ = runs
+    one, split = (
+        Checkpointer(root / w / "checkpoints", fingerprint={}).read_arrays(CUT)
+        for w in ("whole", "from_split")
+    )
+    import jax
+
+    flat = jax.tree_util.tree_flatten_with_path(one)[0]
+    assert [p for p, _ in flat] == [p for p, _ in jax.tree_util.tree_flatten_with_path(split)[0]]
+    for (path, x), y in zip(flat, jax.tree.leaves(split)):
+        assert x.tobytes() == y.tobytes(), jax.tree_util.keystr(path)
+    updates = Checkpointer(root / "whole" / "checkpoints", fingerprint={}).read_meta(CUT)[2]
+    assert updates["counters"]["updates"] >= 5
+
+
+@pytest.mark.parametrize("workdir", ["to_split", "from_split"])
+def test_a_run_resumes_on_another_device_count(runs, workdir):
+    """Stopped at CUT on 1 (2) devices and resumed on 2 (1), a run ends as the uninterrupted
+    one-device run: checkpoint, replay files and logs."""
+    from test_run import assert_same_run
+
+    root, _ = runs
+    # The eval log's cos(z_A, z_E), a mean of a few numbers in the evaluation program, may round
+    # differently in its last bit on another split; the policy's actions and returns do not.
+    assert_same_run(root / "whole", root / workdir, END, close_columns={"cos_agent_env"})
+    summary = json.loads((root / workdir / "summary.json").read_text())
+    assert summary["devices"] == (2 if workdir == "to_split" else 1)
+
+
+def test_arrays_live_split_over_the_devices(runs):
+    """Inside the runs (at each checkpoint, resumed ones included) every array with a seeds axis
+    is split over the mesh, the loop's key is on every device, and one-device runs keep the
+    default placement."""
+    from jax.sharding import PartitionSpec as P
+
+    _, placements = runs
+    seeds, everywhere = str(P("seeds")), str(P())
+    split = [p for p in placements["runs"] if p["devices"] > 1]
+    assert {p["devices"] for p in split} == {2}
+    assert len(split) == 2  # one of a run that resumed on 2 devices
+    for p in split:
+        n = p["devices"]
+        for group in ("agent", "replay", "env", "timestep", "returns"):
+            assert p[group] == [[seeds, n]], (group, p)
+        assert p["key"] == [[everywhere, n]]
+    single = [p for p in placements["runs"] if p["devices"] == 1]
+    assert single and all(p["agent"] == [["None", 1]] for p in single)
+    for name in ("state", "reward"):
+        assert placements["mjx"][name] == [[seeds, 4]], name
+
+
+def test_splits_that_cannot_work_are_refused_by_name(tmp_path):
+    from dear_jax import train
+
+    with pytest.raises(ValueError, match=r"seeds=3 cannot be split evenly over devices=2 .* "):
+        train.num_devices(2, 3, available=4)
+    with pytest.raises(ValueError, match=r"valid devices for 3 seeds: 1, 3;"):
+        train.num_devices("all", 3, available=4)
+    with pytest.raises(ValueError, match=r"devices=8 but 4 .* exist here; valid: 1 to 4, or 'all'"):
+        train.num_devices(8, 8, available=4)
+    with pytest.raises(ValueError, match=r"devices must be 'all' or an int >= 1, got 'two'"):
+        train.num_devices("two", 2, available=4)
+    assert train.num_devices("all", 8, available=4) == 4
+    assert train.num_devices(1, 3, available=1) == 1
+    # The trainer refuses before anything is written (this process has one device).
+    with pytest.raises(ValueError, match=r"devices=2 but 1 cpu device\(s\) exist here"):
+        train.train(config(devices=2), tmp_path)
+    assert not (tmp_path / "checkpoints").exists()
+
+
+def test_devices_may_change_on_resume():
+    from dear_jax import train
+
+    assert "devices" in train.RESUMABLE_CHANGES
+    assert train.fingerprint(config(devices="all")) == train.fingerprint(config())
+
+
+if __name__ == "__main__":
+    _child(pathlib.Path(sys.argv[1]))

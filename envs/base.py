@@ -43,7 +43,7 @@ from jax.sharding import PartitionSpec as P
 
 from envs import distractions, dmc, masks
 from envs.dmc import DmcTask
-from envs.physics import SolverSettings, make_physics, resolve_backend
+from envs.physics import SolverSettings, make_physics, resolve_backend, upload
 from envs.render import RenderPool, RenderSettings
 
 MASK_KINDS = ("true", "noisy", "approximate")
@@ -262,10 +262,7 @@ class Env:
         )
 
     def _upload(self, x) -> jax.Array:
-        """A host array [S, E, ...] on the device(s): split by seed when the env has a sharding."""
-        if self.sharding is None:
-            return jnp.asarray(x)
-        return jax.device_put(x, self.sharding)
+        return upload(x, self.sharding)
 
     # -- episode starts (host) --------------------------------------------------------------
     def _initial_states(self, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

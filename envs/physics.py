@@ -207,19 +207,15 @@ class MjxPhysics:
         d, rewards = jax.lax.scan(control_step, d, None, length=self.action_repeat)
         return d, rewards.sum().astype(jnp.float32)
 
-    def _upload(self, x: np.ndarray, dtype) -> jax.Array:
-        if self.sharding is None:
-            return jnp.asarray(x, dtype)
-        return jax.device_put(np.asarray(x, dtype), self.sharding)
-
     def init(self, qpos: np.ndarray, qvel: np.ndarray) -> mjx.Data:
-        return self._init(self._upload(qpos, np.float32), self._upload(qvel, np.float32))
+        qpos, qvel = (np.asarray(x, np.float32) for x in (qpos, qvel))
+        return self._init(upload(qpos, self.sharding), upload(qvel, self.sharding))
 
     def step(self, state: mjx.Data, action: jax.Array):
         return self._step(state, action)
 
     def where(self, reset: np.ndarray, new: mjx.Data, old: mjx.Data) -> mjx.Data:
-        return self._where(self._upload(reset, bool), new, old)
+        return self._where(upload(np.asarray(reset, bool), self.sharding), new, old)
 
     def qpos(self, state: mjx.Data) -> jax.Array:
         return state.qpos
@@ -336,6 +332,12 @@ class CpuPhysics:
 jax.tree_util.register_dataclass(
     CpuState, data_fields=["qpos", "qvel", "act", "qacc_warmstart", "time"], meta_fields=[]
 )
+
+
+def upload(x: np.ndarray, sharding: jax.sharding.Sharding | None) -> jax.Array:
+    """A host array [S, E, ...] on the device(s): split by seed with a `sharding`, else on the
+    default device, uncommitted."""
+    return jnp.asarray(x) if sharding is None else jax.device_put(x, sharding)
 
 
 def _copy_model(model: mujoco.MjModel) -> mujoco.MjModel:

@@ -44,9 +44,7 @@ class _TqdmHandler(logging.StreamHandler):
             self.handleError(record)
 
 
-def setup(
-    workdir: str | os.PathLike | None, *, verbose: bool = False, process: int = 0
-) -> None:
+def setup(workdir: str | os.PathLike | None, *, verbose: bool = False, process: int = 0) -> None:
     """Route logging as the module docstring says (replaces the root logger's handlers); process
     `process` > 0 of a multi-host run writes `log.<process>.txt`."""
     root = logging.getLogger()

@@ -700,6 +700,21 @@ def _is_host(x) -> bool:
     return isinstance(x, (np.ndarray, np.generic))
 
 
+def _to_host(x) -> np.ndarray:
+    if isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
+        x = jax.random.key_data(x)
+    return np.asarray(x)
+
+
+def _like(template, value):
+    """`value`, a host copy of a leaf like `template` (`_to_host`), as `template` is."""
+    if _is_host(template):
+        return value
+    if jnp.issubdtype(template.dtype, jax.dtypes.prng_key):
+        return jax.random.wrap_key_data(jnp.asarray(value), impl=jax.random.key_impl(template))
+    return jnp.asarray(value)
+
+
 def _uncommitted(x):
     """`x` as a fresh run has it: a device array not committed to a device. jit compiles
     separately for committed arguments (orbax restores those), so a resumed run would otherwise
@@ -850,13 +865,18 @@ class _Run:
         return stop
 
     # -- checkpoints -------------------------------------------------------------------------
+    def _saved_on_host(self, x) -> bool:
+        """Env state leaves saved with this process's host values: numpy ones and, with several
+        processes, the env's key (each process's envs have their own)."""
+        return _is_host(x) or (self.hosts.multi and x.ndim == 0)
+
     def _tree(self) -> dict:
         b = self.buffer
         return {
             "agent": self.agent,
             "key": self.key,
             "env": self.hosts.to_global(
-                [x for x in jax.tree.leaves(self.state) if not _is_host(x)]
+                [x for x in jax.tree.leaves(self.state) if not self._saved_on_host(x)]
             ),
             "ts": self.ts,
             "returns": self.returns,
@@ -873,7 +893,9 @@ class _Run:
                 else {k: self.hosts.read(v) for k, v in self.metric_sum.items()}
             ),
             "episode_returns": list(self.episode_returns),
-            "env_host": [x for x in jax.tree.leaves(self.state) if _is_host(x)],
+            "env_host": [
+                _to_host(x) for x in jax.tree.leaves(self.state) if self._saved_on_host(x)
+            ],
             "env_rng": self.env.host_state(),
             "eval_env_rng": self.eval_env.host_state(),
             "replay_on_disk": self.store is not None,
@@ -909,7 +931,7 @@ class _Run:
         device = iter(self.hosts.to_local(restored["env"]))
         host = iter(extra["env_host"])
         self.state = treedef.unflatten(
-            [next(host) if _is_host(x) else next(device) for x in leaves]
+            [_like(x, next(host)) if self._saved_on_host(x) else next(device) for x in leaves]
         )
         self.env.set_host_state(extra["env_rng"])
         self.eval_env.set_host_state(extra["eval_env_rng"])

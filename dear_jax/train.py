@@ -20,6 +20,11 @@ no collectives: seeds are independent), physics and the env's device half stay w
 live, and one render pool on the host feeds them all. Each seed gets the key it gets on one
 device, so its run is the same bit for bit. `devices=1` keeps arrays uncommitted on the default
 device, with no mesh.
+
+Several processes (`jax.distributed`, README "Several hosts"): the mesh spans every process's
+`config.devices` devices and the loop's arrays are global; each process steps, renders, logs and
+stores its own block of lanes (`Hosts`), and every decision that issues a program is made from
+values all processes agree on (`Hosts.agree`), so all run the same programs in the same order.
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """Several processes (`jax.distributed`), each stepping the envs of its block of lanes: a run
 completes without any process waiting on another, writes every lane's files once, keeps each
-process's host state, and resumes from its checkpoint as the same run.
+process's host state, stops on a signal to one process with all of them at the same step, and
+resumes from that checkpoint as the same run.
 
 Two child processes (this file run as a script) join one CPU run through a coordinator on a free
 local port, each with one virtual CPU device and XLA:CPU's fusion emitters off (as in
@@ -17,6 +18,7 @@ from __future__ import annotations
 import json
 import os
 import pathlib
+import signal
 import socket
 import subprocess
 import sys
@@ -26,7 +28,8 @@ import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 FLAGS = "--xla_force_host_platform_device_count=1 --xla_cpu_use_fusion_emitters=false"
-CUT, END = 160, 200  # frames per seed: the resumed run stops at CUT, then goes on to END
+CUT, END = 160, 200  # frames per seed: evaluations and checkpoints at CUT; the runs end at END
+SIGNAL_AT = 35  # the loop step after which process 1 gets SIGTERM (updates start at step 30)
 
 
 def config(**overrides):
@@ -41,13 +44,24 @@ def _child(root: pathlib.Path, port: int, process: int) -> None:
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.distributed.initialize(f"localhost:{port}", num_processes=2, process_id=process)
     from dear_jax import train
+    from dear_jax.signals import Stopped
 
     assert jax.process_count() == 2 and len(jax.devices()) == 2, jax.devices()
-    summaries = {
-        "whole": train.train(config(total_frames=END), root / "whole"),
-        "cut": train.train(config(total_frames=CUT), root / "resumed"),
-        "resumed": train.train(config(total_frames=END), root / "resumed"),
-    }
+    summaries = {"whole": train.train(config(total_frames=END), root / "whole")}
+    step = train._Run._step
+
+    def step_then_signal(run, pbar):  # only process 1 is told to stop
+        step(run, pbar)
+        if process == 1 and run.counters["iteration"] == SIGNAL_AT:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    train._Run._step = step_then_signal
+    try:
+        train.train(config(total_frames=END), root / "resumed")
+    except Stopped as e:
+        summaries["stopped"] = str(e)
+    train._Run._step = step
+    summaries["resumed"] = train.train(config(total_frames=END), root / "resumed")
     (root / f"summaries_{process}.json").write_text(json.dumps(summaries))
 
 
@@ -84,9 +98,20 @@ def runs(tmp_path_factory):
 
 
 def test_a_resumed_run_is_the_same_run(runs):
-    """Stopped at CUT and resumed, the 2-process run ends as the uninterrupted one: checkpoint
-    arrays (both processes' blocks), process 0's host state, replay files and both lanes' logs."""
+    """SIGTERM to process 1 stops both at the same step with a checkpoint; resumed, the run ends
+    as the uninterrupted one: checkpoint arrays (both processes' blocks), process 0's host state,
+    replay files and both lanes' logs."""
     from test_run import assert_same_run
+
+    from dear_jax.checkpoint import Checkpointer
+
+    stopped = [json.loads((runs / f"summaries_{i}.json").read_text())["stopped"] for i in (0, 1)]
+    # The step after the signal's, 36: 4 frames per seed per step, but for step 21, where the
+    # 20-step episodes restarted.
+    frame = (SIGNAL_AT + 1 - 1) * 4
+    assert stopped[0] == stopped[1]
+    assert stopped[0].startswith(f"stopped by SIGTERM at frame {frame} per seed")
+    assert frame in Checkpointer(runs / "resumed" / "checkpoints", fingerprint={}).all_steps()
 
     assert_same_run(runs / "whole", runs / "resumed", END)
     # Process 1's host state (its envs' RNGs, its lanes' returns) is its own, and comes back too.
@@ -107,7 +132,7 @@ def test_every_lane_is_written_by_its_process(runs):
 
     whole = runs / "whole"
     summaries = [json.loads((runs / f"summaries_{i}.json").read_text()) for i in range(2)]
-    assert summaries[1] == {"whole": {}, "cut": {}, "resumed": {}}  # process 0 sums up
+    assert summaries[1]["whole"] == summaries[1]["resumed"] == {}  # process 0 sums up
     summary = summaries[0]["whole"]
     assert summary["processes"] == 2 and summary["devices"] == 2
     assert summary["frames_per_seed"] == END and len(summary["per_seed"]) == 2

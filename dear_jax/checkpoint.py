@@ -255,7 +255,14 @@ class Checkpointer:
             absl_log.removeFilter(_skip_unrequested_item)
         extra = meta["extra"]
         if self._own is not None:
-            with open(os.path.join(self._own, f"{step}.json")) as f:
+            path = os.path.join(self._own, f"{step}.json")
+            if not os.path.exists(path):
+                raise IncompatibleCheckpointError(
+                    f"checkpoint {step} in {self.directory} holds no host state of process "
+                    f"{jax.process_index()} ({path}): it was written by fewer processes; resume "
+                    "with as many processes as wrote it"
+                )
+            with open(path) as f:
                 extra = json.load(f)
         return step, meta["fingerprint"], _decode_arrays(extra)
 

@@ -50,7 +50,7 @@ from ml_collections import ConfigDict
 
 import envs
 from dear_jax import lanes, losses, replay, replay_disk, update
-from dear_jax.checkpoint import Checkpointer
+from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.lock import WorkdirLock
 from dear_jax.logger import RunLogger, format_table, read_csv
 from dear_jax.signals import Stopped, StopRequest
@@ -622,8 +622,15 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
         if (workdir / "checkpoints").is_dir():  # a changed config is refused before anything
             ckpt = checkpointer()
             if ckpt.latest_step() is not None:
-                step, saved, _ = ckpt.read_meta()
+                step, saved, extra = ckpt.read_meta()
                 ckpt.check_fingerprint(saved, step)
+                if extra.get("processes", 1) != hosts.count:
+                    raise IncompatibleCheckpointError(
+                        f"checkpoint {step} in {ckpt.directory} was written by "
+                        f"{extra.get('processes', 1)} process(es), and this run has "
+                        f"{hosts.count}; resume with as many processes (each holds the host state "
+                        "of its lanes' envs), or start in a new --workdir"
+                    )
         env = stack.enter_context(
             make_env(
                 config,
@@ -904,6 +911,7 @@ class _Run:
             "env_rng": self.env.host_state(),
             "eval_env_rng": self.eval_env.host_state(),
             "replay_on_disk": self.store is not None,
+            "processes": self.hosts.count,
         }
 
     def save(self, wall_s: float) -> None:

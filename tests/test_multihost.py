@@ -152,6 +152,15 @@ def test_every_lane_is_written_by_its_process(runs):
     assert sorted(p.name for p in whole.glob("run*.lock")) == []  # both locks released
 
 
+def test_a_run_resumes_only_with_as_many_processes(runs):
+    """A 2-process checkpoint holds each process's env host state: one process cannot resume it."""
+    from dear_jax import train
+    from dear_jax.checkpoint import IncompatibleCheckpointError
+
+    with pytest.raises(IncompatibleCheckpointError, match=r"written by 2 process\(es\), .* has 1;"):
+        train.train(config(total_frames=END + 40), runs / "whole")
+
+
 def test_lanes_that_do_not_split_over_the_processes_are_refused():
     from dear_jax import train
 

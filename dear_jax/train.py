@@ -187,7 +187,7 @@ class Hosts:
 
     def to_global(self, tree):
         """This process's block [S / P, ...] (on `local`) -> the run's array [S, ...]; 0-d
-        leaves (the env's key, the same on every process) -> replicated."""
+        leaves, which must be the same on every process -> replicated."""
         if not self.multi:
             return tree
 

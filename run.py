@@ -6,9 +6,12 @@ overridden: `--config.seeds=5 --config.agent.beta=10`. Rerunning the same comman
 workdir resumes from its latest checkpoint. SIGTERM or Ctrl-C checkpoints, then exits (with
 128 + the signal's number); `--verbose` shows libraries' INFO logs, which otherwise go only to
 <workdir>/log.txt.
+
+Several hosts: start the same command on each with `--multihost` (README, "Several hosts").
 """
 
 import logging
+import os
 import pathlib
 import runpy
 import sys
@@ -25,6 +28,13 @@ _WORKDIR = flags.DEFINE_string(
     "workdir", None, "output folder (default: runs/<config file name>); reused to resume"
 )
 _VERBOSE = flags.DEFINE_bool("verbose", False, "show libraries' INFO logs on the console too")
+_MULTIHOST = flags.DEFINE_bool(
+    "multihost",
+    False,
+    "be one process of a multi-host run: jax.distributed.initialize() with JAX_COORDINATOR_ADDRESS, "
+    "JAX_NUM_PROCESSES and JAX_PROCESS_ID, or what the cluster says (SLURM...); also on when "
+    "JAX_COORDINATOR_ADDRESS is set",
+)
 flags.mark_flags_as_required(["config"])
 
 
@@ -50,6 +60,21 @@ def _resolve_argv(argv: list[str]) -> list[str]:
     return argv
 
 
+def _start_processes() -> int:
+    """jax.distributed.initialize() if asked (before anything touches a device); returns this
+    process's index (0 alone)."""
+    env = os.environ
+    if not (_MULTIHOST.value or env.get("JAX_COORDINATOR_ADDRESS")):
+        return 0
+    import jax
+
+    number = lambda name: int(env[name]) if env.get(name) else None  # noqa: E731
+    jax.distributed.initialize(
+        num_processes=number("JAX_NUM_PROCESSES"), process_id=number("JAX_PROCESS_ID")
+    )
+    return jax.process_index()
+
+
 def main(argv):
     del argv
     from dear_jax import console
@@ -58,12 +83,13 @@ def main(argv):
     path, _, spec = flags.FLAGS["config"].config_filename.partition(":")
     name = "_".join([pathlib.Path(path).stem, *filter(None, map(str.strip, spec.split(",")))])
     workdir = _WORKDIR.value or str(pathlib.Path("runs") / name)
+    process = _start_processes()
     try:
-        lock = WorkdirLock(workdir)
+        lock = WorkdirLock(workdir, process)
         lock.acquire()  # before the slow imports: a second run on a workdir fails at once
     except WorkdirLocked as e:
         sys.exit(f"error: {e}")
-    console.setup(workdir, verbose=_VERBOSE.value)
+    console.setup(workdir, verbose=_VERBOSE.value, process=process)
     from dear_jax.checkpoint import IncompatibleCheckpointError
     from dear_jax.replay_disk import DiskSpaceError
     from dear_jax.signals import Stopped

@@ -17,6 +17,8 @@ def get_config() -> ConfigDict:
     c.seeds = 3  # seeds trained together in one process (a vmapped axis)
     # Devices the seeds are split over (an int, or "all": every local device); seeds must be a
     # multiple of it. Each device runs its block of seeds (agent, replay, envs); 1: one device.
+    # With several processes (run.py --multihost), the devices of each process, and the seeds
+    # are first split evenly over the processes.
     c.devices = config_dict.FieldReference(1, field_type=object)  # int or "all"
     c.envs_per_seed = 8  # parallel environments per seed; E / update_every_steps updates per step
     # Frames count per seed, summed over its envs: frames = agent steps (all E envs) x action repeat.

@@ -16,6 +16,12 @@ without jax_enable_x64, 64-bit numpy leaves come back as 32-bit, as jax.numpy wo
 Zero-size leaves (MJX data of a model without tendons, mocap bodies...) are not stored (orbax
 refuses them); they come back as the template's.
 
+Several processes (`jax.distributed`): every process calls `save` and `restore` with the same
+global arrays, and orbax writes and reads each process's shards. The `meta` item is written by
+process 0 only, so each process also keeps its own `extra` (its envs' host RNG states, its lanes'
+log sums) in `<directory>_process_<i>/<step>.json`, written before the step is committed and
+deleted with it; `read_meta` then returns the calling process's `extra`.
+
 Typed JAX PRNG keys (`jax.random.key`) are stored as their uint32 key data and re-wrapped on
 restore with the template's key implementation, so callers may pass either form.
 """
@@ -121,7 +127,7 @@ def _abstract(x: Any) -> jax.ShapeDtypeStruct | None:
         sharding = x.sharding
     else:
         x = np.asarray(x)
-        sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+        sharding = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
     return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
 
 
@@ -185,6 +191,10 @@ class Checkpointer:
                 _META: ocp.JsonCheckpointHandler(),
             },
         )
+        self._own = None  # this process's extras folder, with several processes
+        if jax.process_count() > 1:
+            self._own = f"{self.directory}_process_{jax.process_index()}"
+            os.makedirs(self._own, exist_ok=True)
         # orbax deletes a killed save's temporary folder in a background thread and waits for it
         # only before its next save; wait now, so the folder is clean once the manager is open.
         getattr(self._manager, "_maybe_await_cleanup_tmp_directory", lambda: None)()
@@ -211,6 +221,11 @@ class Checkpointer:
             log.info("checkpoint %d already exists in %s; not rewritten", step, self.directory)
             return False
         meta = {"fingerprint": self.fingerprint, "extra": _jsonable(extra or {}, "extra")}
+        if self._own is not None:
+            path = os.path.join(self._own, f"{step}.json")
+            with open(path + ".tmp", "w") as f:
+                json.dump(meta["extra"], f)
+            os.replace(path + ".tmp", path)
         saved = self._manager.save(
             step,
             args=ocp.args.Composite(
@@ -220,6 +235,11 @@ class Checkpointer:
                 }
             ),
         )
+        if self._own is not None:
+            self.wait()
+            kept = {f"{s}.json" for s in self._manager.all_steps()}
+            for name in set(os.listdir(self._own)) - kept:
+                os.remove(os.path.join(self._own, name))
         return bool(saved)
 
     def read_meta(self, step: int | None = None) -> tuple[int, dict, dict]:
@@ -233,7 +253,18 @@ class Checkpointer:
             )[_META]
         finally:
             absl_log.removeFilter(_skip_unrequested_item)
-        return step, meta["fingerprint"], _decode_arrays(meta["extra"])
+        extra = meta["extra"]
+        if self._own is not None:
+            path = os.path.join(self._own, f"{step}.json")
+            if not os.path.exists(path):
+                raise IncompatibleCheckpointError(
+                    f"checkpoint {step} in {self.directory} holds no host state of process "
+                    f"{jax.process_index()} ({path}): it was written by fewer processes; resume "
+                    "with as many processes as wrote it"
+                )
+            with open(path) as f:
+                extra = json.load(f)
+        return step, meta["fingerprint"], _decode_arrays(extra)
 
     def check_fingerprint(self, saved: Mapping, step: int) -> None:
         """Raise IncompatibleCheckpointError, naming every differing field, unless `saved` matches."""

@@ -44,8 +44,9 @@ class _TqdmHandler(logging.StreamHandler):
             self.handleError(record)
 
 
-def setup(workdir: str | os.PathLike | None, *, verbose: bool = False) -> None:
-    """Route logging as the module docstring says (replaces the root logger's handlers)."""
+def setup(workdir: str | os.PathLike | None, *, verbose: bool = False, process: int = 0) -> None:
+    """Route logging as the module docstring says (replaces the root logger's handlers); process
+    `process` > 0 of a multi-host run writes `log.<process>.txt`."""
     root = logging.getLogger()
     for handler in list(root.handlers):
         root.removeHandler(handler)
@@ -57,7 +58,8 @@ def setup(workdir: str | os.PathLike | None, *, verbose: bool = False) -> None:
     if workdir is not None:
         path = pathlib.Path(workdir)
         path.mkdir(parents=True, exist_ok=True)
-        file = logging.FileHandler(path / LOG_FILE)
+        name = LOG_FILE if process == 0 else f"log.{process}.txt"
+        file = logging.FileHandler(path / name)
         file.setFormatter(logging.Formatter(_FORMAT))
         root.addHandler(file)
     logging.captureWarnings(True)

@@ -50,10 +50,12 @@ def _alive(holder: dict) -> bool:
 
 
 class WorkdirLock:
-    """Context manager holding `<workdir>/run.lock`; re-entrant within one process."""
+    """Context manager holding `<workdir>/run.lock`; re-entrant within one process. Process
+    `process` > 0 of a multi-host run (`jax.distributed`) holds `run.<process>.lock`."""
 
-    def __init__(self, workdir: str | os.PathLike):
-        self.path = pathlib.Path(workdir) / LOCK_NAME
+    def __init__(self, workdir: str | os.PathLike, process: int = 0):
+        name = LOCK_NAME if process == 0 else f"run.{process}.lock"
+        self.path = pathlib.Path(workdir) / name
         self._owned = False
 
     def _read(self) -> dict | None:

@@ -66,7 +66,7 @@ def replay_bytes(num_seeds: int, capacity: int, frame_shape, action_dim: int) ->
 
 def available_bytes(device: jax.Device | None = None) -> int:
     """Memory free for new buffers on `device` (accelerator memory, or host RAM for the CPU)."""
-    device = device or jax.devices()[0]
+    device = device or jax.local_devices()[0]
     stats = device.memory_stats() if device.platform != "cpu" else None
     if stats and "bytes_limit" in stats:
         return int(stats["bytes_limit"] - stats.get("bytes_in_use", 0))

@@ -34,6 +34,7 @@ import os
 import pathlib
 import re
 import shutil
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -134,12 +135,16 @@ def _write_npz(path: pathlib.Path, arrays: dict) -> None:
 
 @dataclasses.dataclass
 class ChunkStore:
-    """Writes and reads back the chunk files of all seeds of one run in `directory`."""
+    """Writes and reads back the chunk files of all seeds of one run in `directory`; with several
+    processes, those of this process's block of seeds (`first_seed`: the global index of its first,
+    for folder names; `read`: a [S, ...] device array's block of this process on the host)."""
 
     directory: pathlib.Path
     num_seeds: int
     rows: int  # T, ring rows of the device replay
     chunk_rows: int  # C
+    first_seed: int = 0
+    read: Callable = np.asarray
 
     def __post_init__(self):
         self.directory = pathlib.Path(self.directory)
@@ -152,7 +157,7 @@ class ChunkStore:
                 tmp.unlink()
 
     def seed_dir(self, seed: int) -> pathlib.Path:
-        return self.directory / f"seed_{seed}"
+        return self.directory / f"seed_{self.first_seed + seed}"
 
     # -- writing -----------------------------------------------------------------------------
     def added(self, buffer: replay.ReplayState, rows_added: int) -> None:
@@ -169,7 +174,7 @@ class ChunkStore:
         self._pending.append(self._executor.submit(self._write, rows, start, end))
 
     def _write(self, rows: dict, start: int, end: int) -> None:
-        host = {f: np.asarray(x)[:, : end - start] for f, x in rows.items()}
+        host = {f: self.read(x)[:, : end - start] for f, x in rows.items()}
         for s in range(self.num_seeds):
             _write_npz(self.seed_dir(s) / file_name(start, end), {f: v[s] for f, v in host.items()})
 

@@ -20,6 +20,11 @@ no collectives: seeds are independent), physics and the env's device half stay w
 live, and one render pool on the host feeds them all. Each seed gets the key it gets on one
 device, so its run is the same bit for bit. `devices=1` keeps arrays uncommitted on the default
 device, with no mesh.
+
+Several processes (`jax.distributed`, README "Several hosts"): the mesh spans every process's
+`config.devices` devices and the loop's arrays are global; each process steps, renders, logs and
+stores its own block of lanes (`Hosts`), and every decision that issues a program is made from
+values all processes agree on (`Hosts.agree`), so all run the same programs in the same order.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ import json
 import logging
 import math
 import pathlib
+import signal
 import sys
 import time
 
@@ -44,7 +50,7 @@ from ml_collections import ConfigDict
 
 import envs
 from dear_jax import lanes, losses, replay, replay_disk, update
-from dear_jax.checkpoint import Checkpointer
+from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.lock import WorkdirLock
 from dear_jax.logger import RunLogger, format_table, read_csv
 from dear_jax.signals import Stopped, StopRequest
@@ -88,6 +94,10 @@ def fingerprint(config: ConfigDict) -> dict:
     return {k: v for k, v in _flatten(config.to_dict()).items() if k not in RESUMABLE_CHANGES}
 
 
+# Offset of process p's env seeds (and episode-start keys): p * HOST_SEED_STRIDE.
+HOST_SEED_STRIDE = 1_000_033
+
+
 def _get(config: ConfigDict, dotted: str):
     for part in dotted.split("."):
         config = config[part]
@@ -120,14 +130,126 @@ def num_devices(devices, seeds: int, available: int) -> int:
 
 
 def seed_mesh(config: ConfigDict) -> Mesh | None:
-    """The 1-D mesh ("seeds") of the first `config.devices` local devices; None for one device."""
-    n = num_devices(config.devices, lanes.num_lanes(config), jax.local_device_count())
-    return None if n == 1 else Mesh(np.array(jax.local_devices()[:n]), ("seeds",))
+    """The 1-D mesh ("seeds") of the first `config.devices` local devices; None for one device.
+    With several processes, of the first `config.devices` devices of every process, in process
+    order: process p holds the p-th block of lanes."""
+    hosts = jax.process_count()
+    per_host = num_hosts(lanes.num_lanes(config), hosts)
+    n = num_devices(config.devices, per_host, jax.local_device_count())
+    if hosts == 1:
+        return None if n == 1 else Mesh(np.array(jax.local_devices()[:n]), ("seeds",))
+    devices = [[d for d in jax.devices() if d.process_index == p][:n] for p in range(hosts)]
+    return Mesh(np.array(sum(devices, [])), ("seeds",))
+
+
+def num_hosts(num_lanes: int, hosts: int) -> int:
+    """Lanes per process, refused unless the processes split them evenly."""
+    if num_lanes % hosts:
+        valid = [h for h in range(1, num_lanes + 1) if num_lanes % h == 0]
+        raise ValueError(
+            f"{num_lanes} lanes (seeds x sweep settings) cannot be split evenly over {hosts} "
+            f"processes; valid process counts: {', '.join(map(str, valid))}; or make the lanes "
+            f"a multiple of {hosts}"
+        )
+    return num_lanes // hosts
 
 
 def seed_sharding(mesh: Mesh | None) -> NamedSharding | None:
     """Arrays with a leading seeds axis split over `mesh` (None: no mesh, the default device)."""
     return None if mesh is None else NamedSharding(mesh, P("seeds"))
+
+
+class Hosts:
+    """This process's share of a run's arrays. One process: every array is whole here and the
+    methods do nothing. Several (`jax.distributed`): the loop's arrays are global (split over
+    `mesh`, every process's devices), while this process's envs, logs and replay files hold its
+    block of lanes (`lanes`) on its own devices (`local`, the env's sharding); the methods move
+    between the two without copies, and `agree` is the one place processes exchange values."""
+
+    def __init__(self, mesh: Mesh | None, num_lanes: int):
+        self.count, self.index = jax.process_count(), jax.process_index()
+        self.mesh = mesh
+        per_host = num_lanes // self.count
+        self.lanes = range(self.index * per_host, (self.index + 1) * per_host)
+        self.local = seed_sharding(mesh)
+        if self.count > 1:
+            mine = [d for d in mesh.devices if d.process_index == self.index]
+            self.local = NamedSharding(Mesh(np.array(mine), ("seeds",)), P("seeds"))
+
+    @property
+    def multi(self) -> bool:
+        return self.count > 1
+
+    def _shards(self, x) -> list:
+        """x's shards on this process's devices, in mesh order."""
+        by_device = {s.device: s.data for s in x.addressable_shards}
+        return [by_device[d] for d in self.local.mesh.devices]
+
+    def to_global(self, tree):
+        """This process's block [S / P, ...] (on `local`) -> the run's array [S, ...]; 0-d
+        leaves, which must be the same on every process -> replicated."""
+        if not self.multi:
+            return tree
+
+        def one(x):
+            if x.ndim == 0:
+                return self.place(x, NamedSharding(self.mesh, P()))
+            if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
+                data = one(jax.random.key_data(x))
+                return jax.random.wrap_key_data(data, impl=jax.random.key_impl(x))
+            shape = (x.shape[0] * self.count, *x.shape[1:])
+            return jax.make_array_from_single_device_arrays(
+                shape, seed_sharding(self.mesh), self._shards(x)
+            )
+
+        return jax.tree.map(one, tree)
+
+    def to_local(self, tree):
+        """The run's arrays [S, ...] -> this process's block [S / P, ...] on `local`; replicated
+        0-d leaves -> uncommitted arrays here."""
+        if not self.multi:
+            return tree
+
+        def one(x):
+            if x.ndim == 0:
+                return _uncommitted(x.addressable_data(0))
+            if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
+                data = one(jax.random.key_data(x))
+                return jax.random.wrap_key_data(data, impl=jax.random.key_impl(x))
+            shape = (x.shape[0] // self.count, *x.shape[1:])
+            return jax.make_array_from_single_device_arrays(shape, self.local, self._shards(x))
+
+        return jax.tree.map(one, tree)
+
+    def read(self, x) -> np.ndarray:
+        """This process's block of a [S, ...] array, on the host."""
+        if not self.multi:
+            return np.asarray(x)
+        return np.concatenate([np.asarray(a) for a in self._shards(x)])
+
+    def place(self, x, sharding):
+        """A value every process holds whole and alike, placed over the run's devices."""
+        if not self.multi:
+            return jax.device_put(x, sharding)
+        if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
+            data = self.place(jax.random.key_data(x), sharding)
+            return jax.random.wrap_key_data(data, impl=jax.random.key_impl(x))
+        host = np.asarray(x)
+        return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+
+    def place_local(self, x: np.ndarray):
+        """This process's block [S / P, ...] of host values -> the run's array [S, ...]."""
+        shape = (x.shape[0] * self.count, *x.shape[1:])
+        return jax.make_array_from_process_local_data(seed_sharding(self.mesh), x, shape)
+
+    def agree(self, values) -> np.ndarray:
+        """[processes, k]: every process's `values` (k numbers), the same on every process."""
+        values = np.asarray(values, np.int64)
+        if not self.multi:
+            return values[None]
+        from jax.experimental import multihost_utils
+
+        return np.asarray(multihost_utils.process_allgather(values)).reshape(self.count, -1)
 
 
 def validate(config: ConfigDict) -> None:
@@ -176,7 +298,8 @@ def validate(config: ConfigDict) -> None:
             f"(replay.capacity={r.capacity}); lower the batch or raise the capacity"
         )
     lanes.sweep_values(config)  # unknown or ineffective sweep keys
-    num_devices(config.devices, lanes.num_lanes(config), jax.local_device_count())
+    per_host = num_hosts(lanes.num_lanes(config), jax.process_count())
+    num_devices(config.devices, per_host, jax.local_device_count())
     if config.env.background_dir and not pathlib.Path(config.env.background_dir).is_dir():
         raise FileNotFoundError(
             f"env.background_dir {config.env.background_dir!r} is not a folder; give a DAVIS-2017 "
@@ -219,12 +342,17 @@ def make_env(
     seed: int,
     backend: str | None = None,
     mesh: Mesh | None = None,
+    hosts: Hosts | None = None,
 ) -> envs.Env:
-    """The batched env of the config (`backend` overrides env.backend; seeds split over `mesh`)."""
+    """The batched env of the config (`backend` overrides env.backend; seeds split over `mesh`);
+    with several processes (`hosts`), of this process's lanes on its devices."""
     e = config.env
+    hosts = hosts or Hosts(mesh, lanes.num_lanes(config))
+    # Each process draws its own lanes' episode starts and distractions.
+    seed += HOST_SEED_STRIDE * hosts.index
     env = envs.make(
         e.task,
-        num_seeds=lanes.num_lanes(config),
+        num_seeds=len(hosts.lanes),
         envs_per_seed=envs_per_seed,
         backend=backend or e.backend,
         distraction=e.distraction,
@@ -237,7 +365,7 @@ def make_env(
         seed=seed,
         action_repeat=e.action_repeat,
         episode_frames=e.episode_frames or None,
-        sharding=seed_sharding(mesh),
+        sharding=hosts.local,
     )
     return env
 
@@ -360,14 +488,24 @@ class EvalAborted(Exception):
 
 
 def evaluate(
-    env: envs.Env, programs: Programs, params, key, *, video: bool, stop=lambda: False
+    env: envs.Env,
+    programs: Programs,
+    params,
+    key,
+    *,
+    video: bool,
+    stop=lambda: False,
+    hosts: Hosts | None = None,
 ) -> tuple[dict, dict]:
     """One episode in each of the eval env's E envs per seed, deterministic actions of the
     policy with `params` (the agent's, [S]-stacked).
 
     Returns per-seed metrics ([S] arrays) and, if asked, video frames of env 0 per seed.
-    Raises EvalAborted when `stop()` turns true (checked every step).
+    Raises EvalAborted when `stop()` turns true (checked every step). With several processes
+    (`hosts`), those of this process's lanes, whose envs `env` steps; the episodes end when
+    every process's have.
     """
+    hosts = hosts or Hosts(None, env.shape[0])
     state, ts = env.reset(key)
     returns = jnp.zeros(env.shape)
     success = jnp.zeros(env.shape)
@@ -375,12 +513,13 @@ def evaluate(
     cos_sum, steps = jnp.zeros(env.shape[0]), 0
     frames = []
     while True:
-        action, cos, pred = programs.evaluate_step(params, ts.obs)
+        action, cos, pred = programs.evaluate_step(params, hosts.to_global(ts.obs))
+        action, cos, pred = hosts.to_local((action, cos, pred))
         if video:
             frames.append((ts.frame[:, 0], ts.true_mask[:, 0], pred))
         cos_sum, steps = cos_sum + cos, steps + 1
         done |= np.asarray(state.last)
-        if done.all():
+        if hosts.agree([done.all()]).all():
             break
         if stop():
             raise EvalAborted
@@ -417,7 +556,7 @@ def _pbar(config, total, initial):
     )
 
 
-def _replay_store(config: ConfigDict, spec: envs.EnvSpec, workdir: pathlib.Path):
+def _replay_store(config: ConfigDict, spec: envs.EnvSpec, workdir: pathlib.Path, hosts: Hosts):
     """The chunk store of the replay on disk (None when replay.disk is off), its size checked."""
     if not config.replay.disk:
         return None
@@ -431,7 +570,7 @@ def _replay_store(config: ConfigDict, spec: envs.EnvSpec, workdir: pathlib.Path)
     ckpt_every = config.checkpoint_every_frames
     between = math.ceil(ckpt_every * per_frame) + 1 if ckpt_every else total_rows
     need = replay_disk.disk_bound(
-        num_seeds=lanes.num_lanes(config),
+        num_seeds=len(hosts.lanes),
         rows=rows,
         chunk_rows=chunk_rows,
         num_envs=num_envs,
@@ -451,7 +590,9 @@ def _replay_store(config: ConfigDict, spec: envs.EnvSpec, workdir: pathlib.Path)
         more / gib,
         free / gib,
     )
-    return replay_disk.ChunkStore(directory, lanes.num_lanes(config), rows, chunk_rows)
+    return replay_disk.ChunkStore(
+        directory, len(hosts.lanes), rows, chunk_rows, first_seed=hosts.lanes[0], read=hosts.read
+    )
 
 
 def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
@@ -461,10 +602,11 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
     """
     validate(config)
     mesh = seed_mesh(config)
+    hosts = Hosts(mesh, lanes.num_lanes(config))
     workdir = pathlib.Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     with contextlib.ExitStack() as stack:
-        stack.enter_context(WorkdirLock(workdir))
+        stack.enter_context(WorkdirLock(workdir, hosts.index))
         stop = stack.enter_context(StopRequest())
 
         def checkpointer() -> Checkpointer:
@@ -480,8 +622,15 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
         if (workdir / "checkpoints").is_dir():  # a changed config is refused before anything
             ckpt = checkpointer()
             if ckpt.latest_step() is not None:
-                step, saved, _ = ckpt.read_meta()
+                step, saved, extra = ckpt.read_meta()
                 ckpt.check_fingerprint(saved, step)
+                if extra.get("processes", 1) != hosts.count:
+                    raise IncompatibleCheckpointError(
+                        f"checkpoint {step} in {ckpt.directory} was written by "
+                        f"{extra.get('processes', 1)} process(es), and this run has "
+                        f"{hosts.count}; resume with as many processes (each holds the host state "
+                        "of its lanes' envs), or start in a new --workdir"
+                    )
         env = stack.enter_context(
             make_env(
                 config,
@@ -489,6 +638,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 split="train",
                 seed=config.seed,
                 mesh=mesh,
+                hosts=hosts,
             )
         )
         spec = env.spec
@@ -498,12 +648,13 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 f"({spec.episode_steps} agent steps); lower agent.nstep"
             )
         runs = lanes.lanes(config)
+        mine = [runs[i] for i in hosts.lanes]  # the lanes whose envs, logs and files are here
         lanes_per_device = len(runs) // (1 if mesh is None else mesh.size)
         replay.check_fits(
             lanes_per_device, config.replay.capacity, spec.frame_shape, spec.action_dim
         )
         ckpt = ckpt or checkpointer()  # a new run's folder: only once the config is known to work
-        store = _replay_store(config, spec, workdir)
+        store = _replay_store(config, spec, workdir, hosts)
         if store is not None:
             stack.callback(store.close)
         eval_env = stack.enter_context(
@@ -514,37 +665,66 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 seed=config.seed + 1,
                 backend="cpu" if config.env.eval_backend == "cpu" else None,
                 mesh=mesh,
+                hosts=hosts,
             )
         )
         if mesh is not None:
             log.info(
-                "%d lanes split over %d devices (%d each): %s",
+                "%d lanes split over %d devices (%d each) of %d process(es): %s; here lanes "
+                "%d to %d",
                 len(runs),
                 mesh.size,
                 lanes_per_device,
+                hosts.count,
                 ", ".join(str(d) for d in mesh.devices),
+                hosts.lanes[0],
+                hosts.lanes[-1],
             )
-        run = _Run(config, spec, ckpt, store, env, eval_env, mesh)
-        (workdir / "config.json").write_text(config.to_json(indent=1))
-        names = [lane.name for lane in runs]
-        logger = RunLogger(workdir, len(runs), names=names, resume_frame=run.resumed_from)
+        run = _Run(config, spec, ckpt, store, env, eval_env, mesh, hosts)
+        if hosts.index == 0:
+            (workdir / "config.json").write_text(config.to_json(indent=1))
+        names = [lane.name for lane in mine]
+        logger = RunLogger(workdir, len(mine), names=names, resume_frame=run.resumed_from)
         if len(runs) > 1 or runs[0].settings:  # each lane's own settings beside its logs
-            for lane in runs:
+            for i, lane in enumerate(mine):
                 text = lanes.lane_config(config, lane).to_json(indent=1)
-                (logger.seed_dir(lane.index) / "config.json").write_text(text)
+                (logger.seed_dir(i) / "config.json").write_text(text)
         stack.callback(logger.close)
+        stop = run.agreed_stop(stop)
         run.loop(logger, workdir, stop)
+    if hosts.multi:  # every process's logs are written before process 0 sums them up
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices("dear_jax: logs written")
     if stop:
         raise Stopped(
             f"stopped by {stop.name} at frame {run.counters['frame']:,} per seed; checkpoint "
             f"saved in {workdir / 'checkpoints'}; rerun the same command to resume",
             stop.signum,
         )
-    return write_summary(workdir, config, spec, run.counters)
+    devices = 1 if mesh is None else mesh.size
+    if hosts.index:
+        return {}
+    return write_summary(workdir, config, spec, run.counters, devices=devices)
 
 
 def _is_host(x) -> bool:
     return isinstance(x, (np.ndarray, np.generic))
+
+
+def _to_host(x) -> np.ndarray:
+    if isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
+        x = jax.random.key_data(x)
+    return np.asarray(x)
+
+
+def _like(template, value):
+    """`value`, a host copy of a leaf like `template` (`_to_host`), as `template` is."""
+    if _is_host(template):
+        return value
+    if jnp.issubdtype(template.dtype, jax.dtypes.prng_key):
+        return jax.random.wrap_key_data(jnp.asarray(value), impl=jax.random.key_impl(template))
+    return jnp.asarray(value)
 
 
 def _uncommitted(x):
@@ -560,6 +740,21 @@ def _uncommitted(x):
 
 
 _init_seeds = jax.jit(update.init_seeds, static_argnums=0)
+
+
+class _AgreedStop:
+    """A StopRequest as several processes read it: set by `_Run._step` once any process got
+    a signal (`request`: this process's own), on every process at the same step."""
+
+    def __init__(self, request: StopRequest):
+        self.request, self.signum = request, None
+
+    def __bool__(self) -> bool:
+        return self.signum is not None
+
+    @property
+    def name(self) -> str:
+        return signal.Signals(self.signum).name if self.signum else ""
 
 
 class _Run:
@@ -579,10 +774,13 @@ class _Run:
         env: envs.Env,
         eval_env: envs.Env,
         mesh: Mesh | None = None,
+        hosts: Hosts | None = None,
     ):
         self.config, self.spec, self.ckpt, self.store = config, spec, ckpt, store
         self.env, self.eval_env, self.mesh = env, eval_env, mesh
         self.lanes = lanes.lanes(config)
+        self.hosts = hosts or Hosts(mesh, len(self.lanes))
+        self.mine = [self.lanes[i] for i in self.hosts.lanes]
         num_seeds, num_envs = len(self.lanes), config.envs_per_seed
         self.acfg = agent_config(config, spec.action_dim)
         self.programs = cached_programs(self.acfg, config, mesh)
@@ -630,14 +828,18 @@ class _Run:
         self.episode_returns = []  # [2, S] per step: returns summed and count of ended episodes
         self.last_eval_return = None
         self._pending_eval = None  # the evaluation in flight (see _evaluate_if_due)
+        # Several processes must issue their programs in the same order: no second thread.
         self._eval_thread = (
             concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="eval")
-            if config.eval_in_background
+            if config.eval_in_background and not self.hosts.multi
             else None
         )
+        self._episodes_pending = False  # an episode ended (on any process) since the last row
+        self._stop = None  # several processes: the stop request they agree on (agreed_stop)
         self.resumed_from = None
         self.key, k_reset = jax.random.split(self.key)
-        self.state, self.ts = env.reset(k_reset)
+        self.state, ts = env.reset(self._env_key(k_reset))
+        self.ts = self.hosts.to_global(ts)
         self.returns = self._split(jnp.zeros((num_seeds, num_envs)))
         self._no_action = self._split(jnp.zeros((num_seeds, num_envs, spec.action_dim)))
         if ckpt.latest_step() is None:
@@ -649,21 +851,45 @@ class _Run:
 
     def _split(self, tree):
         """`tree`, whose leaves lead with the seeds axis, split over the devices (if several)."""
-        return tree if self.mesh is None else jax.device_put(tree, seed_sharding(self.mesh))
+        if self.mesh is None:
+            return tree
+        return jax.tree.map(lambda x: self.hosts.place(x, seed_sharding(self.mesh)), tree)
 
     def _everywhere(self, tree):
         """`tree` (no seeds axis) on every device of the mesh (if any)."""
         if self.mesh is None:
             return tree
-        return jax.device_put(tree, NamedSharding(self.mesh, P()))
+        return jax.tree.map(lambda x: self.hosts.place(x, NamedSharding(self.mesh, P())), tree)
+
+    def _env_key(self, key):
+        """A key of the loop (on every device) as this process's envs take it: here, and
+        folded with the process index, so processes draw different episode starts."""
+        if not self.hosts.multi:
+            return key
+        return jax.random.fold_in(self.hosts.to_local(key), self.hosts.index)
+
+    def agreed_stop(self, stop: StopRequest):
+        """`stop` as the loop reads it: with several processes, true once any process got a
+        signal, on every process at the same step (`_step` asks), so all checkpoint together."""
+        if self.hosts.multi:
+            self._stop = _AgreedStop(stop)
+            return self._stop
+        return stop
 
     # -- checkpoints -------------------------------------------------------------------------
+    def _saved_on_host(self, x) -> bool:
+        """Env state leaves saved with this process's host values: numpy ones and, with several
+        processes, the env's key (each process's envs have their own)."""
+        return _is_host(x) or (self.hosts.multi and x.ndim == 0)
+
     def _tree(self) -> dict:
         b = self.buffer
         return {
             "agent": self.agent,
             "key": self.key,
-            "env": [x for x in jax.tree.leaves(self.state) if not _is_host(x)],
+            "env": self.hosts.to_global(
+                [x for x in jax.tree.leaves(self.state) if not self._saved_on_host(x)]
+            ),
             "ts": self.ts,
             "returns": self.returns,
             "replay": {"episodes_started": b.episodes_started, "pos": b.pos, "size": b.size},
@@ -676,13 +902,16 @@ class _Run:
             "metric_sum": (
                 None
                 if self.metric_sum is None
-                else {k: np.asarray(v) for k, v in self.metric_sum.items()}
+                else {k: self.hosts.read(v) for k, v in self.metric_sum.items()}
             ),
             "episode_returns": list(self.episode_returns),
-            "env_host": [x for x in jax.tree.leaves(self.state) if _is_host(x)],
+            "env_host": [
+                _to_host(x) for x in jax.tree.leaves(self.state) if self._saved_on_host(x)
+            ],
             "env_rng": self.env.host_state(),
             "eval_env_rng": self.eval_env.host_state(),
             "replay_on_disk": self.store is not None,
+            "processes": self.hosts.count,
         }
 
     def save(self, wall_s: float) -> None:
@@ -712,9 +941,10 @@ class _Run:
         self.agent, self.key = restored["agent"], restored["key"]
         self.ts, self.returns = restored["ts"], restored["returns"]
         leaves, treedef = jax.tree.flatten(self.state)
-        device, host = iter(restored["env"]), iter(extra["env_host"])
+        device = iter(self.hosts.to_local(restored["env"]))
+        host = iter(extra["env_host"])
         self.state = treedef.unflatten(
-            [next(host) if _is_host(x) else next(device) for x in leaves]
+            [_like(x, next(host)) if self._saved_on_host(x) else next(device) for x in leaves]
         )
         self.env.set_host_state(extra["env_rng"])
         self.eval_env.set_host_state(extra["eval_env_rng"])
@@ -727,15 +957,23 @@ class _Run:
                 self.config.eval_every_frames
             )
         if extra["metric_sum"] is not None:
-            self.metric_sum = {k: jnp.asarray(v) for k, v in extra["metric_sum"].items()}
+            self.metric_sum = {
+                k: self.hosts.place_local(v) if self.hosts.multi else jnp.asarray(v)
+                for k, v in extra["metric_sum"].items()
+            }
         self.episode_returns = [np.asarray(r) for r in extra["episode_returns"]]
+        self._episodes_pending = bool(self.hosts.agree([len(self.episode_returns)]).any())
         self.resumed_from = frame
         rows = self.counters["rows"]
         if self.store is not None and extra["replay_on_disk"]:
             self.store.forget_after(rows)
             t0 = time.perf_counter()
-            buffer = self.store.restore(self.buffer, rows).replace(**restored["replay"])
-            self.buffer = self._split(buffer)
+            if self.hosts.multi:  # each process reads its lanes' files into its block
+                local = self.store.restore(self.hosts.to_local(self.buffer), rows)
+                self.buffer = self.hosts.to_global(local).replace(**restored["replay"])
+            else:
+                buffer = self.store.restore(self.buffer, rows).replace(**restored["replay"])
+                self.buffer = self._split(buffer)
             log.info(
                 "resumed from checkpoint %d (frame %d per seed); replay: %d rows per seed read "
                 "back from %s in %.0f s",
@@ -769,13 +1007,23 @@ class _Run:
 
     def _step(self, pbar) -> None:
         config, programs, counters, lv = self.config, self.programs, self.counters, self.lv
+        hosts = self.hosts
         self.key, k_act, k_learn = jax.random.split(self.key, 3)
         # An env whose episode ended restarts this step: it shows a first frame, adds no
         # transition and owes no update. DMC envs all end together; kitchen envs end on success.
-        stepping = ~np.asarray(self.state.last)  # [S, E]
-        steps_per_seed = stepping.sum() / len(self.lanes)
+        stepping = ~np.asarray(self.state.last)  # [S, E]; several processes: [S / P, E], here
+        # The step's decisions use sums over every process's envs (and any process's stop
+        # request), so that all of them dispatch the same programs.
+        request = getattr(self._stop, "request", None)
+        steps, signum = hosts.agree([stepping.sum(), (request and request.signum) or 0]).T
+        steps = int(steps.sum())
+        if signum.any():
+            self._stop.signum = int(signum.max())
+        steps_per_seed = steps / len(self.lanes)
+        if hosts.multi:
+            stepping = hosts.place_local(stepping)
         action, self.agent = programs.act(self.agent, self.ts.obs, k_act, stepping)
-        future = self.env.step_async(self.state, action)
+        future = self.env.step_async(self.state, hosts.to_local(action))
         # Updates are dispatched while the env thread renders the next observations.
         if counters["frame"] >= lv["seed_frames"] and steps_per_seed:
             lv["steps_owed"] += steps_per_seed / config.agent.update_every_steps
@@ -783,7 +1031,7 @@ class _Run:
             lv["steps_owed"] -= n
             if n and not counters["updates"]:  # once: the replay must hold a batch
                 replay.check_can_sample(
-                    replay.num_transitions(self.buffer, self.acfg.frame_stack),
+                    replay.num_transitions(hosts.to_local(self.buffer), self.acfg.frame_stack),
                     config.agent.batch_size,
                 )
             for k in jax.random.split(k_learn, n) if n else ():
@@ -795,30 +1043,36 @@ class _Run:
                 )
                 lv["metric_count"] += 1
             counters["updates"] += n
-        self.state, self.ts = future.result()
+        self.state, ts = future.result()
+        self.ts = hosts.to_global(ts)
         self._add(self.ts, action)
         self.returns = programs.accumulate(self.returns, self.ts)
         counters["iteration"] += 1
         # Frames count per seed over its envs (the mean over seeds where their envs differ).
-        lv["env_steps"] += int(stepping.sum())
+        lv["env_steps"] += steps
         frames = lv["env_steps"] // len(self.lanes) * self.spec.action_repeat - counters["frame"]
         if frames:
             counters["frame"] += frames
             if pbar is not None:
                 pbar.update(frames)
         ended = np.asarray(self.state.last)
-        if ended.any():
-            lv["episodes_ended"] += int(ended.sum())
-            counters["episode"] = lv["episodes_ended"] // ended.size  # per env
-            # [2, S]: the summed returns and the number of the episodes each seed ended
-            ended_returns = np.where(ended, np.asarray(self.returns), 0.0).sum(1)
+        if ended.any():  # [2, S]: the summed returns and the number of the episodes each seed ended
+            ended_returns = np.where(ended, hosts.read(self.returns), 0.0).sum(1)
             self.episode_returns.append(np.stack([ended_returns, ended.sum(1)]))
+        ended_all = int(hosts.agree([ended.sum()]).sum())
+        if ended_all:
+            lv["episodes_ended"] += ended_all
+            counters["episode"] = lv["episodes_ended"] // (ended.size * hosts.count)  # per env
+            self._episodes_pending = True
 
     def _log(self, logger: RunLogger, pbar) -> None:
         config, counters, lv = self.config, self.counters, self.lv
         frame = counters["frame"]
-        if frame < lv["next_log"] or not (lv["metric_count"] or self.episode_returns):
+        # Both reasons to log are the same on every process (a process whose lanes ended no
+        # episode logs a row without a return).
+        if frame < lv["next_log"] or not (lv["metric_count"] or self._episodes_pending):
             return
+        self._episodes_pending = False
         now = time.perf_counter()
         row = {
             "episode": counters["episode"],
@@ -826,7 +1080,9 @@ class _Run:
             "fps": (frame - lv["last_log_frame"]) * len(self.lanes) / max(now - self._log_t, 1e-9),
         }
         if lv["metric_count"]:
-            row.update({k: np.asarray(v) / lv["metric_count"] for k, v in self.metric_sum.items()})
+            row.update(
+                {k: self.hosts.read(v) / lv["metric_count"] for k, v in self.metric_sum.items()}
+            )
             self.metric_sum, lv["metric_count"] = None, 0
         if self.episode_returns:
             total, count = np.sum(self.episode_returns, 0)
@@ -873,7 +1129,13 @@ class _Run:
             # runs to its end first, so the checkpoint after it holds its row.
             abort = (lambda: False) if background else (lambda: bool(stop))
             metrics, clips = evaluate(
-                self.eval_env, self.programs, params, key, video=config.save_video, stop=abort
+                self.eval_env,
+                self.programs,
+                params,
+                self._env_key(key),
+                video=config.save_video,
+                stop=abort,
+                hosts=self.hosts,
             )
             return metrics, clips, time.perf_counter() - t0
 
@@ -918,7 +1180,7 @@ class _Run:
         )
         self._logger.write("eval", frame, metrics)
         for s, clip in clips.items():
-            name = self.lanes[s].name
+            name = self.mine[s].name
             write_video(self._workdir / "videos" / f"eval_{frame}_{name}.mp4", clip, fps=30)
         self.last_eval_return = float(np.mean(metrics["episode_return"]))
         log.info(
@@ -970,7 +1232,7 @@ class _Run:
                 pbar.close()
 
 
-def write_summary(workdir, config, spec, counters) -> dict:
+def write_summary(workdir, config, spec, counters, *, devices: int = 1) -> dict:
     """Summary per seed from the eval logs (printed, and saved as summary.md / summary.json)."""
     wall = counters["wall_s"]
     runs = lanes.lanes(config)
@@ -1014,7 +1276,8 @@ def write_summary(workdir, config, spec, counters) -> dict:
         "seeds": config.seeds,
         "lanes": len(runs),
         "sweep": {k: list(v) for k, v in lanes.sweep_values(config).items()},
-        "devices": num_devices(config.devices, len(runs), jax.local_device_count()),
+        "devices": devices,
+        "processes": jax.process_count(),
         "envs_per_seed": config.envs_per_seed,
         "frames_per_seed": counters["frame"],
         "updates_per_seed": counters["updates"],

@@ -256,7 +256,7 @@ class CpuPhysics:
         self.control = control
         self._data = mujoco.MjData(model)
         self._reward = jax.jit(_vmap2(jax.vmap(reward_fn)))
-        self._cpu = jax.devices("cpu")[0]
+        self._cpu = jax.local_devices(backend="cpu")[0]
 
     def _load(self, state: CpuState, idx) -> mujoco.MjData:
         d = self._data

@@ -1290,10 +1290,10 @@ def write_summary(workdir, config, spec, counters, *, devices: int = 1) -> dict:
         "distraction": config.env.distraction,
         "per_seed": per_seed,
     }
-    columns = ["lane", "final eval return", "best eval return", "cos(z_A, z_E)"]
+    unit = "lane" if runs[0].settings else "seed"
+    columns = [unit, "final eval return", "best eval return", "cos(z_A, z_E)"]
     columns += ["final eval success"] if spec.has_success else []
     table = format_table(columns, rows)
-    unit = "lane" if runs[0].settings else "seed"
     text = (
         f"# {config.agent.method} on {config.env.task}\n\n"
         f"{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, {wall:.0f} s of training "

@@ -134,7 +134,7 @@ def seed_mesh(config: ConfigDict) -> Mesh | None:
     With several processes, of the first `config.devices` devices of every process, in process
     order: process p holds the p-th block of lanes."""
     hosts = jax.process_count()
-    per_host = num_hosts(lanes.num_lanes(config), hosts)
+    per_host = lanes_per_host(lanes.num_lanes(config), hosts)
     n = num_devices(config.devices, per_host, jax.local_device_count())
     if hosts == 1:
         return None if n == 1 else Mesh(np.array(jax.local_devices()[:n]), ("seeds",))
@@ -142,7 +142,7 @@ def seed_mesh(config: ConfigDict) -> Mesh | None:
     return Mesh(np.array(sum(devices, [])), ("seeds",))
 
 
-def num_hosts(num_lanes: int, hosts: int) -> int:
+def lanes_per_host(num_lanes: int, hosts: int) -> int:
     """Lanes per process, refused unless the processes split them evenly."""
     if num_lanes % hosts:
         valid = [h for h in range(1, num_lanes + 1) if num_lanes % h == 0]
@@ -298,7 +298,7 @@ def validate(config: ConfigDict) -> None:
             f"(replay.capacity={r.capacity}); lower the batch or raise the capacity"
         )
     lanes.sweep_values(config)  # unknown or ineffective sweep keys
-    per_host = num_hosts(lanes.num_lanes(config), jax.process_count())
+    per_host = lanes_per_host(lanes.num_lanes(config), jax.process_count())
     num_devices(config.devices, per_host, jax.local_device_count())
     if config.env.background_dir and not pathlib.Path(config.env.background_dir).is_dir():
         raise FileNotFoundError(

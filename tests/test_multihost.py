@@ -165,8 +165,8 @@ def test_lanes_that_do_not_split_over_the_processes_are_refused():
     from dear_jax import train
 
     with pytest.raises(ValueError, match=r"3 lanes .* cannot be split evenly over 2 processes; "):
-        train.num_hosts(3, 2)
-    assert train.num_hosts(4, 2) == 2
+        train.lanes_per_host(3, 2)
+    assert train.lanes_per_host(4, 2) == 2
 
 
 if __name__ == "__main__":

@@ -14,6 +14,8 @@
 #   speed     the performance issue's update figures: DEAR fp32 / bf16 and DrQ-v2 bf16 at batch
 #             512 (5 seeds), the first conv's input paths (benchmarks/encoder_input.py), the
 #             bf16 DEAR profile
+#   loop      benchmarks/profile_loop.py: where a training iteration's time goes, per program, for
+#             DEAR walker-walk (5 seeds x 16 envs) and the DrQ-v2 learning check (3 x 16), bf16
 #   torch     benchmarks/torch_reference.py update (DEAR eager and best, batch 512)
 #   scaling   benchmarks/scaling.py: DEAR walker-walk, 5 seeds x 8 envs per GPU on 1 and 2 GPUs
 #             (a machine with 2 GPUs)
@@ -82,6 +84,14 @@ while [ $# -gt 0 ]; do
         --out "$out/encoder_input.json"
       timeout 150 python3 -m benchmarks.profile_update --method dear --batch 512 \
         --dtype bfloat16 --out "$out/profile_dear_bf16.json" ;;
+    loop)
+      export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
+      pl="timeout 300 python3 -m benchmarks.profile_loop --envs 16 --dtype bfloat16 --warmup-frames 2400 --log-every 800 --iterations 20"
+      $pl --config configs/walker_dear.py --seeds 5 --out "$out/profile_loop_dear.json" \
+        > "$out/profile_loop_dear.log" 2>&1
+      $pl --config configs/walker_drqv2_paper.py --seeds 3 --out "$out/profile_loop_drqv2.json" \
+        > "$out/profile_loop_drqv2.log" 2>&1
+      grep -v warp "$out"/profile_loop_*.log | grep -A12 "per iteration" ;;
     torch)
       timeout 300 python3 -m benchmarks.torch_reference update --methods dear --batch 512 \
         --iters 20 --variants eager best --out "$out/torch.json" ;;

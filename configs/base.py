@@ -33,6 +33,11 @@ def get_config() -> ConfigDict:
     c.keep_checkpoints = 3
     c.save_video = True  # eval video of env 0 per seed: RGB | true mask | predicted mask
     c.progress = True  # tqdm progress bar on a terminal (else a log line per log interval)
+    # A jax.profiler trace of `profile.iterations` loop iterations from frame `profile.at_frame`
+    # per seed (-1: off), written to workdir/profile (TensorBoard's Profile tab, or Perfetto).
+    c.profile = ConfigDict()
+    c.profile.at_frame = -1
+    c.profile.iterations = 20
 
     c.env = ConfigDict()
     c.env.task = "walker-walk"  # python -c "import envs; print(envs.names())" lists them

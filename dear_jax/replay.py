@@ -291,6 +291,21 @@ def same_episode_offsets(state, row, env, key, nstep: int = 1):
     return jnp.where(valid, offset, 0), valid
 
 
+def _draw(key: jax.Array, weights: jax.Array, n: int) -> jax.Array:
+    """`n` indices drawn with replacement in proportion to `weights`: the draws of
+    `jax.random.choice(key, len(weights), (n,), p=weights / weights.sum())`, whose binary search
+    is a `lax.fori_loop`, which a GPU may run as a while loop that waits on the host for its
+    condition at every step. Here the search is unrolled: straight-line code, no loop."""
+    cdf = jnp.cumsum(weights / weights.sum())
+    u = cdf[-1] * (1 - jax.random.uniform(key, (n,), cdf.dtype))
+    lo, hi = jnp.zeros(n, jnp.int32), jnp.full(n, cdf.shape[0], jnp.int32)
+    for _ in range(math.ceil(math.log2(cdf.shape[0] + 1))):  # the first i with cdf[i] >= u
+        mid = (lo + hi) // 2
+        right = cdf[jnp.minimum(mid, cdf.shape[0] - 1)] < u
+        lo, hi = jnp.where(right, mid + 1, lo), jnp.where(right, hi, mid)
+    return lo
+
+
 def sample(
     state: ReplayState,
     key: jax.Array,
@@ -311,7 +326,7 @@ def sample(
     weights = sample_weights(state, frame_stack).reshape(-1)
     if not isinstance(weights, jax.core.Tracer):
         check_can_sample(weights.sum(), 1)
-    flat = jax.random.choice(k_idx, weights.shape[0], (batch_size,), p=weights / weights.sum())
+    flat = _draw(k_idx, weights, batch_size)
     row, env = jnp.divmod(flat, state.frames.shape[1])
     return sample_at(
         state,

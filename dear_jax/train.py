@@ -70,6 +70,8 @@ RESUMABLE_CHANGES = (
     "keep_checkpoints",
     "save_video",
     "progress",
+    "profile.at_frame",
+    "profile.iterations",
     "env.render.num_workers",
     "env.eval_backend",
     "eval_in_background",
@@ -742,6 +744,35 @@ def _uncommitted(x):
 _init_seeds = jax.jit(update.init_seeds, static_argnums=0)
 
 
+class _Trace:
+    """config.profile: a jax.profiler trace of a few loop iterations, to workdir/profile."""
+
+    def __init__(self, settings: ConfigDict, workdir: pathlib.Path, frame: int):
+        self.at, self.left = settings.at_frame, settings.iterations
+        self.directory = workdir / "profile"
+        self.on = False
+        if 0 <= self.at < frame:  # a resumed run past the frame traces from where it resumes
+            self.at = frame
+
+    def tick(self, frame: int, sync) -> None:
+        """Called before each iteration; `sync` waits for the device work dispatched so far."""
+        if self.on:
+            self.left -= 1
+            if not self.left:
+                self.stop(sync)
+        elif self.left > 0 and 0 <= self.at <= frame:
+            sync()  # the trace starts with an empty queue, so it holds whole iterations
+            jax.profiler.start_trace(str(self.directory))
+            self.on = True
+
+    def stop(self, sync) -> None:
+        if self.on:
+            sync()
+            jax.profiler.stop_trace()
+            self.on, self.left = False, 0
+            log.info("profile of the loop written to %s (tensorboard --logdir)", self.directory)
+
+
 class _AgreedStop:
     """A StopRequest as several processes read it: set by `_Run._step` once any process got
     a signal (`request`: this process's own), on every process at the same step."""
@@ -1205,10 +1236,13 @@ class _Run:
         t_start, wall0 = time.perf_counter(), counters["wall_s"]
         self._log_t = t_start
         wall = lambda: wall0 + time.perf_counter() - t_start  # noqa: E731
+        trace = _Trace(config.profile, self._workdir, counters["frame"])
+        sync = lambda: jax.block_until_ready((self.agent, self.buffer, self.ts))  # noqa: E731
         try:
             # An evaluation a stop cut short runs first (the resumed run continues from there).
             self._evaluate_if_due(wall(), stop)
             while counters["frame"] < config.total_frames and not stop:
+                trace.tick(counters["frame"], sync)
                 self._step(pbar)
                 self._log(logger, pbar)
                 self._evaluate_if_due(wall(), stop)
@@ -1226,6 +1260,7 @@ class _Run:
             self._finish_evaluation(wait=True)
             counters["wall_s"] = wall()
         finally:
+            trace.stop(sync)
             if self._eval_thread is not None:
                 self._eval_thread.shutdown(wait=False, cancel_futures=True)
             if pbar is not None:

@@ -226,3 +226,21 @@ def test_sampling_an_empty_replay_raises():
     state = replay.init(8, 2, FRAME, 2)
     with pytest.raises(ValueError, match="holds \\[0\\] sampleable transitions"):
         replay.sample(state, jax.random.key(0), 4, nstep=1, gamma=0.99, frame_stack=3)
+
+
+def test_draws_are_choice_s_without_a_loop():
+    """The sampler draws what jax.random.choice draws for the same key and weights, in a program
+    with no loop (a GPU would sync with the host at every step of one)."""
+    weights = (jax.random.uniform(jax.random.key(0), (3000,)) > 0.4).astype(jnp.float32)
+    for seed in range(3):
+        key = jax.random.key(seed)
+        expected = jax.random.choice(key, 3000, (256,), p=weights / weights.sum())
+        np.testing.assert_array_equal(replay._draw(key, weights, 256), expected)
+    for n in (1, 2, 5, 64):  # the search's edges: every index can come out
+        w = jnp.ones(n)
+        assert set(np.asarray(replay._draw(key, w, 4000)).tolist()) == set(range(n))
+    jaxpr = str(jax.make_jaxpr(replay._draw, static_argnums=2)(jax.random.key(0), weights, 256))
+    assert "while" not in jaxpr and "scan" not in jaxpr
+    assert "scan" in str(
+        jax.make_jaxpr(lambda k, w: jax.random.choice(k, 3000, (256,), p=w))(key, weights)
+    )  # the loop the sampler avoids

@@ -291,17 +291,20 @@ def same_episode_offsets(state, row, env, key, nstep: int = 1):
     return jnp.where(valid, offset, 0), valid
 
 
-def _draw(key: jax.Array, weights: jax.Array, n: int) -> jax.Array:
-    """`n` indices drawn with replacement in proportion to `weights`: the draws of
-    `jax.random.choice(key, len(weights), (n,), p=weights / weights.sum())`, whose binary search
-    is a `lax.fori_loop`, which a GPU may run as a while loop that waits on the host for its
-    condition at every step. Here the search is unrolled: straight-line code, no loop."""
-    cdf = jnp.cumsum(weights / weights.sum())
-    u = cdf[-1] * (1 - jax.random.uniform(key, (n,), cdf.dtype))
-    lo, hi = jnp.zeros(n, jnp.int32), jnp.full(n, cdf.shape[0], jnp.int32)
-    for _ in range(math.ceil(math.log2(cdf.shape[0] + 1))):  # the first i with cdf[i] >= u
+def _draw(key: jax.Array, valid: jax.Array, n: int) -> jax.Array:
+    """`n` indices drawn uniformly, with replacement, among the entries where `valid` is nonzero.
+
+    Integer arithmetic only (a running count of valid entries, a uniform integer below the total,
+    a binary search for it), so a seed draws the same indices whatever else shares its program,
+    and no loop: `jax.random.choice`'s search is a `lax.fori_loop`, which a GPU may run as a
+    while loop that waits on the host for its condition at every step.
+    """
+    count = jnp.cumsum(valid.astype(jnp.int32))
+    target = jax.random.randint(key, (n,), 0, count[-1])  # the target-th valid entry, from 0
+    lo, hi = jnp.zeros(n, jnp.int32), jnp.full(n, count.shape[0] - 1, jnp.int32)
+    for _ in range(max(1, math.ceil(math.log2(count.shape[0])))):  # first i: count[i] > target
         mid = (lo + hi) // 2
-        right = cdf[jnp.minimum(mid, cdf.shape[0] - 1)] < u
+        right = count[mid] <= target
         lo, hi = jnp.where(right, mid + 1, lo), jnp.where(right, hi, mid)
     return lo
 

@@ -432,25 +432,34 @@ def build_programs(
 
         return over_seeds(per_seed)(agent, obs, keys, hp, stepping)
 
-    def learn_one(agent, buffer, key, hp_seed):
-        k_sample, k_update = jax.random.split(key)
-        batch = replay.sample(
+    def sample_one(buffer, key):
+        return replay.sample(
             buffer,
-            k_sample,
+            key,
             a.batch_size,
             nstep=a.nstep,
             gamma=a.discount,
             frame_stack=acfg.frame_stack,
             same_episode=acfg.method == "ted",
         )
-        return update.update(agent, batch, k_update, hp_seed, cfg=acfg)
+
+    def update_one(agent, batch, key, hp_seed):
+        return update.update(agent, batch, key, hp_seed, cfg=acfg)
 
     # One update per seed per call; the loop calls it E / update_every_steps times (dispatch is
     # asynchronous). A lax.scan over the updates made tests/test_run.py's tiny runs ~3x slower
     # on CPU (its fixture: 298 s with the scan, 97 s without; pytest --durations).
+    # Batches are drawn for all seeds at once (vmapped gathers from the [S, T, E, ...] replay):
+    # a loop over seeds would slice each seed's whole replay out first, a copy of gigabytes per
+    # call (9 ms of each 5-seed call on an H100: benchmarks/results/profile_loop_*_h100.json).
+    def learn_block(agent, buffer, keys, hp):
+        k_sample, k_update = jnp.moveaxis(jax.vmap(jax.random.split)(keys), 1, 0)
+        batches = jax.vmap(sample_one)(buffer, k_sample)
+        return update.over_seeds(update_one, a.seed_axis)(agent, batches, k_update, hp)
+
     def learn(agent, buffer, key):
         keys = jax.random.split(key, num_seeds)
-        return over_seeds(learn_one)(agent, buffer, keys, hp)
+        return per_device(learn_block)(agent, buffer, keys, hp)
 
     def add(buffer, ts, action):
         return per_device(jax.vmap(replay.add))(

@@ -291,41 +291,49 @@ class Env:
         return self._finish(
             phys,
             np.zeros(self.shape, np.float32),
-            everyone,
-            step,
-            stack,
-            key,
-            self._distractor.perturb(),
-            self._distractor.background_index(),
+            first=everyone,
+            step=step,
+            stack=stack,
+            key=key,
+            perturb=self._distractor.perturb(),
+            bg_index=self._distractor.background_index(),
         )
 
     def step_async(self, state: EnvState, action: jax.Array) -> concurrent.futures.Future:
-        """Dispatch physics now; render and post-process on the env thread. -> Future."""
+        """Step the physics and render on the env thread (MJX physics: dispatched here, on the
+        accelerator); returns a Future at once, so the caller can dispatch device work meanwhile.
+
+        CPU physics reads `action` on the env thread: the caller is never held up waiting for it.
+        """
         reset = np.asarray(state.last, bool)
-        if reset.all():
-            phys = self.physics.init(*self._initial_states(reset))
-            reward = np.zeros(self.shape, np.float32)
-        else:
-            phys, reward = self.physics.step(state.physics, action)
-            if reset.any():
-                fresh = self.physics.init(*self._initial_states(reset))
-                phys = self.physics.where(reset, fresh, phys)
+        starts = self._initial_states(reset) if reset.any() else None  # host RNG, in step order
         step = np.where(reset, 0, state.step + 1)
         # Snapshot the host distraction draws now: the next step_async mutates them.
         self._distractor.step()
         if reset.any():
             self._distractor.reset(reset.reshape(-1))
-        return self._executor.submit(
+        finish = functools.partial(
             self._finish,
-            phys,
-            reward,
-            reset,
-            step,
-            state.stack,
-            state.key,
-            self._distractor.perturb(),
-            self._distractor.background_index(),
+            first=reset,
+            step=step,
+            stack=state.stack,
+            key=state.key,
+            perturb=self._distractor.perturb(),
+            bg_index=self._distractor.background_index(),
         )
+        advance = functools.partial(self._advance, state.physics, action, reset, starts)
+        if self.physics.on_host:
+            return self._executor.submit(lambda: finish(*advance()))
+        return self._executor.submit(finish, *advance())
+
+    def _advance(self, phys, action, reset, starts):
+        """(physics state, reward [S,E]) one agent step on; envs in `reset` start anew."""
+        if reset.all():
+            return self.physics.init(*starts), np.zeros(self.shape, np.float32)
+        phys, reward = self.physics.step(phys, action)
+        if starts is not None:
+            phys = self.physics.where(reset, self.physics.init(*starts), phys)
+        return phys, reward
 
     def step(self, state: EnvState, action: jax.Array) -> tuple[EnvState, TimeStep]:
         return self.step_async(state, action).result()
@@ -345,7 +353,7 @@ class Env:
         )
         self._distractor.set_state(state["distractor"])
 
-    def _finish(self, phys, reward, first, step, stack, key, perturb, bg_index):
+    def _finish(self, phys, reward, *, first, step, stack, key, perturb, bg_index):
         qpos = np.asarray(self.physics.qpos(phys)).reshape(self.batch, -1)
         rgb, labels = self._pool.render(qpos, perturb=perturb)
         h, w, _ = self.spec.frame_shape

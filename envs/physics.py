@@ -130,6 +130,7 @@ class MjxPhysics:
     """MJX physics, vmapped over (S, E); one jitted function per agent step."""
 
     name = "mjx"
+    on_host = False  # dispatched from the calling thread (which waits on its loops' conditions)
 
     def __init__(
         self,
@@ -240,6 +241,7 @@ class CpuPhysics:
     """CPU MuJoCo with dm_control's stepping; a Python loop over the batch."""
 
     name = "cpu"
+    on_host = True  # steps on the calling thread (the env's render thread), not dispatched
 
     def __init__(
         self,

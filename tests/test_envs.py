@@ -275,3 +275,30 @@ def test_reset_is_reproducible_from_the_key():
     assert not np.allclose(state_a.physics.qpos, state_c.physics.qpos)
     # The two envs of a batch start differently.
     assert not np.allclose(state_a.physics.qpos[0, 0], state_a.physics.qpos[0, 1])
+
+
+def test_cpu_physics_steps_on_the_env_thread(finger_env):
+    """With CPU physics, step_async hands the physics to the env thread and returns at once: the
+    caller (the trainer, dispatching updates meanwhile) never waits for the action or the step."""
+    import threading
+
+    env = finger_env
+    state, _ = env.reset(jax.random.key(0))
+    threads, release = [], threading.Event()
+    step = env.physics.step
+
+    def recording_step(*args):
+        threads.append(threading.current_thread())
+        release.wait(timeout=30)  # holds the physics until the caller has got its future
+        return step(*args)
+
+    env.physics.step = recording_step
+    try:
+        future = env.step_async(state, jnp.zeros((S, E, env.spec.action_dim), jnp.float32))
+        assert not future.done()
+        release.set()
+        _, ts = future.result()
+    finally:
+        del env.physics.step
+    assert len(threads) == 1 and threads[0] is not threading.current_thread()
+    assert not np.asarray(ts.first).any()

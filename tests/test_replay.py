@@ -228,19 +228,23 @@ def test_sampling_an_empty_replay_raises():
         replay.sample(state, jax.random.key(0), 4, nstep=1, gamma=0.99, frame_stack=3)
 
 
-def test_draws_are_choice_s_without_a_loop():
-    """The sampler draws what jax.random.choice draws for the same key and weights, in a program
-    with no loop (a GPU would sync with the host at every step of one)."""
-    weights = (jax.random.uniform(jax.random.key(0), (3000,)) > 0.4).astype(jnp.float32)
-    for seed in range(3):
-        key = jax.random.key(seed)
-        expected = jax.random.choice(key, 3000, (256,), p=weights / weights.sum())
-        np.testing.assert_array_equal(replay._draw(key, weights, 256), expected)
-    for n in (1, 2, 5, 64):  # the search's edges: every index can come out
-        w = jnp.ones(n)
-        assert set(np.asarray(replay._draw(key, w, 4000)).tolist()) == set(range(n))
-    jaxpr = str(jax.make_jaxpr(replay._draw, static_argnums=2)(jax.random.key(0), weights, 256))
+def test_draws_are_uniform_over_valid_entries_without_a_loop():
+    """The sampler returns only valid entries, each about equally often, every one reachable
+    (the search's edges included), the same numbers for a seed alone or vmapped with others,
+    and its program has no loop (a GPU would sync with the host at every step of one)."""
+    valid = (jax.random.uniform(jax.random.key(0), (301,)) > 0.4).astype(jnp.float32)
+    valid = valid.at[0].set(1).at[-1].set(1)
+    draws = np.asarray(replay._draw(jax.random.key(1), valid, 200_000))
+    counts = np.bincount(draws, minlength=301)
+    assert (counts[np.asarray(valid) == 0] == 0).all()
+    expected = 200_000 / int(valid.sum())
+    assert np.abs(counts[np.asarray(valid) == 1] - expected).max() < 6 * np.sqrt(expected)
+    for n in (1, 2, 5):
+        assert set(np.asarray(replay._draw(jax.random.key(n), jnp.ones(n), 500))) == set(range(n))
+    keys = jax.random.split(jax.random.key(2), 3)
+    rows = jnp.stack([valid, jnp.roll(valid, 7), jnp.ones(301)])
+    vmapped = jax.vmap(replay._draw, (0, 0, None))(keys, rows, 64)
+    for k, row, got in zip(keys, rows, vmapped, strict=True):
+        np.testing.assert_array_equal(replay._draw(k, row, 64), got)
+    jaxpr = str(jax.make_jaxpr(replay._draw, static_argnums=2)(jax.random.key(0), valid, 256))
     assert "while" not in jaxpr and "scan" not in jaxpr
-    assert "scan" in str(
-        jax.make_jaxpr(lambda k, w: jax.random.choice(k, 3000, (256,), p=w))(key, weights)
-    )  # the loop the sampler avoids

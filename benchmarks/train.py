@@ -65,7 +65,8 @@ def throughput(config, warmup_frames) -> dict:
             print(e)
             updates = None
         total_s = time.perf_counter() - t0
-        logs = [read_csv(p) for p in sorted(pathlib.Path(workdir).glob("seed_0/train.csv"))][0]
+        logs = read_csv(pathlib.Path(workdir) / "seed_0" / "train.csv")
+        evals = read_csv(pathlib.Path(workdir) / "seed_0" / "eval.csv")
     frames, fps = logs["frame"], logs["fps"]
     after = frames > warmup_frames + config.log_every_frames  # skip the interval with the compile
     # Each row's rate covers the frames since the row before; evaluations (in the background, or
@@ -77,6 +78,7 @@ def throughput(config, warmup_frames) -> dict:
         median_row_fps=float(np.median(fps[after])) if after.any() else float("nan"),
         span_fps_with_evaluations=span_fps,
         fps_rows=fps[after].tolist(),
+        eval_s=evals["eval_s"].tolist(),  # seconds each evaluation took (frame 0's first)
         total_s=total_s,
         updates_per_seed=updates,
     )

@@ -41,7 +41,13 @@ def get_config() -> ConfigDict:
 
     c.env = ConfigDict()
     c.env.task = "walker-walk"  # python -c "import envs; print(envs.names())" lists them
-    c.env.backend = "auto"  # "mjx" | "cpu" | "auto" (MJX when an accelerator is present)
+    # Physics: "cpu" (CPU MuJoCo with dm_control's own solver and stepping, run on the env thread
+    # while the accelerator updates), "mjx" (batched on the accelerator) or "auto" (MJX when an
+    # accelerator is present). DMC tasks use "cpu": on an H100 the MJX step's solver loops made
+    # the host wait for every queued update, leaving the GPU idle for a third of each iteration
+    # (benchmarks/RESULTS.md, "The training loop on the H100"); CPU MuJoCo is also dm_control's
+    # physics exactly. The kitchen (configs/kitchen.py) keeps "auto".
+    c.env.backend = "cpu"
     # Physics of the evaluation episodes: "cpu" (CPU MuJoCo, dm_control's own solver and
     # stepping, on CPU cores beside the GPU's training) or "train" (env.backend's).
     c.env.eval_backend = "cpu"

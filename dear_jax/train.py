@@ -1074,7 +1074,13 @@ class _Run:
                     replay.num_transitions(hosts.to_local(self.buffer), self.acfg.frame_stack),
                     config.agent.batch_size,
                 )
+            # While an evaluation runs in the background, its steps' programs queue on the same
+            # device behind the updates dispatched before them: each update is dispatched only
+            # once the one before it has finished, so they wait for one update, not for all.
+            short_queue = self._pending_eval is not None and self._eval_thread is not None
             for k in jax.random.split(k_learn, n) if n else ():
+                if short_queue and self.metric_sum is not None:
+                    jax.block_until_ready(self.metric_sum)
                 self.agent, metrics = programs.learn(self.agent, self.buffer, k)
                 self.metric_sum = (
                     metrics

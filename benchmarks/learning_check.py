@@ -1,0 +1,120 @@
+"""A run's evaluation returns against DrQ-v2's published walker-walk curves.
+
+    python -m benchmarks.learning_check RUN [--reference CSV] [--out-png F] [--out F.json]
+
+RUN is a workdir of `run.py` (e.g. configs/walker_drqv2_paper.py). The reference is DrQ-v2's
+published evaluation returns per seed (facebookresearch/drqv2 curves/dmc_walker_walk.csv, kept
+in wide form with their median: benchmarks/results/walker_drqv2_paper_h100/). Prints, at every
+100k frames the run reached and at its last evaluation, each seed's return, the run's median and
+the published median (linear between its points, every 20k frames); draws both curves (the
+published seeds' 25-75% band shaded) and writes JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+
+import numpy as np
+
+from benchmarks.common import save_json
+from dear_jax.plot import load_curves
+
+REFERENCE = "benchmarks/results/walker_drqv2_paper_h100/drqv2_published_walker_walk.csv"
+
+
+def load_reference(path) -> tuple[np.ndarray, np.ndarray]:
+    """(frames [N], returns [N, seeds]) of the published curves (the median column left out)."""
+    lines = [ln for ln in pathlib.Path(path).read_text().splitlines() if not ln.startswith("#")]
+    header = lines[0].split(",")
+    table = np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]])
+    seeds = [i for i, name in enumerate(header) if name.startswith("seed_")]
+    return table[:, 0], table[:, seeds]
+
+
+def compare(run, reference=REFERENCE) -> dict:
+    (curve,) = load_curves(run, "episode_return")
+    both = ~np.isnan(curve.y).any(0)  # frames every seed has evaluated
+    frames, returns = curve.x[both], curve.y[:, both]
+    ref_frames, ref = load_reference(reference)
+    ref_median = np.median(ref, 1)
+    marks = [f for f in range(100_000, int(frames[-1]) + 1, 100_000)]
+    rows = []
+    for mark in [*marks, int(frames[-1])]:
+        i = int(np.argmin(np.abs(frames - mark)))
+        rows.append(
+            dict(
+                frame=int(frames[i]),
+                seeds=returns[:, i].round(1).tolist(),
+                median=float(np.median(returns[:, i])),
+                published_median=float(np.interp(frames[i], ref_frames, ref_median)),
+            )
+        )
+    return dict(
+        run=str(run),
+        reference=str(reference),
+        rows=rows,
+        frames=frames.tolist(),
+        returns=returns.tolist(),
+        ref_frames=ref_frames.tolist(),
+        ref_median=ref_median.tolist(),
+        ref_quartiles=np.percentile(ref, [25, 75], axis=1).tolist(),
+    )
+
+
+def plot(result: dict, out_png) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    k = 1e-3
+    rf = np.asarray(result["ref_frames"]) * k
+    lo, hi = result["ref_quartiles"]
+    ax.fill_between(rf, lo, hi, color="tab:gray", alpha=0.25, label="published: 25-75% of 10 seeds")
+    ax.plot(rf, result["ref_median"], color="black", lw=2, label="published DrQ-v2: median")
+    frames, returns = np.asarray(result["frames"]) * k, np.asarray(result["returns"])
+    for s, seed in enumerate(returns):
+        ax.plot(
+            frames,
+            seed,
+            color="tab:blue",
+            lw=0.8,
+            alpha=0.5,
+            label="this run: seeds" if not s else None,
+        )
+    ax.plot(frames, np.median(returns, 0), color="tab:blue", lw=2, label="this run: median")
+    ax.set_xlim(0, max(frames[-1], 100) * 1.05)
+    ax.set_xlabel("environment frames (k)")
+    ax.set_ylabel("evaluation return")
+    ax.set_title("walker-walk, DrQ-v2 settings")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    pathlib.Path(out_png).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=120)
+    plt.close(fig)
+    print(f"wrote {out_png}")
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("run")
+    p.add_argument("--reference", default=REFERENCE)
+    p.add_argument("--out-png", default=None)
+    p.add_argument("--out", default=None)
+    args = p.parse_args(argv)
+    result = compare(args.run, args.reference)
+    print("| frames per seed | return per seed | median | published median |\n|---:|---|---:|---:|")
+    for r in result["rows"]:
+        seeds = ", ".join(f"{v:.0f}" for v in r["seeds"])
+        print(f"| {r['frame']:,} | {seeds} | {r['median']:.0f} | {r['published_median']:.0f} |")
+    if args.out_png:
+        plot(result, args.out_png)
+    save_json(result, args.out)
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -52,7 +52,7 @@ def bench_config(args):
     c.progress = False
     c.replay.capacity = min(c.replay.capacity, args.capacity)
     c.agent.compute_dtype = args.dtype
-    c.env.backend = args.backend
+    c.env.backend = args.backend or c.env.backend
     return c
 
 
@@ -169,7 +169,9 @@ def add_run_arguments(p: argparse.ArgumentParser, seeds: int = 5) -> None:
     p.add_argument("--log-every", type=int, default=2000)
     p.add_argument("--capacity", type=int, default=100_000)
     p.add_argument("--dtype", default="float32", choices=["float32", "bfloat16"])
-    p.add_argument("--backend", default="auto", choices=["auto", "mjx", "cpu"], help="physics")
+    p.add_argument(
+        "--backend", choices=["auto", "mjx", "cpu"], help="physics (default: the config's)"
+    )
     p.add_argument("--eval-every", type=int, default=0, help="frames per seed; 0: at the end")
     p.add_argument("--eval-episodes", type=int, default=10)
     p.add_argument("--eval-foreground", action="store_true", help="training waits for evals")

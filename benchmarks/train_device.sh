@@ -7,7 +7,7 @@
 #   train     benchmarks/train.py: DEAR walker-walk, 5 seeds x 8 envs, stage split, then throughput
 #   learn     start DrQ-v2 and DEAR walker-walk (3 seeds each) detached, side by side on the GPU
 #   paper     start the learning check detached: configs/walker_drqv2_paper.py, 3 seeds, 500k
-#             frames per seed, physics of $BACKEND, from a copy of the tree (keep the machine
+#             frames per seed, physics of $BACKEND if set, from a copy of the tree (keep the machine
 #             with `wait`, then `collect`)
 #   kitchen   start DEAR on kitchen-light detached (3 seeds x 8 envs, bf16, eval every 10k
 #             frames) from a copy of the tree, so a later call's tree sync cannot touch it
@@ -17,7 +17,7 @@
 #             bf16 DEAR profile
 #   loop      benchmarks/profile_loop.py: where a training iteration's time goes, per program, for
 #             DEAR walker-walk (5 seeds x 16 envs) and the DrQ-v2 learning check (3 x 16), bf16,
-#             with the physics of $BACKEND (auto, mjx or cpu; default auto)
+#             with the physics of $BACKEND (auto, mjx or cpu; default: the config's)
 #   torch     benchmarks/torch_reference.py update (DEAR eager and best, batch 512)
 #   scaling   benchmarks/scaling.py: DEAR walker-walk, 5 seeds x 8 envs per GPU on 1 and 2 GPUs
 #             (a machine with 2 GPUs)
@@ -64,7 +64,7 @@ while [ $# -gt 0 ]; do
       rm -rf /tmp/paper_tree; cp -r "$PWD" /tmp/paper_tree
       (cd /tmp/paper_tree && setsid nohup python3 run.py --config configs/walker_drqv2_paper.py \
         --workdir "$runs/walker_drqv2_paper" --config.seeds=3 --config.progress=False \
-        --config.env.backend="${BACKEND:-auto}" \
+        ${BACKEND:+--config.env.backend=$BACKEND} \
         > "$runs/walker_drqv2_paper.log" 2>&1 < /dev/null &)
       sleep 5; nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv ;;
     kitchen)
@@ -90,8 +90,8 @@ while [ $# -gt 0 ]; do
         --dtype bfloat16 --out "$out/profile_dear_bf16.json" ;;
     loop)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
-      b=${BACKEND:-auto}
-      pl="timeout 270 python3 -m benchmarks.profile_loop --envs 16 --dtype bfloat16 --warmup-frames 2400 --log-every 800 --iterations 20 --backend $b"
+      b=${BACKEND:-config}
+      pl="timeout 270 python3 -m benchmarks.profile_loop --envs 16 --dtype bfloat16 --warmup-frames 2400 --log-every 800 --iterations 20 ${BACKEND:+--backend $BACKEND}"
       $pl --config configs/walker_drqv2_paper.py --seeds 3 \
         --out "$out/profile_loop_drqv2_$b.json" > "$out/profile_loop_drqv2_$b.log" 2>&1
       $pl --config configs/walker_dear.py --seeds 5 \

@@ -449,9 +449,10 @@ def build_programs(
     # One update per seed per call; the loop calls it E / update_every_steps times (dispatch is
     # asynchronous). A lax.scan over the updates made tests/test_run.py's tiny runs ~3x slower
     # on CPU (its fixture: 298 s with the scan, 97 s without; pytest --durations).
-    # Batches are drawn for all seeds at once (vmapped gathers from the [S, T, E, ...] replay):
-    # a loop over seeds would slice each seed's whole replay out first, a copy of gigabytes per
-    # call (9 ms of each 5-seed call on an H100: benchmarks/results/profile_loop_*_h100.json).
+    # Batches are drawn for all seeds at once (vmapped gathers from the [S, T, E, ...] replay);
+    # only the updates follow agent.seed_axis. Looping the sampling too, which slices each
+    # seed's replay out of the buffer first, made DEAR's learn program on an H100 take 395
+    # instead of 295 ms per 5 x 16 iteration (benchmarks/RESULTS.md, "The training loop").
     def learn_block(agent, buffer, keys, hp):
         k_sample, k_update = jnp.moveaxis(jax.vmap(jax.random.split)(keys), 1, 0)
         batches = jax.vmap(sample_one)(buffer, k_sample)

@@ -1,12 +1,13 @@
 """The batched environment: physics + render pool + distractions + masks + frame stack.
 
 `Env` glues the pieces of `envs/` into the interface the trainer uses (notes/env_interface.md):
-- physics (`envs/physics.py`, MJX or CPU MuJoCo) steps S x E envs through one agent step;
-- a background thread (one-thread executor) fetches qpos to the host, renders RGB + pixel labels
-  in the render pool (`envs/render.py`), uploads them and dispatches one jitted function that
-  composites the distraction background (`envs/distractions.py`), builds the mask variant
-  (`envs/masks.py`) and rolls the frame stack; `step_async` returns at once, so the caller can
-  dispatch accelerator work meanwhile;
+- physics (`envs/physics.py`, MJX or CPU MuJoCo) steps S x E envs through one agent step: CPU
+  MuJoCo on the env thread below, MJX dispatched by the caller;
+- a background thread (one-thread executor) steps CPU physics, fetches qpos to the host, renders
+  RGB + pixel labels in the render pool (`envs/render.py`), uploads them and dispatches one
+  jitted function that composites the distraction background (`envs/distractions.py`), builds
+  the mask variant (`envs/masks.py`) and rolls the frame stack; `step_async` returns at once, so
+  the caller can dispatch accelerator work meanwhile;
 - episodes: auto-reset with dm_env semantics, per env. Episode starts are drawn on the host (CPU
   MuJoCo, the task's `init_episode`: dm_control's law for DMC tasks, `envs/dmc.py`) from a numpy
   RandomState seeded by the key given to `reset`; both physics backends start from these

@@ -176,14 +176,18 @@ def test_resumed_run_equals_the_uninterrupted_one(run):
     assert replay_disk.file_name(0, chunk) in names and len(names) >= 3
 
 
-def test_evaluating_in_the_background_changes_nothing_but_timing(run, tmp_path):
+def test_evaluating_in_the_foreground_and_tracing_change_nothing_but_timing(run, tmp_path):
     """The fixture's runs evaluate in a background thread on a copy of the parameters while
-    training goes on; a run whose loop waits for each evaluation logs the same eval rows and
-    trains exactly the same run."""
+    training goes on; a run whose loop waits for each evaluation, and traces a few of its
+    iterations with jax.profiler (`config.profile`), logs the same eval rows and trains exactly
+    the same run, and leaves the trace in workdir/profile."""
     workdir = tmp_path / "foreground"
-    train.train(tiny_config(total_frames=280, eval_in_background=False), workdir)
+    config = tiny_config(total_frames=280, eval_in_background=False)
+    config.profile.at_frame, config.profile.iterations = 160, 3
+    train.train(config, workdir)
     assert_same_run(run[-1], workdir, 280)
     assert len(read_csv(workdir / "seed_0" / "eval.csv")["frame"]) >= 3
+    assert len(list((workdir / "profile").rglob("*.xplane.pb"))) == 1
 
 
 def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):

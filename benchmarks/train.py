@@ -66,7 +66,8 @@ def throughput(config, warmup_frames) -> dict:
             updates = None
         total_s = time.perf_counter() - t0
         logs = read_csv(pathlib.Path(workdir) / "seed_0" / "train.csv")
-        evals = read_csv(pathlib.Path(workdir) / "seed_0" / "eval.csv")
+        eval_csv = pathlib.Path(workdir) / "seed_0" / "eval.csv"  # absent if none finished
+        evals = read_csv(eval_csv) if eval_csv.is_file() else {"eval_s": np.array([])}
     frames, fps = logs["frame"], logs["fps"]
     after = frames > warmup_frames + config.log_every_frames  # skip the interval with the compile
     # Each row's rate covers the frames since the row before; evaluations (in the background, or

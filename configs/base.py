@@ -34,7 +34,8 @@ def get_config() -> ConfigDict:
     c.save_video = True  # eval video of env 0 per seed: RGB | true mask | predicted mask
     c.progress = True  # tqdm progress bar on a terminal (else a log line per log interval)
     # A jax.profiler trace of `profile.iterations` loop iterations from frame `profile.at_frame`
-    # per seed (-1: off), written to workdir/profile (TensorBoard's Profile tab, or Perfetto).
+    # per seed (-1: off; a run resumed past that frame takes none), written to workdir/profile
+    # (TensorBoard's Profile tab, or Perfetto).
     c.profile = ConfigDict()
     c.profile.at_frame = -1
     c.profile.iterations = 20
@@ -43,10 +44,11 @@ def get_config() -> ConfigDict:
     c.env.task = "walker-walk"  # python -c "import envs; print(envs.names())" lists them
     # Physics: "cpu" (CPU MuJoCo with dm_control's own solver and stepping, run on the env thread
     # while the accelerator updates), "mjx" (batched on the accelerator) or "auto" (MJX when an
-    # accelerator is present). DMC tasks use "cpu": on an H100 the MJX step's solver loops made
-    # the host wait for every queued update, leaving the GPU idle for a third of each iteration
-    # (benchmarks/RESULTS.md, "The training loop on the H100"); CPU MuJoCo is also dm_control's
-    # physics exactly. The kitchen (configs/kitchen.py) keeps "auto".
+    # accelerator is present). "cpu" is the default, for the DMC tasks: on an H100 the MJX step's
+    # solver loops made the host wait for every queued update, leaving the GPU idle for a third
+    # of each iteration (benchmarks/RESULTS.md, "The training loop on the H100"); CPU MuJoCo is
+    # also dm_control's physics exactly. Runs made before 2026-11-23 evening used "auto" and
+    # resume with --config.env.backend=auto. The kitchen's configs (configs/kitchen.py) set "auto".
     c.env.backend = "cpu"
     # Physics of the evaluation episodes: "cpu" (CPU MuJoCo, dm_control's own solver and
     # stepping, on CPU cores beside the GPU's training) or "train" (env.backend's).

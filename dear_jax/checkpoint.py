@@ -275,6 +275,12 @@ class Checkpointer:
                 "configuration:\n  "
                 + "\n  ".join(diff)
                 + "\nResume with the original config, or start this one in a new --workdir."
+                + (
+                    "\n(env.backend's default was 'auto' until 2026-11-23, now 'cpu': this run "
+                    f"resumes with --config.env.backend={saved.get('env.backend', 'auto')})"
+                    if any(d.startswith("env.backend:") for d in diff)
+                    else ""
+                )
             )
 
     def restore(self, template: Any, step: int | None = None) -> tuple[int, Any, dict]:

@@ -1,11 +1,13 @@
 """The training loop: S lanes (seeds, or settings x seeds: `dear_jax/lanes.py`) as a vmapped
 axis, E environments per lane, one process.
 
-One iteration (DESIGN.md): act for every seed and env on the accelerator -> dispatch physics ->
-dispatch E / update_every_steps updates per seed while a background thread renders the new
-observations on CPU workers -> add the new timestep to each seed's replay. The only host syncs in
-the loop are the physics state crossing to the renderers and, once per episode or log interval,
-a few scalars for the logs.
+One iteration (DESIGN.md): act for every seed and env on the accelerator -> hand the actions to
+the env (CPU physics steps on its thread; MJX physics is dispatched) -> dispatch E /
+update_every_steps updates per seed while the env thread renders the new observations on CPU
+workers -> add the new timestep to each seed's replay. The main thread waits on the accelerator
+only once per episode or log interval (a few scalars for the logs) and, while an evaluation runs
+in the background, for each update before dispatching the next (`_Run._step`); the env thread
+waits for the actions (CPU physics) or the physics state (MJX) it needs.
 
 `train(config, workdir)` runs (or resumes) a whole experiment and returns its summary. A resume
 continues exactly where the checkpoint left off (`_Run` says what a checkpoint holds; the replay
@@ -418,9 +420,11 @@ def build_programs(
             return fn
         return jax.shard_map(fn, mesh=mesh, in_specs=P("seeds"), out_specs=P("seeds"))
 
-    # Every program runs its seeds as agent.seed_axis says. With "loop", a seed's computation is
-    # the same however many seeds share its device, so a split run is the same bit for bit; a
-    # vmapped convolution of S seeds is one grouped convolution whose rounding depends on S.
+    # Acting, updating and evaluating run their seeds as agent.seed_axis says (sampling is always
+    # vmapped: integer work, gathers and element-wise sums, the same for any number of seeds).
+    # With "loop", a seed's computation is the same however many seeds share its device, so a
+    # split run is the same bit for bit; a vmapped convolution of S seeds is one grouped
+    # convolution whose rounding depends on S.
     def over_seeds(fn):
         return per_device(update.over_seeds(fn, a.seed_axis))
 
@@ -755,14 +759,17 @@ _init_seeds = jax.jit(update.init_seeds, static_argnums=0)
 
 
 class _Trace:
-    """config.profile: a jax.profiler trace of a few loop iterations, to workdir/profile."""
+    """config.profile: a jax.profiler trace of a few loop iterations, to workdir/profile (with
+    several processes, workdir/profile/process_<p>)."""
 
     def __init__(self, settings: ConfigDict, workdir: pathlib.Path, frame: int):
         self.at, self.left = settings.at_frame, settings.iterations
         self.directory = workdir / "profile"
+        if jax.process_count() > 1:
+            self.directory = self.directory / f"process_{jax.process_index()}"
         self.on = False
-        if 0 <= self.at < frame:  # a resumed run past the frame traces from where it resumes
-            self.at = frame
+        if self.at < frame:  # off, or a resumed run past the frame: traced before, if ever
+            self.left = 0
 
     def tick(self, frame: int, sync) -> None:
         """Called before each iteration; `sync` waits for the device work dispatched so far."""
@@ -770,16 +777,23 @@ class _Trace:
             self.left -= 1
             if not self.left:
                 self.stop(sync)
-        elif self.left > 0 and 0 <= self.at <= frame:
+        elif self.left > 0 and self.at <= frame:
             sync()  # the trace starts with an empty queue, so it holds whole iterations
-            jax.profiler.start_trace(str(self.directory))
+            try:
+                jax.profiler.start_trace(str(self.directory))
+            except RuntimeError as e:  # e.g. another trace already running in this process
+                log.warning("profile not taken: %s", e)
+                self.left = 0
+                return
             self.on = True
 
-    def stop(self, sync) -> None:
+    def stop(self, sync=None) -> None:
+        """End the trace; `sync` first waits for the work it covers (None: a run failing)."""
         if self.on:
-            sync()
-            jax.profiler.stop_trace()
             self.on, self.left = False, 0
+            if sync is not None:
+                sync()
+            jax.profiler.stop_trace()
             log.info("profile of the loop written to %s (tensorboard --logdir)", self.directory)
 
 
@@ -1271,16 +1285,17 @@ class _Run:
                     stop.name,
                     counters["frame"],
                 )
+            trace.stop(sync)
             if self.ckpt.latest_step() != counters["frame"]:
                 self.save(wall())
             self._finish_evaluation(wait=True)
             counters["wall_s"] = wall()
         finally:
-            trace.stop(sync)
             if self._eval_thread is not None:
                 self._eval_thread.shutdown(wait=False, cancel_futures=True)
             if pbar is not None:
                 pbar.close()
+            trace.stop()  # a failing run's trace, without waiting on its arrays
 
 
 def write_summary(workdir, config, spec, counters, *, devices: int = 1) -> dict:

@@ -257,6 +257,10 @@ def test_changed_learning_fields_are_refused_naming_them(run):
     assert "agent.batch_size: saved=8, now=4" in message
     assert "agent.alpha: saved=0.25, now=0.5" in message
     assert "total_frames" not in message  # may change: the fixture's resume changed it
+    assert "env.backend" not in message
+    with pytest.raises(IncompatibleCheckpointError) as err:  # the physics' old default
+        train.train(tiny_config(**{"env.backend": "auto"}), workdir)
+    assert "resumes with --config.env.backend=cpu" in str(err.value)
 
 
 def test_fingerprint_is_every_field_but_the_resumable_ones():

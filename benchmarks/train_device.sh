@@ -6,9 +6,9 @@
 #             DEAR / DrQ-v2 at walker's batch 512 (5 seeds, loop)
 #   train     benchmarks/train.py: DEAR walker-walk, 5 seeds x 8 envs, stage split, then throughput
 #   learn     start DrQ-v2 and DEAR walker-walk (3 seeds each) detached, side by side on the GPU
-#   paper     start the learning check detached: configs/walker_drqv2_paper.py, 3 seeds, 500k
-#             frames per seed, physics of $BACKEND if set, from a copy of the tree (keep the machine
-#             with `wait`, then `collect`)
+#   paper     start the learning check detached: ${LEARN_CONFIG:-configs/walker_drqv2_paper.py}
+#             (e.g. LEARN_CONFIG=configs/walker_dear.py), 3 seeds, physics of $BACKEND if set,
+#             from a copy of the tree (keep the machine with `wait`, then `collect`)
 #   kitchen   start DEAR on kitchen-light detached (3 seeds x 8 envs, bf16, eval every 10k
 #             frames) from a copy of the tree, so a later call's tree sync cannot touch it
 #   collect   pack the learning runs' logs (no checkpoints, videos or replay) into $OUT/runs.tar.gz
@@ -62,10 +62,11 @@ while [ $# -gt 0 ]; do
       sleep 5; nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv ;;
     paper)
       rm -rf /tmp/paper_tree; cp -r "$PWD" /tmp/paper_tree
-      (cd /tmp/paper_tree && setsid nohup python3 run.py --config configs/walker_drqv2_paper.py \
-        --workdir "$runs/walker_drqv2_paper" --config.seeds=3 --config.progress=False \
+      lc=${LEARN_CONFIG:-configs/walker_drqv2_paper.py}; name=$(basename "$lc" .py)
+      (cd /tmp/paper_tree && setsid nohup python3 run.py --config "$lc" \
+        --workdir "$runs/$name" --config.seeds=3 --config.progress=False \
         ${BACKEND:+--config.env.backend=$BACKEND} \
-        > "$runs/walker_drqv2_paper.log" 2>&1 < /dev/null &)
+        > "$runs/$name.log" 2>&1 < /dev/null &)
       sleep 5; nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv ;;
     kitchen)
       rm -rf /tmp/kitchen_tree; cp -r "$PWD" /tmp/kitchen_tree

@@ -38,7 +38,7 @@ def compare(run, reference=REFERENCE) -> dict:
     frames, returns = curve.x[both], curve.y[:, both]
     ref_frames, ref = load_reference(reference)
     ref_median = np.median(ref, 1)
-    marks = [f for f in range(100_000, int(frames[-1]) + 1, 100_000)]
+    marks = list(range(100_000, int(frames[-1]) + 1, 100_000))
     rows = []
     for mark in [*marks, int(frames[-1])]:
         i = int(np.argmin(np.abs(frames - mark)))

@@ -56,7 +56,7 @@ def summarise(trace_dir: pathlib.Path, iterations: int, top: int) -> dict:
     gpu, host = [], []
     for plane, line, name, stats, start, end in trace_events(trace_dir):
         if plane.startswith("/device:GPU") and line.startswith("Stream"):
-            module = str(stats.get("hlo_module") or stats.get("kernel_details", "?"))
+            module = str(stats.get("hlo_module") or "?")
             gpu.append((module, name, str(stats.get("hlo_op", "")), start, end))
         elif plane.startswith("/host:CPU"):
             host.append((line, name, start, end))

@@ -228,23 +228,26 @@ def sample_at(
         reward = reward + jnp.where(alive, discount * state.rewards[r, env], 0.0)
         discount = jnp.where(alive, discount * gamma * state.discounts[r, env], discount)
         next_row = jnp.where(alive, r, next_row)
-    first_step = (row + 1) % state.rows
+    stacks = {"obs": _stack_rows(state, row, env, frame_stack)}
+    stacks["next_obs"] = _stack_rows(state, next_row, env, frame_stack)
+    if far_key is not None:
+        offset, valid = same_episode_offsets(state, row, env, far_key, nstep)
+        stacks["far_obs"] = _stack_rows(state, (row + offset) % state.rows, env, frame_stack)
+    # The rows are computed once, before the image gathers: fused into them, the index
+    # arithmetic (and its gathers of episode ids) would be redone for every pixel gathered.
+    stacks, env = jax.lax.optimization_barrier((stacks, env))
+    images = {k: _gather_stack(state.frames, rows, env) for k, rows in stacks.items()}
     batch = Batch(
-        obs=_gather_stack(state.frames, _stack_rows(state, row, env, frame_stack), env),
-        action=state.actions[first_step, env],
+        obs=images["obs"],
+        action=state.actions[(row + 1) % state.rows, env],
         reward=reward,
         discount=discount,
-        next_obs=_gather_stack(state.frames, _stack_rows(state, next_row, env, frame_stack), env),
-        mask=_gather_stack(state.masks, _stack_rows(state, row, env, frame_stack), env),
+        next_obs=images["next_obs"],
+        mask=_gather_stack(state.masks, stacks["obs"], env),
     )
     if far_key is None:
         return batch
-    offset, valid = same_episode_offsets(state, row, env, far_key, nstep)
-    far_row = (row + offset) % state.rows
-    return batch.replace(
-        far_obs=_gather_stack(state.frames, _stack_rows(state, far_row, env, frame_stack), env),
-        far_valid=valid.astype(jnp.float32),
-    )
+    return batch.replace(far_obs=images["far_obs"], far_valid=valid.astype(jnp.float32))
 
 
 def _episode_span(state, row, env):

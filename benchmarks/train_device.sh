@@ -8,7 +8,8 @@
 #   learn     start DrQ-v2 and DEAR walker-walk (3 seeds each) detached, side by side on the GPU
 #   paper     start the learning check detached: ${LEARN_CONFIG:-configs/walker_drqv2_paper.py}
 #             (e.g. LEARN_CONFIG=configs/walker_dear.py), 3 seeds, physics of $BACKEND if set,
-#             more flags from $LEARN_ARGS (e.g. --config.envs_per_seed=16), from a copy of the tree (keep the machine with `wait`, then `collect`)
+#             more flags from $LEARN_ARGS (e.g. --config.envs_per_seed=16), from a copy of
+#             the tree (keep the machine with `wait`, then `collect`)
 #   kitchen   start DEAR on kitchen-light detached (3 seeds x 8 envs, bf16, eval every 10k
 #             frames) from a copy of the tree, so a later call's tree sync cannot touch it
 #   collect   pack the learning runs' logs (no checkpoints, videos or replay) into $OUT/runs.tar.gz

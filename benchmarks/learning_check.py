@@ -13,7 +13,10 @@ published seeds' 25-75% band shaded) and writes JSON.
 from __future__ import annotations
 
 import argparse
+import datetime
+import json
 import pathlib
+import re
 
 import numpy as np
 
@@ -50,8 +53,11 @@ def compare(run, reference=REFERENCE) -> dict:
                 published_median=float(np.interp(frames[i], ref_frames, ref_median)),
             )
         )
+    config = json.loads((pathlib.Path(run) / "config.json").read_text())
+    agent = config["agent"]
     return dict(
         run=str(run),
+        method=f"{agent['method']}, {agent['compute_dtype']}",
         reference=str(reference),
         rows=rows,
         frames=frames.tolist(),
@@ -59,6 +65,45 @@ def compare(run, reference=REFERENCE) -> dict:
         ref_frames=ref_frames.tolist(),
         ref_median=ref_median.tolist(),
         ref_quartiles=np.percentile(ref, [25, 75], axis=1).tolist(),
+        throughput=throughput(run),
+    )
+
+
+_STAMP = r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+) "
+
+
+def throughput(run) -> dict | None:
+    """Frames/s of a run from its log.txt: over the whole run, and in the log rows during which
+    no background evaluation finished ("training alone"); None without a timestamped log.
+
+    The first row (compilation, the replay's seed frames) is left out of both.
+    """
+    log = pathlib.Path(run) / "log.txt"
+    if not log.exists():
+        return None
+    rows, evals = [], []
+    for line in log.read_text().splitlines():
+        stamp = re.match(_STAMP, line)
+        if not stamp:
+            continue
+        t = datetime.datetime.strptime(stamp.group(1), "%Y-%m-%d %H:%M:%S,%f").timestamp()
+        if m := re.search(r"frame (\d+) per seed: (\d+) frames/s in all", line):
+            rows.append((t, int(m.group(1)), float(m.group(2))))
+        elif "eval @" in line:
+            evals.append(t)
+    if len(rows) < 3:
+        return None
+    (t0, f0, _), (t1, f1, _) = rows[0], rows[-1]
+    lanes = sum(1 for d in pathlib.Path(run).iterdir() if (d / "eval.csv").exists())
+    pairs = zip(rows, rows[1:])
+    alone = [fps for (a, _, _), (b, _, fps) in pairs if not any(a < e <= b for e in evals)]
+    overall = (f1 - f0) * lanes / (t1 - t0)
+    return dict(
+        overall_fps=overall,
+        alone_fps=float(np.median(alone)),
+        rows_alone=len(alone),
+        rows=len(rows) - 1,
+        ratio=float(np.median(alone)) / overall,
     )
 
 
@@ -88,7 +133,7 @@ def plot(result: dict, out_png) -> None:
     ax.set_xlim(0, max(frames[-1], 100) * 1.05)
     ax.set_xlabel("environment frames (k)")
     ax.set_ylabel("evaluation return")
-    ax.set_title("walker-walk, DrQ-v2 settings")
+    ax.set_title(f"walker-walk: this run ({result['method']}) and published DrQ-v2")
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
@@ -110,6 +155,12 @@ def main(argv=None):
     for r in result["rows"]:
         seeds = ", ".join(f"{v:.0f}" for v in r["seeds"])
         print(f"| {r['frame']:,} | {seeds} | {r['median']:.0f} | {r['published_median']:.0f} |")
+    if tp := result["throughput"]:
+        print(
+            f"frames/s in all: {tp['overall_fps']:.0f} over the run, {tp['alone_fps']:.0f} in the "
+            f"{tp['rows_alone']} of {tp['rows']} log rows without an evaluation ending (median): "
+            f"the run took {tp['ratio']:.2f}x the time of its training alone"
+        )
     if args.out_png:
         plot(result, args.out_png)
     save_json(result, args.out)

@@ -245,9 +245,11 @@ def sample_at(
         next_obs=images["next_obs"],
         mask=_gather_stack(state.masks, stacks["obs"], env),
     )
-    if far_key is None:
-        return batch
-    return batch.replace(far_obs=images["far_obs"], far_valid=valid.astype(jnp.float32))
+    if far_key is not None:
+        batch = batch.replace(far_obs=images["far_obs"], far_valid=valid.astype(jnp.float32))
+    # Written out whole: fused into their consumer (the random shift), the gathers would read
+    # single bytes of K frames per pixel from all over the buffer.
+    return jax.lax.optimization_barrier(batch)
 
 
 def _episode_span(state, row, env):

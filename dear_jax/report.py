@@ -116,8 +116,8 @@ def run_rows(workdir, threshold: float) -> list[dict]:
     for name in ("config.json", "summary.json"):
         if not (workdir / name).is_file():
             raise FileNotFoundError(
-                f"{workdir / name} not found: give the workdir of a finished run (run.py writes "
-                "summary.json at its end)"
+                f"{workdir / name} not found: give the workdir of a run (run.py writes "
+                "summary.json at its end, or when it is stopped)"
             )
     config = json.loads((workdir / "config.json").read_text())
     summary = json.loads((workdir / "summary.json").read_text())
@@ -136,6 +136,10 @@ def run_rows(workdir, threshold: float) -> list[dict]:
     fps = read_csv(next(iter(groups.values()))[0] / "train.csv")["fps"]
     fps = fps[np.isfinite(fps)]
     frames = summary["frames_per_seed"] * sum(map(len, groups.values()))
+    # A run stopped before its end (summary "stopped") is reported as far as it got.
+    stopped = (
+        f" (stopped at {summary['frames_per_seed']:,} frames)" if summary.get("stopped") else ""
+    )
     rows = []
     for label, dirs in groups.items():
         evals = [read_csv(d / "eval.csv") for d in dirs]
@@ -147,7 +151,7 @@ def run_rows(workdir, threshold: float) -> list[dict]:
                 reached.append(e["frame"][hit[0]])
         rows.append(
             {
-                "run": f"{workdir.name} {label}".strip(),
+                "run": f"{workdir.name} {label}".strip() + stopped,
                 "method": agent["method"],
                 "task": config["env"]["task"],
                 "seeds": len(dirs),

@@ -712,16 +712,26 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
         from jax.experimental import multihost_utils
 
         multihost_utils.sync_global_devices("dear_jax: logs written")
+    devices = 1 if mesh is None else mesh.size
+    # A stopped run's summary is of what it has done so far (the report reads it); the resumed
+    # run rewrites it.
+    summary = {}
+    if not hosts.index:
+        summary = write_summary(
+            workdir,
+            config,
+            spec,
+            run.counters,
+            devices=devices,
+            stopped=stop.name if stop else None,
+        )
     if stop:
         raise Stopped(
             f"stopped by {stop.name} at frame {run.counters['frame']:,} per seed; checkpoint "
             f"saved in {workdir / 'checkpoints'}; rerun the same command to resume",
             stop.signum,
         )
-    devices = 1 if mesh is None else mesh.size
-    if hosts.index:
-        return {}
-    return write_summary(workdir, config, spec, run.counters, devices=devices)
+    return summary
 
 
 def _is_host(x) -> bool:
@@ -1298,8 +1308,11 @@ class _Run:
             trace.stop()  # a failing run's trace, without waiting on its arrays
 
 
-def write_summary(workdir, config, spec, counters, *, devices: int = 1) -> dict:
-    """Summary per seed from the eval logs (printed, and saved as summary.md / summary.json)."""
+def write_summary(
+    workdir, config, spec, counters, *, devices: int = 1, stopped: str | None = None
+) -> dict:
+    """Summary per seed from the eval logs, saved as summary.md / summary.json and printed
+    unless the run was `stopped` (by that signal's name) before its end."""
     wall = counters["wall_s"]
     runs = lanes.lanes(config)
     fps = counters["frame"] * len(runs) / max(wall, 1e-9)
@@ -1354,19 +1367,22 @@ def write_summary(workdir, config, spec, counters, *, devices: int = 1) -> dict:
         "render": config.env.render.to_dict(),
         "render_quality": config.env.render.quality,
         "distraction": config.env.distraction,
+        "stopped": stopped,
         "per_seed": per_seed,
     }
     unit = "lane" if runs[0].settings else "seed"
     columns = [unit, "final eval return", "best eval return", "cos(z_A, z_E)"]
     columns += ["final eval success"] if spec.has_success else []
     table = format_table(columns, rows)
+    until = f"stopped by {stopped} at " if stopped else ""
     text = (
         f"# {config.agent.method} on {config.env.task}\n\n"
-        f"{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, {wall:.0f} s of training "
+        f"{until}{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, {wall:.0f} s of training "
         f"({fps:.0f} frames/s in all) on {summary['device']} ({spec.backend} physics); "
         f"render settings {summary['render']}\n\n{table}\n"
     )
     (workdir / "summary.md").write_text(text)
     (workdir / "summary.json").write_text(json.dumps(summary, indent=1))
-    print(text)
+    if not stopped:
+        print(text)
     return summary

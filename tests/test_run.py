@@ -125,6 +125,7 @@ def test_outputs_exist_and_parse(run):
     assert (workdir / "summary.md").read_text().startswith("# dear on walker-walk")
     summary = json.loads((workdir / "summary.json").read_text())  # rewritten by the resume
     assert summary["frames_per_seed"] == 280 and len(summary["per_seed"]) == 2
+    assert summary["stopped"] is None
     assert first["frames_per_seed"] == 240
 
 
@@ -431,6 +432,9 @@ def test_sigterm_checkpoints_exits_cleanly_and_resumes_exactly(run, tmp_path):
     assert "stopped by SIGTERM" in (workdir / "log.txt").read_text()
     stopped_at = Checkpointer(workdir / "checkpoints", fingerprint={}).latest_step()
     assert 120 <= stopped_at < 280
+    summary = json.loads((workdir / "summary.json").read_text())  # of the run so far
+    assert summary["stopped"] == "SIGTERM" and summary["frames_per_seed"] == stopped_at
+    assert "stopped by SIGTERM at" in (workdir / "summary.md").read_text()
     train.train(config, workdir)  # resumes in this process
     assert_same_run(run[-1], workdir, 280)
 

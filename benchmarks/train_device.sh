@@ -12,6 +12,8 @@
 #             the tree (keep the machine with `wait`, then `collect`)
 #   kitchen   start DEAR on kitchen-light detached (3 seeds x 8 envs, bf16, eval every 10k
 #             frames) from a copy of the tree, so a later call's tree sync cannot touch it
+#   stop      SIGTERM every training run (`python3 run.py ...`) and wait up to 120 s for their
+#             checkpoints and summaries (run before `collect` when the lease is ending)
 #   collect   pack the learning runs' logs (no checkpoints, videos or replay) into $OUT/runs.tar.gz
 #   speed     the performance issue's update figures: DEAR fp32 / bf16 and DrQ-v2 bf16 at batch
 #             512 (5 seeds), the first conv's input paths (benchmarks/encoder_input.py), the
@@ -76,6 +78,11 @@ while [ $# -gt 0 ]; do
         --config.agent.compute_dtype=bfloat16 --config.progress=False \
         > "$runs/kitchen_light_dear.log" 2>&1 < /dev/null &)
       sleep 5; nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv ;;
+    stop)
+      # By process id: a pattern given to pkill -f would also match this shell's own command line.
+      pids=$(pgrep -f '^python3 run.py'); [ -n "$pids" ] && kill -TERM $pids
+      for _ in $(seq 60); do pgrep -f '^python3 run.py' > /dev/null || break; sleep 2; done
+      pgrep -fa '^python3 run.py' || echo "no training run left" ;;
     collect)
       for f in "$runs"/*.log; do echo "--- $f"; tail -n 4 "$f"; done
       nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import pathlib
 import re
 
@@ -57,7 +58,7 @@ def compare(run, reference=REFERENCE) -> dict:
     agent = config["agent"]
     return dict(
         run=str(run),
-        method=f"{agent['method']}, {agent['compute_dtype']}",
+        method=f"{agent['method']}, {agent.get('compute_dtype', 'float32')}",
         reference=str(reference),
         rows=rows,
         frames=frames.tolist(),
@@ -73,37 +74,47 @@ _STAMP = r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+) "
 
 
 def throughput(run) -> dict | None:
-    """Frames/s of a run from its log.txt: over the whole run, and in the log rows during which
-    no background evaluation finished ("training alone"); None without a timestamped log.
+    """Frames/s in all of a run, from its log.txt's timestamped rows: over the run, and over the
+    rows in which no background evaluation finished ("training alone"); None without such a log.
 
-    The first row (compilation, the replay's seed frames) is left out of both.
+    A row is the span between two consecutive "frame N per seed" lines of one session (a stop or
+    a resume starts a new session, whose first row, with its compilation, is left out like the
+    run's first). An evaluation starts at its frame, a few steps before a row ends, and runs
+    mostly in the next row: the row it finishes in is the one left out of "alone".
     """
     log = pathlib.Path(run) / "log.txt"
     if not log.exists():
         return None
-    rows, evals = [], []
+    lanes = sum(1 for d in pathlib.Path(run).iterdir() if (d / "train.csv").exists())
+    spans, evals, last = [], [], None  # spans: (start s, end s, frames per lane)
     for line in log.read_text().splitlines():
         stamp = re.match(_STAMP, line)
         if not stamp:
             continue
         t = datetime.datetime.strptime(stamp.group(1), "%Y-%m-%d %H:%M:%S,%f").timestamp()
-        if m := re.search(r"frame (\d+) per seed: (\d+) frames/s in all", line):
-            rows.append((t, int(m.group(1)), float(m.group(2))))
+        if m := re.search(r"frame (\d+) per seed: \d+ frames/s in all", line):
+            frame = int(m.group(1))
+            if last is not None and frame > last[1]:
+                spans.append((last[0], t, frame - last[1]))
+            last = (t, frame)
         elif "eval @" in line:
             evals.append(t)
-    if len(rows) < 3:
+        elif "stopped by" in line:
+            last = None
+    if not spans:
         return None
-    (t0, f0, _), (t1, f1, _) = rows[0], rows[-1]
-    lanes = sum(1 for d in pathlib.Path(run).iterdir() if (d / "eval.csv").exists())
-    pairs = zip(rows, rows[1:])
-    alone = [fps for (a, _, _), (b, _, fps) in pairs if not any(a < e <= b for e in evals)]
-    overall = (f1 - f0) * lanes / (t1 - t0)
+
+    def rate(rows):
+        return sum(f for _, _, f in rows) * lanes / sum(b - a for a, b, _ in rows)
+
+    alone = [r for r in spans if not any(r[0] < e <= r[1] for e in evals)]
+    overall = rate(spans)
     return dict(
         overall_fps=overall,
-        alone_fps=float(np.median(alone)),
+        alone_fps=rate(alone) if alone else math.nan,
         rows_alone=len(alone),
-        rows=len(rows) - 1,
-        ratio=float(np.median(alone)) / overall,
+        rows=len(spans),
+        ratio=rate(alone) / overall if alone else math.nan,
     )
 
 
@@ -157,8 +168,8 @@ def main(argv=None):
         print(f"| {r['frame']:,} | {seeds} | {r['median']:.0f} | {r['published_median']:.0f} |")
     if tp := result["throughput"]:
         print(
-            f"frames/s in all: {tp['overall_fps']:.0f} over the run, {tp['alone_fps']:.0f} in the "
-            f"{tp['rows_alone']} of {tp['rows']} log rows without an evaluation ending (median): "
+            f"frames/s in all: {tp['overall_fps']:.0f} over the run, {tp['alone_fps']:.0f} over the "
+            f"{tp['rows_alone']} of {tp['rows']} log rows in which no evaluation ended: "
             f"the run took {tp['ratio']:.2f}x the time of its training alone"
         )
     if args.out_png:

@@ -3,11 +3,13 @@
     python -m benchmarks.sample --seeds 5 --envs 16 --capacity 100000 --batch 512 [--profile]
 
 The replay is full (episodes of 501 entries, as walker's) and of the loop's shape, [S, T, E, ...].
-Rows: the whole `replay.sample` (vmapped over seeds), its two halves (the draw of indices:
-valid-start weights, running count and search; the gathers of `replay.sample_at` at fixed
-indices), and the sample as it was before the rows of its images were computed ahead of the
-image gathers (`replay.sample_at`'s optimisation barrier taken out). With --profile, the GPU
-kernels of the whole sample are listed. Writes JSON.
+Rows: the whole `replay.sample` (vmapped over seeds), its two halves timed alone (the draw of
+indices: valid-start weights, running count and search; the gathers of `replay.sample_at` at
+fixed indices), and the sample as it was before `replay.sample_at`'s two optimisation barriers
+(rows before the image gathers, the batch written out whole) were added. The second barrier
+matters only where the batch is consumed in the same program (the learn program's random shift):
+`benchmarks/profile_loop.py` measures that. With --profile, the GPU kernels of the whole sample
+are listed. Writes JSON.
 """
 
 from __future__ import annotations
@@ -32,10 +34,12 @@ def full_replay(seeds: int, envs: int, capacity: int, action_dim: int = 6):
     """A wrapped-around replay: every row written, episodes of EPISODE_ENTRIES rows."""
     buf = replay.init(capacity, envs, (84, 84, 3), action_dim, leading=(seeds,))
     rows = buf.frames.shape[1]
-    episode = jnp.arange(rows, dtype=jnp.int32)[:, None] // EPISODE_ENTRIES
+    pos = rows // 3  # the next row to write: the oldest stored one
+    age = (jnp.arange(rows, dtype=jnp.int32) - pos) % rows
+    episode = (age // EPISODE_ENTRIES)[:, None]  # ids grow with age, as the ring writes them
     return buf.replace(
         episode=jnp.broadcast_to(episode, (seeds, rows, envs)),
-        pos=jnp.full((seeds,), rows // 3, jnp.int32),
+        pos=jnp.full((seeds,), pos, jnp.int32),
         size=jnp.full((seeds,), rows, jnp.int32),
     )
 
@@ -53,7 +57,7 @@ def programs(batch: int, nstep: int, frame_stack: int, same_episode: bool):
     def whole(buf, key):
         return replay.sample(buf, key, batch, same_episode=same_episode, **kw)
 
-    def fused(buf, key):  # as before commit "replay: rows before the image gathers"
+    def fused(buf, key):  # both barriers of replay.sample_at taken out
         with mock.patch.object(jax.lax, "optimization_barrier", lambda x: x):
             return whole(buf, key)
 
@@ -67,9 +71,11 @@ def programs(batch: int, nstep: int, frame_stack: int, same_episode: bool):
 
 def time_ms(fn, args_of, iters: int) -> float:
     jax.block_until_ready(fn(*args_of(0)))
+    calls = [args_of(i + 1) for i in range(iters)]  # keys made before the clock starts
+    jax.block_until_ready(calls)
     t0 = time.perf_counter()
-    for i in range(iters):
-        out = fn(*args_of(i + 1))
+    for args in calls:
+        out = fn(*args)
     jax.block_until_ready(out)
     return (time.perf_counter() - t0) / iters * 1e3
 

@@ -38,6 +38,13 @@ def _replace_csv(path: pathlib.Path, columns: list[str], rows: list[dict]) -> No
     os.replace(tmp, path)
 
 
+def write_text_atomic(path: pathlib.Path, text: str) -> None:
+    """Write `text` to a temporary file, then atomically put it in place of `path`."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 def _read_rows(path: pathlib.Path) -> tuple[list[str], list[dict]]:
     with open(path, newline="") as f:
         reader = csv.DictReader(f)

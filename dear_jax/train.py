@@ -54,7 +54,7 @@ import envs
 from dear_jax import lanes, losses, replay, replay_disk, update
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.lock import WorkdirLock
-from dear_jax.logger import RunLogger, format_table, read_csv
+from dear_jax.logger import RunLogger, format_table, read_csv, write_text_atomic
 from dear_jax.signals import Stopped, StopRequest
 from dear_jax.video import side_by_side, write_video
 
@@ -717,14 +717,19 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
     # run rewrites it.
     summary = {}
     if not hosts.index:
-        summary = write_summary(
-            workdir,
-            config,
-            spec,
-            run.counters,
-            devices=devices,
-            stopped=stop.name if stop else None,
-        )
+        try:
+            summary = write_summary(
+                workdir,
+                config,
+                spec,
+                run.counters,
+                devices=devices,
+                stopped=stop.name if stop else None,
+            )
+        except Exception as e:  # a stopped run still exits as stopped (and resumable)
+            if not stop:
+                raise
+            log.warning("the stopped run's summary was not written: %s", e)
     if stop:
         raise Stopped(
             f"stopped by {stop.name} at frame {run.counters['frame']:,} per seed; checkpoint "
@@ -1308,6 +1313,11 @@ class _Run:
             trace.stop()  # a failing run's trace, without waiting on its arrays
 
 
+def _best(values: np.ndarray) -> float:
+    """The largest non-NaN value; NaN when there is none (a run stopped before evaluating)."""
+    return float(np.nanmax(values)) if np.isfinite(values).any() else math.nan
+
+
 def write_summary(
     workdir, config, spec, counters, *, devices: int = 1, stopped: str | None = None
 ) -> dict:
@@ -1322,24 +1332,21 @@ def write_summary(
         evals = read_csv(path) if path.exists() else {}
         returns = evals.get("episode_return", np.array([np.nan]))
         cos = evals.get("cos_agent_env", np.array([np.nan]))
+        best = _best(returns)
         per_seed.append(
             dict(
                 seed=lane.seed,
                 lane=lane.name,
                 settings=dict(lane.settings),
                 final_return=float(returns[-1]),
-                best_return=float(np.nanmax(returns)),
+                best_return=best,
                 cos_agent_env=float(cos[-1]),
             )
         )
-        rows.append(
-            [lane.name, f"{returns[-1]:.1f}", f"{np.nanmax(returns):.1f}", f"{cos[-1]:.2e}"]
-        )
+        rows.append([lane.name, f"{returns[-1]:.1f}", f"{best:.1f}", f"{cos[-1]:.2e}"])
         if spec.has_success:  # success rate of the eval episodes (kitchen)
             success = evals.get("success", np.array([np.nan]))
-            per_seed[-1].update(
-                final_success=float(success[-1]), best_success=float(np.nanmax(success))
-            )
+            per_seed[-1].update(final_success=float(success[-1]), best_success=_best(success))
             rows[-1].append(f"{success[-1]:.2f}")
     for label in dict.fromkeys(lane.label for lane in runs):  # mean over each setting's seeds
         group = [p for p, lane in zip(per_seed, runs) if lane.label == label]
@@ -1381,8 +1388,8 @@ def write_summary(
         f"({fps:.0f} frames/s in all) on {summary['device']} ({spec.backend} physics); "
         f"render settings {summary['render']}\n\n{table}\n"
     )
-    (workdir / "summary.md").write_text(text)
-    (workdir / "summary.json").write_text(json.dumps(summary, indent=1))
+    write_text_atomic(workdir / "summary.md", text)
+    write_text_atomic(workdir / "summary.json", json.dumps(summary, indent=1))
     if not stopped:
         print(text)
     return summary

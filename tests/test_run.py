@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from configs import smoke
-from dear_jax import replay_disk, train
+from dear_jax import replay_disk, report, train
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.config import resolve_config_path
 from dear_jax.logger import read_csv
@@ -194,8 +194,6 @@ def test_evaluating_in_the_foreground_and_tracing_change_nothing_but_timing(run,
 def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):
     """`python -m dear_jax.report table` on a run the trainer wrote: every number recomputed here
     from that run's CSVs, summary and config."""
-    from dear_jax import report
-
     whole = run[-1]
     threshold = 1.0
     rows, text = report.runs_table([whole], threshold, out=str(tmp_path / "table"))
@@ -227,7 +225,6 @@ def test_a_sweep_trains_each_lane_with_its_own_settings(tmp_path):
     """`sweep.beta = "0,100"` with one seed: two lanes in one program, each logging under its
     settings' name with its own config.json; every logged loss is L_critic + alpha L_mask +
     beta L_dis with its lane's beta; the summary and Table II have a row per setting."""
-    from dear_jax import report
 
     c = tiny_config(seeds=1, total_frames=160)
     c.sweep.beta = "0,100"
@@ -435,6 +432,8 @@ def test_sigterm_checkpoints_exits_cleanly_and_resumes_exactly(run, tmp_path):
     summary = json.loads((workdir / "summary.json").read_text())  # of the run so far
     assert summary["stopped"] == "SIGTERM" and summary["frames_per_seed"] == stopped_at
     assert "stopped by SIGTERM at" in (workdir / "summary.md").read_text()
+    (row,) = report.run_rows(workdir, threshold=0.0)  # Table II reads it, marked as stopped
+    assert row["run"].endswith(f"(stopped at {stopped_at:,} frames)")
     train.train(config, workdir)  # resumes in this process
     assert_same_run(run[-1], workdir, 280)
 

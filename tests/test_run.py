@@ -225,7 +225,6 @@ def test_a_sweep_trains_each_lane_with_its_own_settings(tmp_path):
     """`sweep.beta = "0,100"` with one seed: two lanes in one program, each logging under its
     settings' name with its own config.json; every logged loss is L_critic + alpha L_mask +
     beta L_dis with its lane's beta; the summary and Table II have a row per setting."""
-
     c = tiny_config(seeds=1, total_frames=160)
     c.sweep.beta = "0,100"
     summary = train.train(c, tmp_path)

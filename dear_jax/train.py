@@ -614,7 +614,8 @@ def _replay_store(config: ConfigDict, spec: envs.EnvSpec, workdir: pathlib.Path,
 def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
     """Run (or resume) the experiment described by `config` in `workdir`; returns the summary.
 
-    SIGTERM or SIGINT: the run checkpoints at the end of its step and raises signals.Stopped.
+    SIGTERM or SIGINT: the run checkpoints at the end of its step, writes its summary so far
+    (`"stopped"`: the signal's name) and raises signals.Stopped.
     """
     validate(config)
     mesh = seed_mesh(config)

@@ -1385,9 +1385,9 @@ def write_summary(
     until = f"stopped by {stopped} at " if stopped else ""
     text = (
         f"# {config.agent.method} on {config.env.task}\n\n"
-        f"{until}{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, {wall:.0f} s of training "
-        f"({fps:.0f} frames/s in all) on {summary['device']} ({spec.backend} physics); "
-        f"render settings {summary['render']}\n\n{table}\n"
+        f"{until}{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, "
+        f"{wall:.0f} s of training ({fps:.0f} frames/s in all) on {summary['device']} "
+        f"({spec.backend} physics); render settings {summary['render']}\n\n{table}\n"
     )
     write_text_atomic(workdir / "summary.md", text)
     write_text_atomic(workdir / "summary.json", json.dumps(summary, indent=1))

@@ -7,7 +7,9 @@
 #   train     benchmarks/train.py: DEAR walker-walk, 5 seeds x 8 envs, stage split, then throughput
 #   learn     start DrQ-v2 and DEAR walker-walk (3 seeds each) detached, side by side on the GPU
 #   paper     start the learning check detached: ${LEARN_CONFIG:-configs/walker_drqv2_paper.py}
-#             (e.g. LEARN_CONFIG=configs/walker_dear.py), 3 seeds, physics of $BACKEND if set,
+#             (e.g. LEARN_CONFIG=configs/walker_dear.py; several configs, space-separated, train
+#             side by side; DTYPES="float32 bfloat16": each config once per dtype), 3 seeds
+#             each, physics of $BACKEND if set,
 #             more flags from $LEARN_ARGS (e.g. --config.envs_per_seed=16), from a copy of
 #             the tree (keep the machine with `wait`, then `collect`)
 #   kitchen   start DEAR on kitchen-light detached (3 seeds x 8 envs, bf16, eval every 10k
@@ -64,12 +66,23 @@ while [ $# -gt 0 ]; do
       done
       sleep 5; nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv ;;
     paper)
+      # Several configs in $LEARN_CONFIG (space-separated) train side by side, each process with
+      # an equal share of the GPU's memory; with $DTYPES (e.g. "float32 bfloat16") each config
+      # trains once per compute dtype, in <name>_<dtype>.
       rm -rf /tmp/paper_tree; cp -r "$PWD" /tmp/paper_tree
-      lc=${LEARN_CONFIG:-configs/walker_drqv2_paper.py}; name=$(basename "$lc" .py)
-      (cd /tmp/paper_tree && setsid nohup python3 run.py --config "$lc" \
-        --workdir "$runs/$name" --config.seeds=3 --config.progress=False \
-        ${BACKEND:+--config.env.backend=$BACKEND} ${LEARN_ARGS:-} \
-        > "$runs/$name.log" 2>&1 < /dev/null &)
+      runs_=()
+      for lc in ${LEARN_CONFIG:-configs/walker_drqv2_paper.py}; do
+        if [ -n "${DTYPES:-}" ]; then for d in $DTYPES; do runs_+=("$lc:$d"); done
+        else runs_+=("$lc:"); fi
+      done
+      share=$(python3 -c "print(round(0.9 / ${#runs_[@]}, 3))")
+      for r in "${runs_[@]}"; do
+        lc=${r%%:*}; d=${r#*:}; name=$(basename "$lc" .py)${d:+_$d}
+        (cd /tmp/paper_tree && XLA_PYTHON_CLIENT_MEM_FRACTION=$share setsid nohup python3 run.py \
+          --config "$lc" --workdir "$runs/$name" --config.seeds=3 --config.progress=False \
+          ${BACKEND:+--config.env.backend=$BACKEND} ${LEARN_ARGS:-} \
+          ${d:+--config.agent.compute_dtype=$d} > "$runs/$name.log" 2>&1 < /dev/null &)
+      done
       sleep 5; nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv ;;
     kitchen)
       rm -rf /tmp/kitchen_tree; cp -r "$PWD" /tmp/kitchen_tree

@@ -43,6 +43,14 @@ def cosine_similarity(a: jax.Array, b: jax.Array) -> jax.Array:
     return dot / jnp.maximum(norm, _COS_EPS)
 
 
+def latent_cosines(z_agent: jax.Array, z_env: jax.Array) -> dict[str, jax.Array]:
+    """Diagnostics of how far apart the latent halves are ([B, F/2] x 2), batch means of the
+    cosine and of its magnitude: signed values of both signs cancel in the first, not the second
+    (the metric of the paper's Table II)."""
+    cos = cosine_similarity(z_agent, z_env)
+    return {"cos_agent_env": jnp.mean(cos), "abs_cos_agent_env": jnp.mean(jnp.abs(cos))}
+
+
 def orthogonality_loss(z_agent: jax.Array, z_env: jax.Array, form: str = "abs_cos") -> jax.Array:
     """DEAR's disentanglement loss between the two halves of the latent; [B, F/2] x 2 -> scalar.
 

@@ -15,6 +15,8 @@ run, beside the paper's figures (REFERENCE.md section 3, walker on a 1080Ti/3080
                       the median train-log rate (rows an evaluation slowed are the exceptions),
                       "with eval" from the whole run's wall clock (summary.json)
   cos(z_A, z_E)       mean cosine between the latent halves on the last evaluation's batches
+  |cos(z_A, z_E)|     the mean of its magnitude (signs cancel in the mean of the cosine; runs
+                      logged before 2026-11-24 have no such column: "-")
   final return        last evaluation, mean ± std over seeds
   frames to T         first evaluated frame at which a seed's return reaches --threshold (the
                       median over the seeds that reach it; "k/S" says how many did)
@@ -94,6 +96,7 @@ TABLE_COLUMNS = (
     "s / 1000 frames, with eval",
     "paper s / 1000 frames",
     "cos(z_A, z_E)",
+    "|cos(z_A, z_E)|",
     "paper cos",
     "final return",
     "frames to threshold",
@@ -107,6 +110,11 @@ def _action_dim(summary: dict, task: str) -> int:
 
     tasks = {**dmc.TASKS, **kitchen.TASKS}
     return int(tasks[task].physics_model().nu)
+
+
+def _last_mean(evals: list[dict], column: str) -> float:
+    """Mean over seeds of a column's last evaluation (NaN where a log lacks the column)."""
+    return float(np.mean([e[column][-1] if column in e else math.nan for e in evals]))
 
 
 def run_rows(workdir, threshold: float) -> list[dict]:
@@ -158,7 +166,8 @@ def run_rows(workdir, threshold: float) -> list[dict]:
                 "params_m": params_m,
                 "s_per_1000_training": 1000.0 / np.median(fps) if fps.size else math.nan,
                 "s_per_1000_with_eval": 1000.0 * summary["wall_s"] / frames if frames else math.nan,
-                "cos": float(np.mean([e["cos_agent_env"][-1] for e in evals])),
+                "cos": _last_mean(evals, "cos_agent_env"),
+                "abs_cos": _last_mean(evals, "abs_cos_agent_env"),
                 "final_return_mean": float(finals.mean()),
                 "final_return_std": float(finals.std()),
                 "frames_to_threshold": float(np.median(reached)) if reached else math.nan,
@@ -184,6 +193,7 @@ def _cells(r: dict) -> list:
         fmt(r["s_per_1000_with_eval"], ".2f"),
         fmt(paper.get("s_per_1000"), ".2f"),
         fmt(r["cos"], ".2e"),
+        fmt(r["abs_cos"], ".2e"),
         fmt(paper.get("cos"), ".0e"),
         f"{r['final_return_mean']:.1f} ± {r['final_return_std']:.1f}",
         f"{fmt(r['frames_to_threshold'], ',.0f')} ({reached})",

@@ -381,7 +381,9 @@ class Programs:
     act: callable  # (agent, obs [S,E,...], key, stepping [S,E]) -> (actions [S,E,A], agent)
     learn: callable  # (agent, replay, key) -> (agent, metrics [S]): one update per seed
     add: callable  # (replay, ts, action) -> replay
-    evaluate_step: callable  # (params, obs) -> (actions, cos [S], predicted mask of env 0 [S,H,W])
+    # (params, obs) -> (actions, {cos_agent_env, abs_cos_agent_env: [S]}, predicted mask of env 0
+    # [S,H,W])
+    evaluate_step: callable
     accumulate: callable  # (returns [S,E], ts) -> returns
     add_metrics: callable  # (metrics, metrics) -> elementwise sum
 
@@ -476,7 +478,7 @@ def build_programs(
             z = nets.encoder.apply({"params": params["encoder"]}, obs)
             action = nets.actor.apply({"params": params["actor"]}, z)
             z_env, z_agent = losses.split_latent(z)
-            cos = jnp.mean(losses.cosine_similarity(z_agent, z_env))
+            cos = losses.latent_cosines(z_agent, z_env)
             if nets.mask_decoder is None:
                 pred = jnp.zeros(obs.shape[1:3])
             else:  # newest frame's channel of env 0
@@ -526,14 +528,15 @@ def evaluate(
     returns = jnp.zeros(env.shape)
     success = jnp.zeros(env.shape)
     done = np.zeros(env.shape, bool)  # envs whose first episode has ended (kitchen: at success)
-    cos_sum, steps = jnp.zeros(env.shape[0]), 0
+    cos_sum, steps = None, 0
     frames = []
     while True:
         action, cos, pred = programs.evaluate_step(params, hosts.to_global(ts.obs))
         action, cos, pred = hosts.to_local((action, cos, pred))
         if video:
             frames.append((ts.frame[:, 0], ts.true_mask[:, 0], pred))
-        cos_sum, steps = cos_sum + cos, steps + 1
+        cos_sum = cos if cos_sum is None else jax.tree.map(jnp.add, cos_sum, cos)
+        steps += 1
         done |= np.asarray(state.last)
         if hosts.agree([done.all()]).all():
             break
@@ -545,7 +548,7 @@ def evaluate(
         success = jnp.maximum(success, jnp.where(live, ts.success, 0.0))
     metrics = {
         "episode_return": np.asarray(returns.mean(1)),
-        "cos_agent_env": np.asarray(cos_sum / steps),
+        **{name: np.asarray(total / steps) for name, total in cos_sum.items()},
     }
     if env.spec.has_success:
         metrics["success"] = np.asarray(success.mean(1))
@@ -1332,7 +1335,7 @@ def write_summary(
         path = workdir / lane.name / "eval.csv"
         evals = read_csv(path) if path.exists() else {}
         returns = evals.get("episode_return", np.array([np.nan]))
-        cos = evals.get("cos_agent_env", np.array([np.nan]))
+        cos = evals.get("abs_cos_agent_env", np.array([np.nan]))
         best = _best(returns)
         per_seed.append(
             dict(
@@ -1341,7 +1344,7 @@ def write_summary(
                 settings=dict(lane.settings),
                 final_return=float(returns[-1]),
                 best_return=best,
-                cos_agent_env=float(cos[-1]),
+                abs_cos_agent_env=float(cos[-1]),
             )
         )
         rows.append([lane.name, f"{returns[-1]:.1f}", f"{best:.1f}", f"{cos[-1]:.2e}"])
@@ -1379,7 +1382,7 @@ def write_summary(
         "per_seed": per_seed,
     }
     unit = "lane" if runs[0].settings else "seed"
-    columns = [unit, "final eval return", "best eval return", "cos(z_A, z_E)"]
+    columns = [unit, "final eval return", "best eval return", "|cos(z_A, z_E)|"]
     columns += ["final eval success"] if spec.has_success else []
     table = format_table(columns, rows)
     until = f"stopped by {stopped} at " if stopped else ""

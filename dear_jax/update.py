@@ -295,7 +295,7 @@ def learner_loss(
         "q2": jnp.mean(q2),
         "target_q": jnp.mean(target),
         "batch_reward": jnp.mean(batch.reward),
-        "cos_agent_env": jnp.mean(losses.cosine_similarity(z_agent, z_env)),
+        **losses.latent_cosines(z_agent, z_env),
     }
     total = critic
     if cfg.uses_mask:

@@ -46,6 +46,14 @@ def test_orthogonality_loss_forms():
         losses.orthogonality_loss(z_agent, z_env, "cosine")
 
 
+def test_latent_cosines_signed_mean_cancels_magnitude_does_not():
+    z_agent = jnp.array([[1.0, 0.0], [1.0, 0.0]])
+    z_env = jnp.array([[1.0, 1.0], [-1.0, 1.0]])  # cos = 1/sqrt(2), then -1/sqrt(2)
+    cosines = losses.latent_cosines(z_agent, z_env)
+    assert float(cosines["cos_agent_env"]) == pytest.approx(0.0, abs=1e-7)
+    assert float(cosines["abs_cos_agent_env"]) == pytest.approx(1 / math.sqrt(2), rel=1e-6)
+
+
 def test_orthogonality_loss_is_zero_for_orthogonal_halves():
     z_agent = jnp.array([[0.0, 3.0, 0.0]])
     z_env = jnp.array([[2.0, 0.0, -1.0]])

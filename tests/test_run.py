@@ -114,8 +114,17 @@ def test_outputs_exist_and_parse(run):
         train_log = read_csv(workdir / f"seed_{seed}" / "train.csv")
         assert {"frame", "critic_loss", "mask_loss", "ortho_loss", "fps"} <= set(train_log)
         assert np.all(np.isfinite(train_log["frame"]))
+        # DEAR's orthogonality loss (the paper's form) is the batch's mean |cos|, logged as such
+        np.testing.assert_allclose(train_log["abs_cos_agent_env"], train_log["ortho_loss"], 1e-5)
         eval_log = read_csv(workdir / f"seed_{seed}" / "eval.csv")
-        assert {"episode_return", "cos_agent_env", "fps", "sec_per_1000_frames"} <= set(eval_log)
+        assert {
+            "episode_return",
+            "cos_agent_env",
+            "abs_cos_agent_env",
+            "fps",
+            "sec_per_1000_frames",
+        } <= set(eval_log)
+        assert np.all(eval_log["abs_cos_agent_env"] >= np.abs(eval_log["cos_agent_env"]))
         assert list(eval_log["frame"][:3]) == [0, 120, 240]  # frame 0: the untrained policy
         assert any((workdir / f"seed_{seed}" / "tb").iterdir())
     video = workdir / "videos" / "eval_240_seed_0.mp4"
@@ -204,6 +213,7 @@ def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):
     assert row["final_return_mean"] == pytest.approx(finals.mean())
     assert row["final_return_std"] == pytest.approx(finals.std())
     assert row["cos"] == pytest.approx(np.mean([e["cos_agent_env"][-1] for e in evals]))
+    assert row["abs_cos"] == pytest.approx(np.mean([e["abs_cos_agent_env"][-1] for e in evals]))
     firsts = [e["frame"][np.argmax(e["episode_return"] >= threshold)] for e in evals]
     reaching = [f for f, e in zip(firsts, evals) if (e["episode_return"] >= threshold).any()]
     assert row["seeds_reaching_threshold"] == len(reaching)

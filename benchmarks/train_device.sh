@@ -8,7 +8,8 @@
 #   learn     start DrQ-v2 and DEAR walker-walk (3 seeds each) detached, side by side on the GPU
 #   paper     start the learning check detached: ${LEARN_CONFIG:-configs/walker_drqv2_paper.py}
 #             (e.g. LEARN_CONFIG=configs/walker_dear.py; several configs, space-separated, train
-#             side by side; DTYPES="float32 bfloat16": each config once per dtype), 3 seeds
+#             side by side; DTYPES="float32 bfloat16": each config once per dtype;
+#             CONFIG:DTYPE: that config in that dtype), 3 seeds
 #             each, physics of $BACKEND if set,
 #             more flags from $LEARN_ARGS (e.g. --config.envs_per_seed=16), from a copy of
 #             the tree (keep the machine with `wait`, then `collect`)
@@ -68,11 +69,12 @@ while [ $# -gt 0 ]; do
     paper)
       # Several configs in $LEARN_CONFIG (space-separated) train side by side, each process with
       # an equal share of the GPU's memory; with $DTYPES (e.g. "float32 bfloat16") each config
-      # trains once per compute dtype, in <name>_<dtype>.
+      # trains once per compute dtype, in <name>_<dtype>; CONFIG:DTYPE names one run's dtype.
       rm -rf /tmp/paper_tree; cp -r "$PWD" /tmp/paper_tree
       runs_=()
       for lc in ${LEARN_CONFIG:-configs/walker_drqv2_paper.py}; do
-        if [ -n "${DTYPES:-}" ]; then for d in $DTYPES; do runs_+=("$lc:$d"); done
+        if [[ $lc == *:* ]]; then runs_+=("$lc")
+        elif [ -n "${DTYPES:-}" ]; then for d in $DTYPES; do runs_+=("$lc:$d"); done
         else runs_+=("$lc:"); fi
       done
       share=$(python3 -c "print(round(0.9 / ${#runs_[@]}, 3))")

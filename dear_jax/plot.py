@@ -42,13 +42,22 @@ class Curve:
         self.label = f"{method} {setting}".strip()
 
 
+def task_name(config: dict) -> str:
+    """A run's task as figures and tables name it: the DMC task with its distraction, if any."""
+    env = config.get("env", {})
+    task, difficulty = env.get("task", "?"), env.get("distraction", "none")
+    if difficulty == "none":
+        return task
+    return f"{task}, distracting {difficulty}" + (" dynamic" if env.get("dynamic") else "")
+
+
 def load_curves(workdir: str | os.PathLike, metric: str, x: str = "frame") -> list[Curve]:
     """The curves of a workdir: one, or one per setting of its sweep."""
     workdir = pathlib.Path(workdir)
     groups = lanes.groups(workdir)
     config = json.loads((workdir / "config.json").read_text())
     method = config.get("agent", {}).get("method", "?")
-    task = config.get("env", {}).get("task", "?")
+    task = task_name(config)
     curves = []
     for setting, dirs in groups.items():
         paths = [d / "eval.csv" for d in dirs if (d / "eval.csv").is_file()]

@@ -1,7 +1,7 @@
 """Command-line reports about the agent and about finished runs.
 
     python -m dear_jax.report params [--action-dim 6]
-    python -m dear_jax.report table RUN [RUN ...] [--threshold 500] [--out results/table]
+    python -m dear_jax.report table RUN [RUN ...] [--threshold 500] [--at FRAMES] [--out PREFIX]
     python -m dear_jax.report curves RUN [RUN ...] [--out results/curves.png] [--band std]
 
 `params` prints the parameter count of every module per method (walker: |A| = 6), computed from
@@ -14,10 +14,13 @@ run, beside the paper's figures (REFERENCE.md section 3, walker on a 1080Ti/3080
                       trained together (the paper runs one seed per process): "training" from
                       the median train-log rate (rows an evaluation slowed are the exceptions),
                       "with eval" from the whole run's wall clock (summary.json)
-  cos(z_A, z_E)       mean cosine between the latent halves on the last evaluation's batches
+  eval frame          the frame of the evaluation read (the last one, or with --at FRAMES the
+                      last one up to FRAMES per seed, so that runs stopped at different points
+                      compare at one frame)
+  cos(z_A, z_E)       mean cosine between the latent halves on that evaluation's batches
   |cos(z_A, z_E)|     the mean of its magnitude (signs cancel in the mean of the cosine; runs
                       logged before 2026-11-24 have no such column: "-")
-  final return        last evaluation, mean ± std over seeds
+  final return        that evaluation's return, mean ± std over seeds
   frames to T         first evaluated frame at which a seed's return reaches --threshold (the
                       median over the seeds that reach it; "k/S" says how many did)
 It prints Markdown and, with --out PREFIX, writes PREFIX.md and PREFIX.csv. A sweep's run
@@ -98,6 +101,7 @@ TABLE_COLUMNS = (
     "cos(z_A, z_E)",
     "|cos(z_A, z_E)|",
     "paper cos",
+    "eval frame",
     "final return",
     "frames to threshold",
 )
@@ -117,9 +121,21 @@ def _last_mean(evals: list[dict], column: str) -> float:
     return float(np.mean([e[column][-1] if column in e else math.nan for e in evals]))
 
 
-def run_rows(workdir, threshold: float) -> list[dict]:
+def _until(evals: dict, frames: int | None, path: pathlib.Path) -> dict:
+    """An eval log's rows up to `frames` per seed (all of them for None)."""
+    if frames is None:
+        return evals
+    keep = evals["frame"] <= frames
+    if not keep.any():
+        raise ValueError(f"{path} has no evaluation at or before {frames:,} frames")
+    return {name: column[keep] for name, column in evals.items()}
+
+
+def run_rows(workdir, threshold: float, at: int | None = None) -> list[dict]:
     """Table II's numbers for one run workdir (config.json, summary.json, its lanes' CSVs): one
-    row, or one per setting of a sweep (`dear_jax/lanes.py`)."""
+    row, or one per setting of a sweep (`dear_jax/lanes.py`). With `at`, the returns, cosines
+    and frames to the threshold are those of the evaluations up to `at` frames per seed (runs
+    stopped at different points compare at the same frame)."""
     workdir = pathlib.Path(workdir)
     for name in ("config.json", "summary.json"):
         if not (workdir / name).is_file():
@@ -150,7 +166,7 @@ def run_rows(workdir, threshold: float) -> list[dict]:
     )
     rows = []
     for label, dirs in groups.items():
-        evals = [read_csv(d / "eval.csv") for d in dirs]
+        evals = [_until(read_csv(d / "eval.csv"), at, d / "eval.csv") for d in dirs]
         finals = np.array([e["episode_return"][-1] for e in evals])
         reached = []
         for e in evals:
@@ -161,13 +177,14 @@ def run_rows(workdir, threshold: float) -> list[dict]:
             {
                 "run": f"{workdir.name} {label}".strip() + stopped,
                 "method": agent["method"],
-                "task": config["env"]["task"],
+                "task": plot.task_name(config),
                 "seeds": len(dirs),
                 "params_m": params_m,
                 "s_per_1000_training": 1000.0 / np.median(fps) if fps.size else math.nan,
                 "s_per_1000_with_eval": 1000.0 * summary["wall_s"] / frames if frames else math.nan,
                 "cos": _last_mean(evals, "cos_agent_env"),
                 "abs_cos": _last_mean(evals, "abs_cos_agent_env"),
+                "eval_frame": int(max(e["frame"][-1] for e in evals)),
                 "final_return_mean": float(finals.mean()),
                 "final_return_std": float(finals.std()),
                 "frames_to_threshold": float(np.median(reached)) if reached else math.nan,
@@ -195,17 +212,22 @@ def _cells(r: dict) -> list:
         fmt(r["cos"], ".2e"),
         fmt(r["abs_cos"], ".2e"),
         fmt(paper.get("cos"), ".0e"),
+        f"{r['eval_frame']:,}",
         f"{r['final_return_mean']:.1f} ± {r['final_return_std']:.1f}",
         f"{fmt(r['frames_to_threshold'], ',.0f')} ({reached})",
     ]
 
 
-def runs_table(workdirs, threshold: float, out: str | None = None) -> tuple[list[dict], str]:
+def runs_table(
+    workdirs, threshold: float, out: str | None = None, at: int | None = None
+) -> tuple[list[dict], str]:
     """Rows and the Markdown text of Table II; with `out`, also writes out.md and out.csv."""
-    rows = [row for w in workdirs for row in run_rows(w, threshold)]
+    rows = [row for w in workdirs for row in run_rows(w, threshold, at)]
+    when = "the last evaluation" if at is None else f"the last evaluation up to {at:,} frames"
     text = (
         f"Table II: {len(rows)} run(s); s / 1000 frames per seed amortised over the seeds "
-        f"trained together; frames to a return of {threshold:g}\n\n"
+        f"trained together; returns and cosines of {when}; frames to a return of "
+        f"{threshold:g}\n\n"
         + format_table(TABLE_COLUMNS, [_cells(r) for r in rows])
         + "\n"
     )
@@ -229,6 +251,9 @@ def main(argv=None):
     t.add_argument("runs", nargs="+", help="run workdirs")
     t.add_argument("--threshold", type=float, default=500.0, help="return for sample efficiency")
     t.add_argument("--out", default=None, help="also write OUT.md and OUT.csv")
+    t.add_argument(
+        "--at", type=int, default=None, help="read the evaluations up to this many frames per seed"
+    )
     c = sub.add_parser("curves", help="learning curves: a panel per task, a line per method")
     c.add_argument("runs", nargs="+", help="run workdirs")
     c.add_argument("--out", default="curves.png", help="PNG path")
@@ -243,7 +268,10 @@ def main(argv=None):
         print(path)
         return path
     if args.command == "table":
-        print(runs_table(args.runs, args.threshold, args.out)[1])
+        try:
+            print(runs_table(args.runs, args.threshold, args.out, args.at)[1])
+        except (FileNotFoundError, ValueError) as e:
+            parser.error(str(e))
     if args.command == "params":
         print(f"Parameters per module, |A| = {args.action_dim}")
         print(format_params_table(params_table(args.action_dim)))

@@ -435,6 +435,14 @@ def test_plot_draws_a_line_per_setting_of_a_sweep(tmp_path):
     assert cv2.imread(str(out)).std() > 0
 
 
+def test_task_name_says_the_distraction():
+    assert plot.task_name({"env": {"task": "walker-walk", "distraction": "none"}}) == "walker-walk"
+    medium = {"env": {"task": "finger-spin", "distraction": "medium"}}
+    assert plot.task_name(medium) == "finger-spin, distracting medium"
+    medium["env"]["dynamic"] = True
+    assert plot.task_name(medium) == "finger-spin, distracting medium dynamic"
+
+
 def test_plot_labels():
     curves = [
         plot.Curve(pathlib.Path(p), task, m, np.zeros(1), np.zeros((1, 1)))

@@ -1,16 +1,18 @@
-"""Does bf16 learn like float32? Two runs of one config and the same seeds, one per compute dtype.
+"""Does bf16 learn like float32? Two runs of one config and the same seeds, compared seed by seed.
 
-    python -m benchmarks.dtype_check FLOAT32_RUN BFLOAT16_RUN [--out results/dtype_check.json]
+    python -m benchmarks.dtype_check FLOAT32_RUN BFLOAT16_RUN [--upto FRAMES] [--out F.json]
 
-Reads both runs' eval.csv and train.csv (seed by seed: seed_i of one run against seed_i of the
-other, which start from the same parameters and see the same first episodes) up to the last
-evaluation both have, and prints
+Made for one run per compute dtype; given two runs of the same dtype, it measures the noise
+floor (GPU reductions are not bitwise deterministic, so reruns of one seed drift apart). Reads
+both runs' eval.csv and train.csv (seed_i of one run against seed_i of the other: the same initial
+parameters and first episodes) up to the last evaluation both have (or FRAMES), and prints
 - the eval returns per seed at each common evaluation frame;
 - per seed, the mean eval return over those evaluations (frame 0 left out: the untrained policy),
-  the paired difference bf16 - float32, and a paired t-test over the seeds;
+  the paired difference (second run - first), and a paired t-test over the seeds;
 - the training losses of the last common log row (critic, mask, |cos(z_A, z_E)|).
-"Within noise" here means: the mean paired difference is smaller than the spread of the per-seed
-means across seeds (their standard deviation), and the t-test does not reject equality (p > 0.05).
+"Within noise" here means: the mean paired difference is smaller than the spread of the second
+run's per-seed means across seeds (their standard deviation), and the t-test does not reject
+equality (p > 0.05).
 Started on the GPU by `DTYPES="float32 bfloat16" LEARN_CONFIG=... bash benchmarks/train_device.sh
 paper` (both runs side by side).
 """
@@ -36,15 +38,25 @@ def _seeds(run: pathlib.Path) -> list[pathlib.Path]:
     return dirs
 
 
-def compare(fp32_run, bf16_run) -> dict:
-    fp32, bf16 = _seeds(pathlib.Path(fp32_run)), _seeds(pathlib.Path(bf16_run))
-    if len(fp32) != len(bf16):
-        raise ValueError(f"the runs have {len(fp32)} and {len(bf16)} seeds; give runs of the same")
-    evals = [[read_csv(d / "eval.csv") for d in dirs] for dirs in (fp32, bf16)]
+def _dtype(run) -> str:
+    config = pathlib.Path(run) / "config.json"
+    return json.loads(config.read_text())["agent"]["compute_dtype"] if config.is_file() else "?"
+
+
+def compare(run_a, run_b, upto: int | None = None) -> dict:
+    seeds_a, seeds_b = _seeds(pathlib.Path(run_a)), _seeds(pathlib.Path(run_b))
+    if len(seeds_a) != len(seeds_b):
+        raise ValueError(
+            f"the runs have {len(seeds_a)} and {len(seeds_b)} seeds; give runs of the same"
+        )
+    evals = [[read_csv(d / "eval.csv") for d in dirs] for dirs in (seeds_a, seeds_b)]
     frames = sorted(set.intersection(*(set(e["frame"].astype(int)) for run in evals for e in run)))
-    frames = [int(f) for f in frames if f > 0]
+    frames = [int(f) for f in frames if 0 < f <= (upto if upto is not None else f)]
     if not frames:
-        raise ValueError("the runs have no common evaluation after frame 0")
+        raise ValueError(
+            "the runs have no common evaluation after frame 0"
+            + (f" and up to {upto:,} frames" if upto is not None else "")
+        )
 
     def returns(e):
         return np.array([e["episode_return"][e["frame"] == f][0] for f in frames])
@@ -53,24 +65,26 @@ def compare(fp32_run, bf16_run) -> dict:
     means = per_frame.mean(-1)  # [dtype, seed]
     diff = means[1] - means[0]
     test = stats.ttest_rel(means[1], means[0])
-    trains = [[read_csv(d / "train.csv") for d in dirs] for dirs in (fp32, bf16)]
+    trains = [[read_csv(d / "train.csv") for d in dirs] for dirs in (seeds_a, seeds_b)]
     last = min(t["frame"][-1] for run in trains for t in run)
+    last = min(last, frames[-1]) if upto is not None else last
     losses = {
         dtype: {
             col: [float(t[col][t["frame"] <= last][-1]) for t in run if col in t]
             for col in TRAIN_COLUMNS
         }
-        for dtype, run in zip(("float32", "bfloat16"), trains)
+        for dtype, run in zip("ab", trains)
     }
     spread = float(means[1].std(ddof=1)) if means.shape[1] > 1 else float("nan")
     return {
-        "runs": {"float32": str(fp32_run), "bfloat16": str(bf16_run)},
+        "runs": {"a": str(run_a), "b": str(run_b)},
+        "dtypes": {"a": _dtype(run_a), "b": _dtype(run_b)},
         "frames": frames,
-        "returns": {"float32": per_frame[0].tolist(), "bfloat16": per_frame[1].tolist()},
-        "mean_return_per_seed": {"float32": means[0].tolist(), "bfloat16": means[1].tolist()},
+        "returns": {"a": per_frame[0].tolist(), "b": per_frame[1].tolist()},
+        "mean_return_per_seed": {"a": means[0].tolist(), "b": means[1].tolist()},
         "paired_difference": diff.tolist(),
         "mean_difference": float(diff.mean()),
-        "seed_spread_bf16": spread,
+        "seed_spread_b": spread,
         "t_statistic": float(test.statistic),
         "p_value": float(test.pvalue),
         "within_noise": bool(abs(diff.mean()) < spread and test.pvalue > 0.05),
@@ -82,42 +96,42 @@ def compare(fp32_run, bf16_run) -> dict:
 def report(r: dict) -> str:
     seeds = len(r["paired_difference"])
     rows = [
-        [f"{f:,}"]
-        + [f"{r['returns'][d][s][i]:.1f}" for d in ("float32", "bfloat16") for s in range(seeds)]
+        [f"{f:,}"] + [f"{r['returns'][d][s][i]:.1f}" for d in "ab" for s in range(seeds)]
         for i, f in enumerate(r["frames"])
     ]
-    rows.append(
-        ["mean"]
-        + [f"{m:.1f}" for d in ("float32", "bfloat16") for m in r["mean_return_per_seed"][d]]
-    )
-    head = ["frame"] + [f"{d} seed {s}" for d in ("fp32", "bf16") for s in range(seeds)]
+    rows.append(["mean"] + [f"{m:.1f}" for d in "ab" for m in r["mean_return_per_seed"][d]])
+    head = ["frame"] + [f"{d.upper()} seed {s}" for d in "ab" for s in range(seeds)]
     lines = [
+        f"A = {r['runs']['a']} ({r['dtypes']['a']}), B = {r['runs']['b']} ({r['dtypes']['b']})",
         "Eval returns at the evaluations both runs have (mean: over those, per seed)",
         "",
         format_table(head, rows),
         "",
-        "paired difference bf16 - fp32 per seed: "
+        "paired difference B - A per seed: "
         + ", ".join(f"{d:+.1f}" for d in r["paired_difference"])
         + f"; mean {r['mean_difference']:+.1f} against a seed spread (std) of "
-        f"{r['seed_spread_bf16']:.1f}; paired t = {r['t_statistic']:.2f}, p = {r['p_value']:.2f}",
+        f"{r['seed_spread_b']:.1f}; paired t = {r['t_statistic']:.2f}, p = {r['p_value']:.2f}",
         f"within noise: {'yes' if r['within_noise'] else 'no'}",
         "",
         f"training losses at frame {r['train_frame']:,} (per seed):",
     ]
     for dtype, cols in r["train_losses"].items():
-        text = "; ".join(f"{c} " + ", ".join(f"{v:.3g}" for v in vs) for c, vs in cols.items() if vs)
-        lines.append(f"  {dtype}: {text}")
+        text = "; ".join(
+            f"{c} " + ", ".join(f"{v:.3g}" for v in vs) for c, vs in cols.items() if vs
+        )
+        lines.append(f"  {dtype.upper()}: {text}")
     return "\n".join(lines)
 
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("float32_run")
-    parser.add_argument("bfloat16_run")
+    parser.add_argument("run_a", help="workdir of the reference run (float32)")
+    parser.add_argument("run_b", help="workdir of the run compared with it (bfloat16)")
+    parser.add_argument("--upto", type=int, default=None, help="compare up to this frame")
     parser.add_argument("--out", default=None, help="JSON path")
     args = parser.parse_args(argv)
     try:
-        r = compare(args.float32_run, args.bfloat16_run)
+        r = compare(args.run_a, args.run_b, args.upto)
     except (FileNotFoundError, ValueError) as e:
         parser.error(str(e))
     print(report(r))

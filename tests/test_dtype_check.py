@@ -30,13 +30,13 @@ def test_paired_comparison_over_common_evaluations(tmp_path):
     bf16 = _run(tmp_path, "bf16", [[0, 12, 22, 32], [0, 26, 36, 46]])
     r = dtype_check.compare(fp32, bf16)
     assert r["frames"] == [10, 20, 30]
-    assert r["mean_return_per_seed"] == {"float32": [20.0, 40.0], "bfloat16": [22.0, 36.0]}
+    assert r["mean_return_per_seed"] == {"a": [20.0, 40.0], "b": [22.0, 36.0]}
     assert r["paired_difference"] == [2.0, -4.0] and r["mean_difference"] == -1.0
-    assert r["seed_spread_bf16"] == pytest.approx(np.std([22.0, 36.0], ddof=1))
+    assert r["seed_spread_b"] == pytest.approx(np.std([22.0, 36.0], ddof=1))
     # paired t over d = (2, -4): mean -1, sd sqrt(18), t = -1 / (sqrt(18) / sqrt(2)) = -1/3
     assert r["t_statistic"] == pytest.approx(-1 / 3)
     assert r["within_noise"]
-    assert r["train_frame"] == 35 and r["train_losses"]["bfloat16"]["critic_loss"] == [2.0, 3.0]
+    assert r["train_frame"] == 35 and r["train_losses"]["b"]["critic_loss"] == [2.0, 3.0]
     assert "within noise: yes" in dtype_check.report(r)
 
 

@@ -18,7 +18,7 @@ run, beside the paper's figures (REFERENCE.md section 3, walker on a 1080Ti/3080
                       last one up to FRAMES per seed, so that runs stopped at different points
                       compare at one frame)
   cos(z_A, z_E)       mean cosine between the latent halves on that evaluation's batches
-  |cos(z_A, z_E)|     the mean of its magnitude (signs cancel in the mean of the cosine; runs
+  abs cos(z_A, z_E)   the mean of its magnitude (signs cancel in the mean of the cosine; runs
                       logged before 2026-11-24 have no such column: "-")
   final return        that evaluation's return, mean ± std over seeds
   frames to T         first evaluated frame at which a seed's return reaches --threshold (the
@@ -99,7 +99,7 @@ TABLE_COLUMNS = (
     "s / 1000 frames, with eval",
     "paper s / 1000 frames",
     "cos(z_A, z_E)",
-    "|cos(z_A, z_E)|",
+    "abs cos(z_A, z_E)",
     "paper cos",
     "eval frame",
     "final return",

@@ -1382,7 +1382,7 @@ def write_summary(
         "per_seed": per_seed,
     }
     unit = "lane" if runs[0].settings else "seed"
-    columns = [unit, "final eval return", "best eval return", "|cos(z_A, z_E)|"]
+    columns = [unit, "final eval return", "best eval return", "abs cos(z_A, z_E)"]
     columns += ["final eval success"] if spec.has_success else []
     table = format_table(columns, rows)
     until = f"stopped by {stopped} at " if stopped else ""

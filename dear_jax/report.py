@@ -227,9 +227,7 @@ def runs_table(
     text = (
         f"Table II: {len(rows)} run(s); s / 1000 frames per seed amortised over the seeds "
         f"trained together; returns and cosines of {when}; frames to a return of "
-        f"{threshold:g}\n\n"
-        + format_table(TABLE_COLUMNS, [_cells(r) for r in rows])
-        + "\n"
+        f"{threshold:g}\n\n" + format_table(TABLE_COLUMNS, [_cells(r) for r in rows]) + "\n"
     )
     if out:
         path = pathlib.Path(out)

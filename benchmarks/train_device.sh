@@ -21,6 +21,7 @@
 #   speed     the performance issue's update figures: DEAR fp32 / bf16 and DrQ-v2 bf16 at batch
 #             512 (5 seeds), the first conv's input paths (benchmarks/encoder_input.py), the
 #             bf16 DEAR profile
+#   shift     benchmarks/shift.py: the random shift of 5 seeds' batches, three equal ways
 #   loop      benchmarks/profile_loop.py: where a training iteration's time goes, per program, for
 #             DEAR walker-walk (5 seeds x 16 envs) and the DrQ-v2 learning check (3 x 16), bf16,
 #             with the physics of $BACKEND (auto, mjx or cpu; default: the config's)
@@ -112,6 +113,8 @@ while [ $# -gt 0 ]; do
         --out "$out/encoder_input.json"
       timeout 150 python3 -m benchmarks.profile_update --method dear --batch 512 \
         --dtype bfloat16 --out "$out/profile_dear_bf16.json" ;;
+    shift)
+      timeout 200 python3 -m benchmarks.shift --seeds 5 --batch 512 --out "$out/shift.json" ;;
     loop)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       b=${BACKEND:-config}

@@ -43,3 +43,16 @@ def test_batch_shift_is_independent_per_sample():
     # Output column 8 shows image column 4 + dx, which tells each sample's horizontal offset.
     dxs = {int(out[i, 0, 8, 0]) - 4 for i in range(32)}
     assert dxs <= set(range(9)) and len(dxs) > 3
+
+
+def test_the_shift_benchmarks_ways_give_the_same_pixels():
+    """benchmarks/shift.py times the shift written three ways; all three select the same pixels
+    (edges replicated), so any of them could replace augment.shift."""
+    from benchmarks import shift
+
+    result = shift.main(["--seeds", "2", "--batch", "32", "--iters", "1"])
+    assert {w: r["same_as_pad_slice"] for w, r in result["ways"].items()} == {
+        "pad_slice": True,
+        "take_rows_cols": True,
+        "one_hot_matmul": True,
+    }

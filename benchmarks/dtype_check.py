@@ -9,7 +9,7 @@ parameters and first episodes) up to the last evaluation both have (or FRAMES), 
 - the eval returns per seed at each common evaluation frame;
 - per seed, the mean eval return over those evaluations (frame 0 left out: the untrained policy),
   the paired difference (second run - first), and a paired t-test over the seeds;
-- the training losses of the last common log row (critic, mask, |cos(z_A, z_E)|).
+- the training losses (critic, mask, |cos(z_A, z_E)|) of the last log frame both runs have.
 "Within noise" here means: the mean paired difference is smaller than the spread of the second
 run's per-seed means across seeds (their standard deviation), and the t-test does not reject
 equality (p > 0.05).
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import pathlib
 
 import numpy as np
@@ -31,11 +32,20 @@ from dear_jax.logger import format_table, read_csv
 TRAIN_COLUMNS = ("critic_loss", "mask_loss", "abs_cos_agent_env")
 
 
-def _seeds(run: pathlib.Path) -> list[pathlib.Path]:
-    dirs = sorted(run.glob("seed_*"), key=lambda d: int(d.name.split("_")[1]))
+def _seeds(run: pathlib.Path) -> dict[str, pathlib.Path]:
+    dirs = {d.name: d for d in run.glob("seed_*") if d.is_dir()}
     if not dirs:
         raise FileNotFoundError(f"{run} has no seed_* folders: give a run's workdir")
-    return dirs
+    return dict(sorted(dirs.items(), key=lambda item: int(item[0].split("_")[1])))
+
+
+def _paired_test(diff: np.ndarray) -> tuple[float, float]:
+    """Paired t-test of the differences against 0; (t, p). Equal differences have no spread:
+    all 0 is no difference (p = 1), any other constant a sure one (p = 0)."""
+    if np.all(diff == diff[0]):
+        return (0.0, 1.0) if diff[0] == 0 else (math.copysign(math.inf, diff[0]), 0.0)
+    test = stats.ttest_1samp(diff, 0.0)
+    return float(test.statistic), float(test.pvalue)
 
 
 def _dtype(run) -> str:
@@ -43,15 +53,22 @@ def _dtype(run) -> str:
     return json.loads(config.read_text())["agent"]["compute_dtype"] if config.is_file() else "?"
 
 
+def _common_frames(logs: list[list[dict]], upto: int | None) -> list[int]:
+    """The frames (after 0, up to `upto`) at which every log of both runs has a row."""
+    frames = set.intersection(*({int(f) for f in log["frame"]} for run in logs for log in run))
+    return sorted(f for f in frames if 0 < f <= (upto if upto is not None else f))
+
+
 def compare(run_a, run_b, upto: int | None = None) -> dict:
     seeds_a, seeds_b = _seeds(pathlib.Path(run_a)), _seeds(pathlib.Path(run_b))
-    if len(seeds_a) != len(seeds_b):
+    if list(seeds_a) != list(seeds_b):
         raise ValueError(
-            f"the runs have {len(seeds_a)} and {len(seeds_b)} seeds; give runs of the same"
+            f"the runs hold different seeds ({', '.join(seeds_a)} and {', '.join(seeds_b)}); "
+            "give two runs of the same seeds"
         )
-    evals = [[read_csv(d / "eval.csv") for d in dirs] for dirs in (seeds_a, seeds_b)]
-    frames = sorted(set.intersection(*(set(e["frame"].astype(int)) for run in evals for e in run)))
-    frames = [int(f) for f in frames if 0 < f <= (upto if upto is not None else f)]
+    dirs = (list(seeds_a.values()), list(seeds_b.values()))
+    evals = [[read_csv(d / "eval.csv") for d in run] for run in dirs]
+    frames = _common_frames(evals, upto)
     if not frames:
         raise ValueError(
             "the runs have no common evaluation after frame 0"
@@ -64,16 +81,22 @@ def compare(run_a, run_b, upto: int | None = None) -> dict:
     per_frame = np.array([[returns(e) for e in run] for run in evals])  # [dtype, seed, frame]
     means = per_frame.mean(-1)  # [dtype, seed]
     diff = means[1] - means[0]
-    test = stats.ttest_rel(means[1], means[0])
-    trains = [[read_csv(d / "train.csv") for d in dirs] for dirs in (seeds_a, seeds_b)]
-    last = min(t["frame"][-1] for run in trains for t in run)
-    last = min(last, frames[-1]) if upto is not None else last
+    t, p = _paired_test(diff)
+    # Training losses at the last log frame every seed of both runs has (up to `upto`).
+    trains = [[read_csv(d / "train.csv") for d in run] for run in dirs]
+    train_frames = _common_frames(trains, upto)
+    if not train_frames:
+        raise ValueError(
+            "the runs' train.csv have no common log frame"
+            + (f" up to {upto:,} frames" if upto is not None else "")
+        )
+    at = train_frames[-1]
     losses = {
-        dtype: {
-            col: [float(t[col][t["frame"] <= last][-1]) for t in run if col in t]
+        name: {
+            col: [float(log[col][log["frame"] == at][0]) for log in run if col in log]
             for col in TRAIN_COLUMNS
         }
-        for dtype, run in zip("ab", trains)
+        for name, run in zip("ab", trains)
     }
     spread = float(means[1].std(ddof=1)) if means.shape[1] > 1 else float("nan")
     return {
@@ -85,10 +108,10 @@ def compare(run_a, run_b, upto: int | None = None) -> dict:
         "paired_difference": diff.tolist(),
         "mean_difference": float(diff.mean()),
         "seed_spread_b": spread,
-        "t_statistic": float(test.statistic),
-        "p_value": float(test.pvalue),
-        "within_noise": bool(abs(diff.mean()) < spread and test.pvalue > 0.05),
-        "train_frame": int(last),
+        "t_statistic": t,
+        "p_value": p,
+        "within_noise": bool(abs(diff.mean()) <= spread and p > 0.05),
+        "train_frame": at,
         "train_losses": losses,
     }
 

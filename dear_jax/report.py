@@ -16,10 +16,10 @@ run, beside the paper's figures (REFERENCE.md section 3, walker on a 1080Ti/3080
                       "with eval" from the whole run's wall clock (summary.json)
   eval frame          the frame of the evaluation read (the last one, or with --at FRAMES the
                       last one up to FRAMES per seed, so that runs stopped at different points
-                      compare at one frame)
+                      compare at one frame); "a-b" where the seeds' differ
   cos(z_A, z_E)       mean cosine between the latent halves on that evaluation's batches
   abs cos(z_A, z_E)   the mean of its magnitude (signs cancel in the mean of the cosine; runs
-                      logged before 2026-11-24 have no such column: "-")
+                      logged before commit f3d5730 have no such column: "-")
   final return        that evaluation's return, mean ± std over seeds
   frames to T         first evaluated frame at which a seed's return reaches --threshold (the
                       median over the seeds that reach it; "k/S" says how many did)
@@ -184,6 +184,7 @@ def run_rows(workdir, threshold: float, at: int | None = None) -> list[dict]:
                 "s_per_1000_with_eval": 1000.0 * summary["wall_s"] / frames if frames else math.nan,
                 "cos": _last_mean(evals, "cos_agent_env"),
                 "abs_cos": _last_mean(evals, "abs_cos_agent_env"),
+                "eval_frame_min": int(min(e["frame"][-1] for e in evals)),
                 "eval_frame": int(max(e["frame"][-1] for e in evals)),
                 "final_return_mean": float(finals.mean()),
                 "final_return_std": float(finals.std()),
@@ -212,10 +213,14 @@ def _cells(r: dict) -> list:
         fmt(r["cos"], ".2e"),
         fmt(r["abs_cos"], ".2e"),
         fmt(paper.get("cos"), ".0e"),
-        f"{r['eval_frame']:,}",
+        _frames(r["eval_frame_min"], r["eval_frame"]),
         f"{r['final_return_mean']:.1f} ± {r['final_return_std']:.1f}",
         f"{fmt(r['frames_to_threshold'], ',.0f')} ({reached})",
     ]
+
+
+def _frames(low: int, high: int) -> str:
+    return f"{high:,}" if low == high else f"{low:,}-{high:,}"
 
 
 def runs_table(

@@ -1336,6 +1336,7 @@ def write_summary(
         evals = read_csv(path) if path.exists() else {}
         returns = evals.get("episode_return", np.array([np.nan]))
         cos = evals.get("abs_cos_agent_env", np.array([np.nan]))
+        signed = evals.get("cos_agent_env", np.array([np.nan]))
         best = _best(returns)
         per_seed.append(
             dict(
@@ -1344,6 +1345,7 @@ def write_summary(
                 settings=dict(lane.settings),
                 final_return=float(returns[-1]),
                 best_return=best,
+                cos_agent_env=float(signed[-1]),
                 abs_cos_agent_env=float(cos[-1]),
             )
         )

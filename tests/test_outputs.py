@@ -435,6 +435,16 @@ def test_plot_draws_a_line_per_setting_of_a_sweep(tmp_path):
     assert cv2.imread(str(out)).std() > 0
 
 
+def test_table_ii_reads_logs_older_than_a_column_and_marks_mixed_frames():
+    old = {"frame": np.array([0.0, 10.0]), "cos_agent_env": np.array([0.2, 0.1])}
+    new = {**old, "abs_cos_agent_env": np.array([0.3, 0.4])}
+    assert report._last_mean([new, new], "abs_cos_agent_env") == pytest.approx(0.4)
+    assert np.isnan(report._last_mean([old, new], "abs_cos_agent_env"))
+    assert report._last_mean([old, new], "cos_agent_env") == pytest.approx(0.1)
+    assert report._frames(10_000, 10_000) == "10,000"
+    assert report._frames(5_000, 10_000) == "5,000-10,000"
+
+
 def test_task_name_says_the_distraction():
     assert plot.task_name({"env": {"task": "walker-walk", "distraction": "none"}}) == "walker-walk"
     medium = {"env": {"task": "finger-spin", "distraction": "medium"}}

@@ -227,7 +227,7 @@ def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):
     assert row["params_m"] == pytest.approx(sum(report.param_counts(acfg).values()) / 1e6)
     assert "| dear " in text and (tmp_path / "table.md").read_text() == text
     assert read_csv(tmp_path / "table.csv")["final_return_mean"][0] == pytest.approx(finals.mean())
-    assert row["eval_frame"] == 280 and row["task"] == "walker-walk"
+    assert row["eval_frame"] == row["eval_frame_min"] == 280 and row["task"] == "walker-walk"
     # --at: the evaluations up to a frame, for runs stopped at different points
     (early,) = report.run_rows(whole, threshold, at=150)
     assert early["eval_frame"] == 120

@@ -53,10 +53,16 @@ def _dtype(run) -> str:
     return json.loads(config.read_text())["agent"]["compute_dtype"] if config.is_file() else "?"
 
 
-def _common_frames(logs: list[list[dict]], upto: int | None) -> list[int]:
-    """The frames (after 0, up to `upto`) at which every log of both runs has a row."""
+def _logs(dirs, name: str, upto: int | None) -> tuple[list[list[dict]], list[int]]:
+    """Both runs' `name` CSVs per seed, and the frames (after 0, up to `upto`) at which every one
+    of them has a row."""
+    logs = [[read_csv(d / name) for d in run] for run in dirs]
     frames = set.intersection(*({int(f) for f in log["frame"]} for run in logs for log in run))
-    return sorted(f for f in frames if 0 < f <= (upto if upto is not None else f))
+    frames = sorted(f for f in frames if 0 < f <= (upto if upto is not None else f))
+    if not frames:
+        until = f" up to {upto:,} frames" if upto is not None else ""
+        raise ValueError(f"the runs' {name} have no common frame after 0{until}")
+    return logs, frames
 
 
 def compare(run_a, run_b, upto: int | None = None) -> dict:
@@ -67,13 +73,7 @@ def compare(run_a, run_b, upto: int | None = None) -> dict:
             "give two runs of the same seeds"
         )
     dirs = (list(seeds_a.values()), list(seeds_b.values()))
-    evals = [[read_csv(d / "eval.csv") for d in run] for run in dirs]
-    frames = _common_frames(evals, upto)
-    if not frames:
-        raise ValueError(
-            "the runs have no common evaluation after frame 0"
-            + (f" and up to {upto:,} frames" if upto is not None else "")
-        )
+    evals, frames = _logs(dirs, "eval.csv", upto)
 
     def returns(e):
         return np.array([e["episode_return"][e["frame"] == f][0] for f in frames])
@@ -83,13 +83,7 @@ def compare(run_a, run_b, upto: int | None = None) -> dict:
     diff = means[1] - means[0]
     t, p = _paired_test(diff)
     # Training losses at the last log frame every seed of both runs has (up to `upto`).
-    trains = [[read_csv(d / "train.csv") for d in run] for run in dirs]
-    train_frames = _common_frames(trains, upto)
-    if not train_frames:
-        raise ValueError(
-            "the runs' train.csv have no common log frame"
-            + (f" up to {upto:,} frames" if upto is not None else "")
-        )
+    trains, train_frames = _logs(dirs, "train.csv", upto)
     at = train_frames[-1]
     losses = {
         name: {

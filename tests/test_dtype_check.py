@@ -72,5 +72,5 @@ def test_bad_input_is_named(tmp_path):
     other = _run(tmp_path, "other", [[0, 1, 2, 3]] * 3, seeds=[0, 2, 3])
     with pytest.raises(ValueError, match="different seeds"):
         dtype_check.compare(a, other)
-    with pytest.raises(ValueError, match="no common evaluation after frame 0 and up to 5"):
+    with pytest.raises(ValueError, match="eval.csv have no common frame after 0 up to 5 frames"):
         dtype_check.compare(a, a, upto=5)

@@ -14,6 +14,7 @@ TensorBoard is told the same by a purge marker (SessionLog START at resume_frame
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 import pathlib
@@ -27,21 +28,22 @@ FRAME = "frame"
 
 
 def _replace_csv(path: pathlib.Path, columns: list[str], rows: list[dict]) -> None:
-    """Write `rows` under `columns` to a temporary file, then atomically put it in place."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=columns, restval="")
-        writer.writeheader()
-        writer.writerows(rows)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    """Write `rows` under `columns` in place of `path`, atomically."""
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=columns, restval="")
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text_atomic(path, text.getvalue())
 
 
 def write_text_atomic(path: pathlib.Path, text: str) -> None:
-    """Write `text` to a temporary file, then atomically put it in place of `path`."""
+    """Write `text` to a temporary file, flushed to disk, then atomically put it in place of
+    `path`: a reader sees the old file or the new one, never a part."""
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
+    with open(tmp, "w", newline="") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
     os.replace(tmp, path)
 
 

@@ -1335,8 +1335,8 @@ def write_summary(
         path = workdir / lane.name / "eval.csv"
         evals = read_csv(path) if path.exists() else {}
         returns = evals.get("episode_return", np.array([np.nan]))
-        cos = evals.get("abs_cos_agent_env", np.array([np.nan]))
-        signed = evals.get("cos_agent_env", np.array([np.nan]))
+        abs_cos = evals.get("abs_cos_agent_env", np.array([np.nan]))
+        cos = evals.get("cos_agent_env", np.array([np.nan]))
         best = _best(returns)
         per_seed.append(
             dict(
@@ -1345,11 +1345,11 @@ def write_summary(
                 settings=dict(lane.settings),
                 final_return=float(returns[-1]),
                 best_return=best,
-                cos_agent_env=float(signed[-1]),
-                abs_cos_agent_env=float(cos[-1]),
+                cos_agent_env=float(cos[-1]),
+                abs_cos_agent_env=float(abs_cos[-1]),
             )
         )
-        rows.append([lane.name, f"{returns[-1]:.1f}", f"{best:.1f}", f"{cos[-1]:.2e}"])
+        rows.append([lane.name, f"{returns[-1]:.1f}", f"{best:.1f}", f"{abs_cos[-1]:.2e}"])
         if spec.has_success:  # success rate of the eval episodes (kitchen)
             success = evals.get("success", np.array([np.nan]))
             per_seed[-1].update(final_success=float(success[-1]), best_success=_best(success))

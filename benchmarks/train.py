@@ -29,6 +29,7 @@ import numpy as np
 
 from benchmarks.common import save_json
 from dear_jax import replay, train, update
+from dear_jax.config import check_override_keys
 from dear_jax.logger import format_table, read_csv
 from dear_jax.signals import Stopped
 
@@ -53,7 +54,28 @@ def bench_config(args):
     c.replay.capacity = min(c.replay.capacity, args.capacity)
     c.agent.compute_dtype = args.dtype
     c.env.backend = args.backend or c.env.backend
+    for item in args.set:
+        set_field(c, item)
     return c
+
+
+def set_field(config, item: str) -> None:
+    """Apply one `KEY=VALUE` (dotted key, e.g. agent.shift_impl=gather), typed as the field is."""
+    if "=" not in item:
+        raise ValueError(f"--set takes KEY=VALUE, got {item!r}")
+    dotted, value = item.split("=", 1)
+    check_override_keys(config, [f"--config.{dotted}"])
+    *parents, name = dotted.split(".")
+    node = config
+    for part in parents:
+        node = node[part]
+    old = node[name]
+    if isinstance(old, bool):
+        if value not in ("True", "False", "true", "false"):
+            raise ValueError(f"{dotted} is a bool: give true or false, got {value!r}")
+        node[name] = value in ("True", "true")
+    else:
+        node[name] = type(old)(value)
 
 
 def throughput(config, warmup_frames) -> dict:
@@ -176,6 +198,10 @@ def add_run_arguments(p: argparse.ArgumentParser, seeds: int = 5) -> None:
     p.add_argument("--eval-every", type=int, default=0, help="frames per seed; 0: at the end")
     p.add_argument("--eval-episodes", type=int, default=10)
     p.add_argument("--eval-foreground", action="store_true", help="training waits for evals")
+    p.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE",
+        help="any other config field, e.g. --set agent.shift_impl=gather (repeatable)",
+    )
 
 
 def main():

@@ -22,6 +22,10 @@
 #             512 (5 seeds), the first conv's input paths (benchmarks/encoder_input.py), the
 #             bf16 DEAR profile
 #   shift     benchmarks/shift.py: the random shift of 5 seeds' batches, three equal ways
+#   fast      the shift lead end to end: benchmarks/shift.py; the DEAR bf16 update (5 seeds,
+#             batch 512) with each agent.shift_impl; benchmarks/profile_loop.py (DEAR 5 x 16,
+#             bf16) with the fastest impl, with XLA's default command buffers and with every
+#             op kind in them ($CB_FLAGS)
 #   loop      benchmarks/profile_loop.py: where a training iteration's time goes, per program, for
 #             DEAR walker-walk (5 seeds x 16 envs) and the DrQ-v2 learning check (3 x 16), bf16,
 #             with the physics of $BACKEND (auto, mjx or cpu; default: the config's)
@@ -33,6 +37,8 @@
 set -u
 out=${OUT:-/tmp/out}
 runs=/tmp/runs
+# Every op kind in XLA's command buffers (CUDA graphs), from graphs of one op on.
+ALL_CB="--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN --xla_gpu_graph_min_graph_size=1"
 mkdir -p "$out" "$runs"
 while [ $# -gt 0 ]; do
   stage=$1; shift
@@ -115,6 +121,36 @@ while [ $# -gt 0 ]; do
         --dtype bfloat16 --out "$out/profile_dear_bf16.json" ;;
     shift)
       timeout 200 python3 -m benchmarks.shift --seeds 5 --batch 512 --out "$out/shift.json" ;;
+    fast)
+      export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
+      timeout 150 python3 -m benchmarks.shift --seeds 5 --batch 512 --out "$out/shift.json"
+      timeout 330 python3 -m benchmarks.update --methods dear --seeds 5 --batch 512 --iters 20 \
+        --seed-axis loop --dtypes bfloat16 --shift-impls pad_slice gather one_hot \
+        --out "$out/update_shift.json"
+      best=$(python3 -c "import json; rows = json.load(open('$out/update_shift.json'))['rows']; \
+print(min(rows, key=lambda r: r['ms_per_seed_update'])['shift_impl'])" || echo pad_slice)
+      echo "fastest shift_impl in the update: $best"
+      pl="timeout 240 python3 -m benchmarks.profile_loop --config configs/walker_dear.py --seeds 5 --envs 16 --dtype bfloat16 --warmup-frames 2400 --log-every 800 --iterations 10 --set agent.shift_impl=$best"
+      $pl --out "$out/profile_loop_dear_$best.json" > "$out/profile_loop_dear_$best.log" 2>&1
+      XLA_FLAGS="${CB_FLAGS:-$ALL_CB}" $pl --out "$out/profile_loop_dear_${best}_cb.json" \
+        > "$out/profile_loop_dear_${best}_cb.log" 2>&1
+      grep -h -A8 "per iteration" "$out"/profile_loop_dear_"$best"*.log
+      # For the runs that follow: `source /tmp/runs/fast.env` sets FAST_SHIFT, and XLA_FLAGS
+      # where the loop ran faster with every op kind in command buffers.
+      python3 - "$out/profile_loop_dear_$best.json" "$out/profile_loop_dear_${best}_cb.json" \
+        "$best" "${CB_FLAGS:-$ALL_CB}" > "$runs/fast.env" <<'PY'
+import json, statistics, sys
+fps = []
+for path in sys.argv[1:3]:
+    try:
+        fps.append(statistics.mean(json.load(open(path))["untraced_fps_rows"]))
+    except (OSError, KeyError, ValueError, statistics.StatisticsError):
+        fps.append(0.0)
+print(f"export FAST_SHIFT={sys.argv[3]}  # loop frames/s: {fps[0]:.0f}; all command buffers {fps[1]:.0f}")
+if fps[1] > 1.02 * fps[0]:
+    print(f'export XLA_FLAGS="{sys.argv[4]}"')
+PY
+      cat "$runs/fast.env" ;;
     loop)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       b=${BACKEND:-config}

@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import argparse
 import functools
+import itertools
 import time
 
 import jax
 import jax.numpy as jnp
 
 from benchmarks.common import save_json
-from dear_jax import update
+from dear_jax import augment, update
 from dear_jax.replay import Batch
 
 # DESIGN.md: the PyTorch reference architecture's DEAR update, batch 256, TF32, on an H100.
@@ -38,9 +39,13 @@ def random_batch(key, batch, action_dim, far):
     )
 
 
-def update_setup(method, seeds, batch, dtype="float32", seed_axis="vmap", action_dim=6):
+def update_setup(
+    method, seeds, batch, dtype="float32", seed_axis="vmap", action_dim=6, shift_impl="pad_slice"
+):
     """(jitted update over all seeds, fresh agent states, random batches, hparams)."""
-    cfg = update.AgentConfig(action_dim=action_dim, method=method, compute_dtype=dtype)
+    cfg = update.AgentConfig(
+        action_dim=action_dim, method=method, compute_dtype=dtype, shift_impl=shift_impl
+    )
     states = jax.jit(functools.partial(update.init_seeds, cfg))(
         jax.random.split(jax.random.key(0), seeds)
     )
@@ -62,16 +67,23 @@ def time_update(
     dtype: str = "float32",
     action_dim: int = 6,
     seed_axis: str = "vmap",
+    shift_impl: str = "pad_slice",
 ) -> dict:
-    step, states, batches, hp = update_setup(method, seeds, batch, dtype, seed_axis, action_dim)
+    """Milliseconds per call, and the host's share: the time the calls took to return (dispatch;
+    when it nears the time per call, launching the kernels, not running them, sets the pace)."""
+    step, states, batches, hp = update_setup(
+        method, seeds, batch, dtype, seed_axis, action_dim, shift_impl
+    )
     keys = jax.random.split(jax.random.key(2), (iters + 1, seeds))
     t0 = time.perf_counter()
     states, metrics = step(states, batches, keys[0], hp)
     jax.block_until_ready(metrics)
     compile_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
+    t0, dispatch = time.perf_counter(), 0.0
     for i in range(iters):
+        t = time.perf_counter()
         states, metrics = step(states, batches, keys[i + 1], hp)
+        dispatch += time.perf_counter() - t
     jax.block_until_ready(metrics)
     ms = (time.perf_counter() - t0) / iters * 1e3
     return dict(
@@ -79,10 +91,12 @@ def time_update(
         precision=str(jax.config.jax_default_matmul_precision),
         method=method,
         seed_axis=seed_axis,
+        shift_impl=shift_impl,
         seeds=seeds,
         batch=batch,
         ms_per_call=ms,
         ms_per_seed_update=ms / seeds,
+        dispatch_ms_per_call=dispatch / iters * 1e3,
         compile_s=compile_s,
     )
 
@@ -95,6 +109,9 @@ def main():
     parser.add_argument("--iters", type=int, default=20)
     parser.add_argument("--seed-axis", nargs="+", default=["vmap"], choices=update.SEED_AXES)
     parser.add_argument("--dtypes", nargs="+", default=["float32"], choices=["float32", "bfloat16"])
+    parser.add_argument(
+        "--shift-impls", nargs="+", default=["pad_slice"], choices=augment.SHIFT_IMPLS
+    )
     parser.add_argument(
         "--precision",
         default=None,
@@ -110,21 +127,25 @@ def main():
     for d in args.dtypes:
         for m in args.methods:
             for s in args.seeds:
-                for how in args.seed_axis if s > 1 else ["vmap"]:
-                    rows.append(time_update(m, s, args.batch, args.iters, d, seed_axis=how))
+                for how, impl in itertools.product(
+                    args.seed_axis if s > 1 else ["vmap"], args.shift_impls
+                ):
+                    rows.append(
+                        time_update(m, s, args.batch, args.iters, d, seed_axis=how, shift_impl=impl)
+                    )
                     r = rows[-1]
-                    print(f"{m} {d} {how} seeds={s}: {r['ms_per_seed_update']:.2f} ms per seed")
+                    print(f"{m} {d} {how} {impl} seeds={s}: {r['ms_per_seed_update']:.2f} ms/seed")
     print(f"device: {device.device_kind} ({device.platform}), jax {jax.__version__}")
     print(
-        "| method | dtype | precision | seed axis | seeds | batch | ms per call "
-        "| ms per seed-update | vs PyTorch 12.1 ms | compile s |"
+        "| method | dtype | precision | seed axis | shift | seeds | batch | ms per call "
+        "| host dispatch ms per call | ms per seed-update | vs PyTorch 12.1 ms | compile s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
-            f"| {r['method']} | {r['dtype']} | {r['precision']} | {r['seed_axis']} | {r['seeds']} "
-            f"| {r['batch']} | "
-            f"{r['ms_per_call']:.2f} | "
+            f"| {r['method']} | {r['dtype']} | {r['precision']} | {r['seed_axis']} "
+            f"| {r['shift_impl']} | {r['seeds']} | {r['batch']} | "
+            f"{r['ms_per_call']:.2f} | {r['dispatch_ms_per_call']:.2f} | "
             f"{r['ms_per_seed_update']:.2f} | {PYTORCH_ANCHOR_MS / r['ms_per_seed_update']:.2f}x "
             f"| {r['compile_s']:.1f} |"
         )

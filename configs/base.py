@@ -81,6 +81,9 @@ def get_config() -> ConfigDict:
     # How the update runs over seeds inside one program: "loop" (one traced update per seed) or
     # "vmap". Same numbers; "loop" was 1.5x faster on an H100 (benchmarks/results/update_h100.json).
     c.agent.seed_axis = "loop"
+    # How the random shift is computed: "pad_slice" | "gather" | "one_hot" (dear_jax.augment).
+    # Same pixels; speed only (python -m benchmarks.shift).
+    c.agent.shift_impl = "pad_slice"
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
     c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)
     c.agent.beta = 100.0  # orthogonality loss weight (DEAR)

@@ -2,6 +2,14 @@
 
 Written for one image and vmapped by the caller. An observation and its mask share one shift, so
 the mask target stays aligned with the pixels the encoder sees.
+
+The crop can be computed three ways that give the same pixels (`SHIFT_IMPLS`, the update's
+`agent.shift_impl`); they differ in speed only (`python -m benchmarks.shift`):
+- "pad_slice": edge-pad, then a dynamic slice (vmapped: one gather of whole crops);
+- "gather": no padded copy; take the rows clip(y + dy - pad), then the columns;
+- "one_hot": the same row and column selection as two matrix products with one-hot matrices, in
+  bf16 with float32 accumulation: exact for uint8 pixels, as every output is one pixel times 1
+  and bf16 holds the integers 0..256.
 """
 
 from __future__ import annotations
@@ -10,13 +18,38 @@ import jax
 import jax.numpy as jnp
 
 DEFAULT_PAD = 4
+SHIFT_IMPLS = ("pad_slice", "gather", "one_hot")
 
 
-def shift(image: jax.Array, offset: jax.Array, pad: int = DEFAULT_PAD) -> jax.Array:
+def _source(n: int, offset: jax.Array, pad: int) -> jax.Array:
+    """Source index of each of n output positions: the edge-padded crop at `offset`."""
+    return jnp.clip(jnp.arange(n) + offset - pad, 0, n - 1)
+
+
+def shift(
+    image: jax.Array, offset: jax.Array, pad: int = DEFAULT_PAD, impl: str = "pad_slice"
+) -> jax.Array:
     """Crop [H, W, C] out of the edge-padded image at integer `offset` = (dy, dx) in [0, 2*pad]."""
     h, w, c = image.shape
-    padded = jnp.pad(image, ((pad, pad), (pad, pad), (0, 0)), mode="edge")
-    return jax.lax.dynamic_slice(padded, (offset[0], offset[1], 0), (h, w, c))
+    if impl == "pad_slice":
+        padded = jnp.pad(image, ((pad, pad), (pad, pad), (0, 0)), mode="edge")
+        return jax.lax.dynamic_slice(padded, (offset[0], offset[1], 0), (h, w, c))
+    rows, cols = _source(h, offset[0], pad), _source(w, offset[1], pad)
+    if impl == "gather":
+        return jnp.take(jnp.take(image, rows, axis=0), cols, axis=1)
+    if impl == "one_hot":
+        if image.dtype != jnp.uint8:
+            raise ValueError(f"shift_impl 'one_hot' is exact for uint8 images only, got {image.dtype}")
+        bf16, f32 = jnp.bfloat16, jnp.float32
+        x = jnp.einsum(
+            "ih,hwc->iwc", jax.nn.one_hot(rows, h, dtype=bf16), image.astype(bf16),
+            preferred_element_type=f32,
+        ).astype(bf16)
+        x = jnp.einsum(
+            "jw,iwc->ijc", jax.nn.one_hot(cols, w, dtype=bf16), x, preferred_element_type=f32
+        )
+        return x.astype(image.dtype)
+    raise ValueError(f"unknown shift_impl {impl!r}; valid: {', '.join(SHIFT_IMPLS)}")
 
 
 def sample_offset(key: jax.Array, pad: int = DEFAULT_PAD) -> jax.Array:
@@ -24,28 +57,36 @@ def sample_offset(key: jax.Array, pad: int = DEFAULT_PAD) -> jax.Array:
     return jax.random.randint(key, (2,), 0, 2 * pad + 1)
 
 
-def random_shift(image: jax.Array, key: jax.Array, pad: int = DEFAULT_PAD) -> jax.Array:
+def random_shift(
+    image: jax.Array, key: jax.Array, pad: int = DEFAULT_PAD, impl: str = "pad_slice"
+) -> jax.Array:
     """Randomly shifted copy of one image [H, W, C]."""
-    return shift(image, sample_offset(key, pad), pad)
+    return shift(image, sample_offset(key, pad), pad, impl)
 
 
 def random_shift_pair(
-    image: jax.Array, mask: jax.Array, key: jax.Array, pad: int = DEFAULT_PAD
+    image: jax.Array, mask: jax.Array, key: jax.Array, pad: int = DEFAULT_PAD,
+    impl: str = "pad_slice",
 ) -> tuple[jax.Array, jax.Array]:
     """Shift an image [H, W, C] and its mask [H, W, K] by the same random offset."""
     offset = sample_offset(key, pad)
-    return shift(image, offset, pad), shift(mask, offset, pad)
+    return shift(image, offset, pad, impl), shift(mask, offset, pad, impl)
 
 
-def random_shift_batch(images: jax.Array, key: jax.Array, pad: int = DEFAULT_PAD) -> jax.Array:
+def random_shift_batch(
+    images: jax.Array, key: jax.Array, pad: int = DEFAULT_PAD, impl: str = "pad_slice"
+) -> jax.Array:
     """Independent shifts for a batch [B, H, W, C]."""
     keys = jax.random.split(key, images.shape[0])
-    return jax.vmap(random_shift, in_axes=(0, 0, None))(images, keys, pad)
+    return jax.vmap(random_shift, in_axes=(0, 0, None, None))(images, keys, pad, impl)
 
 
 def random_shift_pair_batch(
-    images: jax.Array, masks: jax.Array, key: jax.Array, pad: int = DEFAULT_PAD
+    images: jax.Array, masks: jax.Array, key: jax.Array, pad: int = DEFAULT_PAD,
+    impl: str = "pad_slice",
 ) -> tuple[jax.Array, jax.Array]:
     """Independent shifts per sample for a batch, each shared by the sample's image and mask."""
     keys = jax.random.split(key, images.shape[0])
-    return jax.vmap(random_shift_pair, in_axes=(0, 0, 0, None))(images, masks, keys, pad)
+    return jax.vmap(random_shift_pair, in_axes=(0, 0, 0, None, None))(
+        images, masks, keys, pad, impl
+    )

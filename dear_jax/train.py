@@ -51,7 +51,7 @@ from jax.sharding import PartitionSpec as P
 from ml_collections import ConfigDict
 
 import envs
-from dear_jax import lanes, losses, replay, replay_disk, update
+from dear_jax import augment, lanes, losses, replay, replay_disk, update
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.lock import WorkdirLock
 from dear_jax.logger import RunLogger, format_table, read_csv, write_text_atomic
@@ -78,6 +78,7 @@ RESUMABLE_CHANGES = (
     "env.eval_backend",
     "eval_in_background",
     "agent.seed_axis",
+    "agent.shift_impl",
     "replay.disk",
     "devices",
 )
@@ -265,6 +266,7 @@ def validate(config: ConfigDict) -> None:
         "agent.encoder": ("pool", "plain"),
         "agent.ortho_form": losses.ORTHOGONALITY_FORMS,
         "agent.seed_axis": update.SEED_AXES,
+        "agent.shift_impl": augment.SHIFT_IMPLS,
         "env.backend": ("auto", "mjx", "cpu"),
         "env.eval_backend": ("cpu", "train"),
         "env.distraction": ("none", "easy", "medium", "hard"),
@@ -325,6 +327,7 @@ def agent_config(config: ConfigDict, action_dim: int) -> update.AgentConfig:
         ted_lr=a.ted_lr,
         ortho_form=a.ortho_form,
         compute_dtype=a.compute_dtype,
+        shift_impl=a.shift_impl,
     )
 
 

@@ -45,6 +45,7 @@ class AgentConfig:
     frame_stack: int = 3
     augment_pad: int = 4
     compute_dtype: str = "float32"  # "bfloat16": convolutions of encoder and decoders in bf16
+    shift_impl: str = "pad_slice"  # how the random shift is computed (augment.SHIFT_IMPLS)
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -56,6 +57,10 @@ class AgentConfig:
         if self.compute_dtype not in ("float32", "bfloat16"):
             raise ValueError(
                 f"unknown compute_dtype {self.compute_dtype!r}; valid: 'float32', 'bfloat16'"
+            )
+        if self.shift_impl not in augment.SHIFT_IMPLS:
+            raise ValueError(
+                f"unknown shift_impl {self.shift_impl!r}; valid: {augment.SHIFT_IMPLS}"
             )
         if self.method != "drqv2" and self.encoder != "pool":
             raise ValueError(
@@ -270,11 +275,12 @@ def learner_loss(
     k_obs, k_next, k_far, k_target, k_ted = jax.random.split(key, 5)
     encode = lambda obs: nets.encoder.apply({"params": learner["encoder"]}, obs)  # noqa: E731
 
+    pad, impl = cfg.augment_pad, cfg.shift_impl
     if cfg.uses_mask:
-        obs, mask = augment.random_shift_pair_batch(batch.obs, batch.mask, k_obs, cfg.augment_pad)
+        obs, mask = augment.random_shift_pair_batch(batch.obs, batch.mask, k_obs, pad, impl)
     else:
-        obs, mask = augment.random_shift_batch(batch.obs, k_obs, cfg.augment_pad), None
-    next_obs = augment.random_shift_batch(batch.next_obs, k_next, cfg.augment_pad)
+        obs, mask = augment.random_shift_batch(batch.obs, k_obs, pad, impl), None
+    next_obs = augment.random_shift_batch(batch.next_obs, k_next, pad, impl)
 
     z = encode(obs)
     z_next = encode(next_obs)
@@ -316,7 +322,7 @@ def learner_loss(
         # Only z_t carries the encoder's gradient: as in TED's reference, the next and the
         # same-episode observations are encoded without gradient (which also spares their
         # backward passes through the encoder).
-        far = augment.random_shift_batch(batch.far_obs, k_far, cfg.augment_pad)
+        far = augment.random_shift_batch(batch.far_obs, k_far, pad, impl)
         z_far = jax.lax.stop_gradient(encode(far))
         l_ted, ted_metrics = ted_classifier_loss(
             learner["ted"], z, z_next_sg, z_far, batch.far_valid, k_ted, nets=nets

@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from dear_jax import augment
 
@@ -45,18 +46,39 @@ def test_batch_shift_is_independent_per_sample():
     assert dxs <= set(range(9)) and len(dxs) > 3
 
 
-def test_the_shift_benchmarks_ways_give_the_same_pixels():
-    """benchmarks/shift.py times the shift written three ways; the two rewrites select the same
-    pixels (edges replicated) as augment.shift, the one-hot products on bf16 pixels with float32
-    accumulation (as the benchmark runs them)."""
+@pytest.mark.parametrize("impl", ["gather", "one_hot"])
+def test_every_shift_impl_gives_pad_slices_pixels(impl):
+    """The rewrites select the same pixels (edge rows and columns repeated) as the edge-pad and
+    crop, for uint8 frames and 0/1 masks, at the extreme offsets and inside, jitted and vmapped."""
+    rng = np.random.default_rng(5)
+    image = jnp.asarray(rng.integers(0, 256, (84, 84, 9), dtype=np.uint8))
+    mask = jnp.asarray(rng.integers(0, 2, (84, 84, 3), dtype=np.uint8))
+    for x in (image, mask):
+        for offset in ((0, 0), (8, 8), (0, 8), (3, 6)):
+            want = augment.shift(x, jnp.array(offset))
+            got = jax.jit(augment.shift, static_argnums=(2, 3))(x, jnp.array(offset), 4, impl)
+            assert got.dtype == x.dtype
+            np.testing.assert_array_equal(got, want)
+    obs = jnp.asarray(rng.integers(0, 256, (8, 84, 84, 9), dtype=np.uint8))
+    key = jax.random.key(6)
+    want = augment.random_shift_pair_batch(obs, obs[..., :3], key)
+    got = augment.random_shift_pair_batch(obs, obs[..., :3], key, impl=impl)
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_unknown_shift_impl_is_refused_by_name():
+    image = jnp.zeros((84, 84, 3), jnp.uint8)
+    with pytest.raises(ValueError, match="unknown shift_impl 'roll'.*pad_slice"):
+        augment.shift(image, jnp.array([0, 0]), impl="roll")
+    with pytest.raises(ValueError, match="uint8 images only"):
+        augment.shift(image.astype(jnp.float32), jnp.array([0, 0]), impl="one_hot")
+
+
+def test_the_shift_benchmark_checks_its_ways():
     from benchmarks import shift
 
-    result = shift.main(["--seeds", "2", "--batch", "32", "--iters", "1"])
-    assert set(result["ways"]) == {"pad_slice", "take_rows_cols", "one_hot_matmul"}
-    assert result["ways"]["take_rows_cols"]["same_as_pad_slice"]
-    assert result["ways"]["one_hot_matmul"]["same_as_pad_slice"]
-    # the extreme offsets (edge rows and columns repeated) and one inside, deterministically
-    image = jnp.arange(84 * 84, dtype=jnp.int32).reshape(84, 84, 1)
-    for offset in ((0, 0), (8, 8), (3, 6)):
-        want = augment.shift(image, jnp.array(offset))
-        np.testing.assert_array_equal(shift.take_rows_cols(image, jnp.array(offset)), want)
+    result = shift.main(["--seeds", "2", "--batch", "8", "--iters", "1"])
+    assert set(result["ways"]) == set(augment.SHIFT_IMPLS)
+    assert all(way["same_as_pad_slice"] for way in result["ways"].values())
+    assert result["fastest"] in augment.SHIFT_IMPLS

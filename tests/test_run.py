@@ -364,6 +364,28 @@ def test_bad_values_fail_with_valid_choices(tmp_path):
         train.train(tiny_config(**{"env.background_dir": str(tmp_path / "nope")}), tmp_path)
     with pytest.raises(MemoryError, match="replay for 2 seeds"):
         train.train(tiny_config(**{"replay.capacity": 10**9}), tmp_path)
+    with pytest.raises(ValueError, match="agent.shift_impl 'roll'; valid: pad_slice, gather"):
+        train.train(tiny_config(**{"agent.shift_impl": "roll"}), tmp_path)
+
+
+def test_benchmarks_set_any_config_field_typed_and_by_known_name():
+    """`--set KEY=VALUE` of benchmarks/train.py (and profile_loop.py): typed as the field is,
+    unknown keys refused with the valid fields."""
+    from benchmarks.train import set_field
+
+    config = tiny_config()
+    set_field(config, "agent.shift_impl=one_hot")
+    set_field(config, "agent.batch_size=64")
+    set_field(config, "replay.disk=false")
+    assert (config.agent.shift_impl, config.agent.batch_size, config.replay.disk) == (
+        "one_hot", 64, False
+    )
+    with pytest.raises(KeyError, match="Did you mean 'agent.shift_impl'"):
+        set_field(config, "agent.shift=gather")
+    with pytest.raises(ValueError, match="KEY=VALUE"):
+        set_field(config, "agent.shift_impl")
+    with pytest.raises(ValueError, match="invalid literal"):
+        set_field(config, "agent.batch_size=big")
 
 
 @pytest.mark.parametrize(

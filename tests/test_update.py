@@ -191,6 +191,24 @@ def test_vmapped_seeds_every_method(method):
         )
 
 
+def test_every_shift_impl_gives_the_same_update(dear):
+    """agent.shift_impl changes how the random shift is computed, not the update: the same state,
+    batch and key give the same new parameters and metrics (the shifted pixels are equal bit for
+    bit, tests/test_augment.py; the programs around them fuse differently, so the float sums may
+    round differently)."""
+    cfg, state = dear
+    batch, key, hp = _batch(jax.random.key(7)), jax.random.key(8), update.HParams()
+    results = {}
+    for impl in ("pad_slice", "gather", "one_hot"):
+        c = update.AgentConfig(method="dear", shift_impl=impl, **SMALL)
+        results[impl] = jax.jit(functools.partial(update.update, cfg=c))(state, batch, key, hp)
+    for impl in ("gather", "one_hot"):
+        for a, b in zip(jax.tree.leaves(results[impl]), jax.tree.leaves(results["pad_slice"])):
+            np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-7)
+    with pytest.raises(ValueError, match="unknown shift_impl 'roll'"):
+        update.AgentConfig(action_dim=2, shift_impl="roll")
+
+
 def test_ted_gradient_reaches_the_encoder_through_z_t_only():
     """TED's encoder gradient is J_enc(obs)^T dL/dz_t: the next and same-episode observations
     are encoded without gradient (TED's reference). Checked as the difference of the encoder

@@ -81,9 +81,10 @@ def get_config() -> ConfigDict:
     # How the update runs over seeds inside one program: "loop" (one traced update per seed) or
     # "vmap". Same numbers; "loop" was 1.5x faster on an H100 (benchmarks/results/update_h100.json).
     c.agent.seed_axis = "loop"
-    # How the random shift is computed: "pad_slice" | "gather" | "one_hot" (dear_jax.augment).
-    # Same pixels; speed only (python -m benchmarks.shift).
-    c.agent.shift_impl = "pad_slice"
+    # How the random shift is computed: "gather" | "pad_slice" | "one_hot" (dear_jax.augment).
+    # Same pixels; "gather" made the bf16 DEAR update 5.21 instead of 5.48 ms per seed on an H100
+    # (benchmarks/results/update_shift_h100.json).
+    c.agent.shift_impl = "gather"
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
     c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)
     c.agent.beta = 100.0  # orthogonality loss weight (DEAR)

@@ -45,7 +45,7 @@ class AgentConfig:
     frame_stack: int = 3
     augment_pad: int = 4
     compute_dtype: str = "float32"  # "bfloat16": convolutions of encoder and decoders in bf16
-    shift_impl: str = "pad_slice"  # how the random shift is computed (augment.SHIFT_IMPLS)
+    shift_impl: str = "gather"  # how the random shift is computed (augment.SHIFT_IMPLS)
 
     def __post_init__(self):
         if self.method not in METHODS:

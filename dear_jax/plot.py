@@ -140,11 +140,10 @@ def plot(
                 else:
                     std = np.nanstd(c.y, 0)
                     lo, hi = mean - std, mean + std
-            col = colour[c.label.removeprefix(f"{c.task} ")]
+            name = c.label.removeprefix(f"{c.task} ")  # the panel's title names the task
+            col = colour[name]
             marker = "o" if len(c.x) <= 40 else None
-            ax.plot(
-                c.x, mean, color=col, marker=marker, ms=3, label=f"{c.label} (n={c.y.shape[0]})"
-            )
+            ax.plot(c.x, mean, color=col, marker=marker, ms=3, label=f"{name} (n={c.y.shape[0]})")
             ax.fill_between(c.x, lo, hi, color=col, alpha=0.2, linewidth=0)
         ax.set_title(task)
         ax.set_xlabel(f"{x}s per seed" if x == "frame" else x)

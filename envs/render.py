@@ -568,6 +568,21 @@ def _views(shm: shared_memory.SharedMemory, capacity: int, h: int, w: int):
     return rgb, labels
 
 
+def _hint(error: str, workers: int) -> str:
+    """What to do about a worker's known failures (empty if none applies)."""
+    if "Offscreen framebuffer is not complete" not in error:
+        return ""
+    # Seen on an H100 (2026-11-24): the 5th and 6th training process on one GPU, each with
+    # 8 workers for its training env and 8 for its evaluation env, could not make their
+    # offscreen buffers while 4 others ran, with 25 GB of the GPU's memory still free.
+    return (
+        f"\nThe GPU's EGL driver gave this worker no offscreen buffer. This env has {workers} "
+        "render workers, each with its own GL context; other processes on this GPU hold theirs. "
+        "Lower env.render.num_workers (e.g. --config.env.render.num_workers=2), or run fewer "
+        "training processes on this GPU (several seeds or a sweep in one run share one set)."
+    )
+
+
 class RenderPool:
     """Worker processes turning batched states into RGB frames and pixel labels.
 
@@ -629,7 +644,7 @@ class RenderPool:
                 raise TimeoutError(f"render worker {i} gave no answer in {_WORKER_TIMEOUT_S} s")
         status, payload = conn.recv()
         if status != "ok":
-            raise RuntimeError(f"render worker {i} failed:\n{payload}")
+            raise RuntimeError(f"render worker {i} failed:\n{payload}{_hint(payload, len(self._procs))}")
         return payload
 
     def _ensure_capacity(self, batch: int) -> None:

@@ -312,3 +312,11 @@ def test_bad_input_is_named():
             pool.render(model.qpos0)
         info = pool.gl_info()
         assert len(info) == 1 and info[0]["GL_RENDERER"]
+
+
+def test_a_worker_without_an_offscreen_buffer_names_the_setting_to_lower():
+    from envs.render import _hint
+
+    error = "mujoco.FatalError: Offscreen framebuffer is not complete, error 0x8cdd"
+    assert "env.render.num_workers" in _hint(error, 8) and "8 render workers" in _hint(error, 8)
+    assert _hint("ValueError: camera 'x' not in the model", 8) == ""

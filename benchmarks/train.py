@@ -199,7 +199,10 @@ def add_run_arguments(p: argparse.ArgumentParser, seeds: int = 5) -> None:
     p.add_argument("--eval-episodes", type=int, default=10)
     p.add_argument("--eval-foreground", action="store_true", help="training waits for evals")
     p.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE",
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
         help="any other config field, e.g. --set agent.shift_impl=gather (repeatable)",
     )
 

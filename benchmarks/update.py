@@ -40,7 +40,7 @@ def random_batch(key, batch, action_dim, far):
 
 
 def update_setup(
-    method, seeds, batch, dtype="float32", seed_axis="vmap", action_dim=6, shift_impl="pad_slice"
+    method, seeds, batch, dtype="float32", seed_axis="vmap", action_dim=6, shift_impl="gather"
 ):
     """(jitted update over all seeds, fresh agent states, random batches, hparams)."""
     cfg = update.AgentConfig(
@@ -67,7 +67,7 @@ def time_update(
     dtype: str = "float32",
     action_dim: int = 6,
     seed_axis: str = "vmap",
-    shift_impl: str = "pad_slice",
+    shift_impl: str = "gather",
 ) -> dict:
     """Milliseconds per call, and the host's share: the time the calls took to return (dispatch;
     when it nears the time per call, launching the kernels, not running them, sets the pace)."""
@@ -109,9 +109,7 @@ def main():
     parser.add_argument("--iters", type=int, default=20)
     parser.add_argument("--seed-axis", nargs="+", default=["vmap"], choices=update.SEED_AXES)
     parser.add_argument("--dtypes", nargs="+", default=["float32"], choices=["float32", "bfloat16"])
-    parser.add_argument(
-        "--shift-impls", nargs="+", default=["pad_slice"], choices=augment.SHIFT_IMPLS
-    )
+    parser.add_argument("--shift-impls", nargs="+", default=["gather"], choices=augment.SHIFT_IMPLS)
     parser.add_argument(
         "--precision",
         default=None,

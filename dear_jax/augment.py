@@ -39,10 +39,14 @@ def shift(
         return jnp.take(jnp.take(image, rows, axis=0), cols, axis=1)
     if impl == "one_hot":
         if image.dtype != jnp.uint8:
-            raise ValueError(f"shift_impl 'one_hot' is exact for uint8 images only, got {image.dtype}")
+            raise ValueError(
+                f"shift_impl 'one_hot' is exact for uint8 images only, got {image.dtype}"
+            )
         bf16, f32 = jnp.bfloat16, jnp.float32
         x = jnp.einsum(
-            "ih,hwc->iwc", jax.nn.one_hot(rows, h, dtype=bf16), image.astype(bf16),
+            "ih,hwc->iwc",
+            jax.nn.one_hot(rows, h, dtype=bf16),
+            image.astype(bf16),
             preferred_element_type=f32,
         ).astype(bf16)
         x = jnp.einsum(
@@ -65,7 +69,10 @@ def random_shift(
 
 
 def random_shift_pair(
-    image: jax.Array, mask: jax.Array, key: jax.Array, pad: int = DEFAULT_PAD,
+    image: jax.Array,
+    mask: jax.Array,
+    key: jax.Array,
+    pad: int = DEFAULT_PAD,
     impl: str = "pad_slice",
 ) -> tuple[jax.Array, jax.Array]:
     """Shift an image [H, W, C] and its mask [H, W, K] by the same random offset."""
@@ -82,7 +89,10 @@ def random_shift_batch(
 
 
 def random_shift_pair_batch(
-    images: jax.Array, masks: jax.Array, key: jax.Array, pad: int = DEFAULT_PAD,
+    images: jax.Array,
+    masks: jax.Array,
+    key: jax.Array,
+    pad: int = DEFAULT_PAD,
     impl: str = "pad_slice",
 ) -> tuple[jax.Array, jax.Array]:
     """Independent shifts per sample for a batch, each shared by the sample's image and mask."""

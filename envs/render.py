@@ -644,7 +644,9 @@ class RenderPool:
                 raise TimeoutError(f"render worker {i} gave no answer in {_WORKER_TIMEOUT_S} s")
         status, payload = conn.recv()
         if status != "ok":
-            raise RuntimeError(f"render worker {i} failed:\n{payload}{_hint(payload, len(self._procs))}")
+            raise RuntimeError(
+                f"render worker {i} failed:\n{payload}{_hint(payload, len(self._procs))}"
+            )
         return payload
 
     def _ensure_capacity(self, batch: int) -> None:

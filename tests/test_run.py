@@ -378,7 +378,9 @@ def test_benchmarks_set_any_config_field_typed_and_by_known_name():
     set_field(config, "agent.batch_size=64")
     set_field(config, "replay.disk=false")
     assert (config.agent.shift_impl, config.agent.batch_size, config.replay.disk) == (
-        "one_hot", 64, False
+        "one_hot",
+        64,
+        False,
     )
     with pytest.raises(KeyError, match="Did you mean 'agent.shift_impl'"):
         set_field(config, "agent.shift=gather")

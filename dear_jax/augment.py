@@ -10,6 +10,8 @@ The crop can be computed three ways that give the same pixels (`SHIFT_IMPLS`, th
 - "one_hot": the same row and column selection as two matrix products with one-hot matrices, in
   bf16 with float32 accumulation: exact for uint8 pixels, as every output is one pixel times 1
   and bf16 holds the integers 0..256.
+The functions here default to "pad_slice", the definition; the trainer uses `agent.shift_impl`
+(default "gather", the fastest on an H100).
 """
 
 from __future__ import annotations

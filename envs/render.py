@@ -574,7 +574,7 @@ def _hint(error: str, workers: int) -> str:
         return ""
     # Seen on an H100 (2026-11-24): the 5th and 6th training process on one GPU, each with
     # 8 workers for its training env and 8 for its evaluation env, could not make their
-    # offscreen buffers while 4 others ran, with 25 GB of the GPU's memory still free.
+    # offscreen buffers while 4 others ran, with 26 GB of the GPU's memory still free.
     return (
         f"\nThe GPU's EGL driver gave this worker no offscreen buffer. This env has {workers} "
         "render workers, each with its own GL context; other processes on this GPU hold theirs. "

@@ -97,6 +97,8 @@ def main():
 
     per_part = collections.Counter()
     per_kernel = collections.Counter()
+    # By kind of op (the HLO name without its number): how many launches, how much time.
+    kind_ns, kind_count = collections.Counter(), collections.Counter()
     kernel_part, kernel_op = {}, {}
     for kernel, hlo_op, ns in device_events(trace_dir):
         part = part_of(names.get(hlo_op, hlo_op))
@@ -105,6 +107,9 @@ def main():
         per_kernel[key] += ns
         kernel_part[key] = part
         kernel_op[key] = names.get(hlo_op, "")
+        kind = re.sub(r"\.\d+$", "", hlo_op or "?")
+        kind_ns[kind] += ns
+        kind_count[kind] += 1
     scale = 1e-6 / args.iters  # ns summed over iters -> ms per call
     total = sum(per_part.values()) * scale
     device = jax.devices()[0].device_kind
@@ -115,6 +120,9 @@ def main():
     print("| part | ms per call | share |\n|---|---:|---:|")
     for part, ns in per_part.most_common():
         print(f"| {part} | {ns * scale:.2f} | {ns * scale / total:.0%} |")
+    print("\n| op kind | kernels per call | ms per call |\n|---|---:|---:|")
+    for kind, ns in kind_ns.most_common(args.top):
+        print(f"| {kind} | {kind_count[kind] / args.iters:.0f} | {ns * scale:.3f} |")
     print("\n| hlo op / kernel | part | ms per call |\n|---|---|---:|")
     for key, ns in per_kernel.most_common(args.top):
         print(f"| {key} | {kernel_part[key]} | {ns * scale:.3f} |")
@@ -125,6 +133,11 @@ def main():
             args=vars(args),
             ms_per_call=total,
             parts={p: ns * scale for p, ns in per_part.most_common()},
+            kernels_per_call=sum(kind_count.values()) / args.iters,
+            kinds={
+                k: dict(ms=ns * scale, kernels=kind_count[k] / args.iters)
+                for k, ns in kind_ns.most_common()
+            },
             kernels={k: ns * scale for k, ns in per_kernel.most_common(100)},
             # the framework op (Flax module path / JAX primitive) behind each of those kernels
             kernel_ops={k: kernel_op[k] for k, _ in per_kernel.most_common(100)},

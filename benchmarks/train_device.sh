@@ -26,6 +26,12 @@
 #             batch 512) with each agent.shift_impl; benchmarks/profile_loop.py (DEAR 5 x 16,
 #             bf16) with the fastest impl, with XLA's default command buffers and with every
 #             op kind in them ($CB_FLAGS)
+#   axes      the seed axis and XLA's conv fusion: benchmarks/update.py (DEAR bf16, DrQ-v2 bf16
+#             with its plain encoder; 5 seeds, batch 512) with agent.seed_axis loop and hybrid,
+#             with and without $CONV_FUSION (and all command buffers); the profile of the fastest
+#             DEAR way; writes /tmp/runs/fast.env (SEED_AXIS, XLA_FLAGS) for the stages after
+#   axesloop  benchmarks/profile_loop.py for DEAR walker-walk (5 x 16) and the DrQ-v2 learning
+#             check (3 x 16), bf16, the way fast.env names
 #   loop      benchmarks/profile_loop.py: where a training iteration's time goes, per program, for
 #             DEAR walker-walk (5 seeds x 16 envs) and the DrQ-v2 learning check (3 x 16), bf16,
 #             with the physics of $BACKEND (auto, mjx or cpu; default: the config's)
@@ -39,6 +45,8 @@ out=${OUT:-/tmp/out}
 runs=/tmp/runs
 # Every op kind in XLA's command buffers (CUDA graphs), from graphs of one op on.
 ALL_CB="--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN --xla_gpu_graph_min_graph_size=1"
+# Convolutions as cuDNN fusions (which command buffers can hold), an experimental XLA pass.
+CONV_FUSION="--xla_gpu_experimental_enable_conv_fusion=true"
 mkdir -p "$out" "$runs"
 while [ $# -gt 0 ]; do
   stage=$1; shift
@@ -151,6 +159,43 @@ if fps[1] > 1.02 * fps[0]:
     print(f'export XLA_FLAGS="{sys.argv[4]}"')
 PY
       cat "$runs/fast.env" ;;
+    axes)
+      export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
+      u="python3 -m benchmarks.update --seeds 5 --batch 512 --iters 20 --dtypes bfloat16 --seed-axis loop hybrid"
+      timeout 330 $u --methods dear drqv2 --drqv2-encoder plain --out "$out/update_axes.json"
+      XLA_FLAGS="$CONV_FUSION" timeout 240 $u --methods dear --out "$out/update_axes_convfusion.json"
+      XLA_FLAGS="$CONV_FUSION $ALL_CB" timeout 240 $u --methods dear \
+        --out "$out/update_axes_convfusion_cb.json"
+      python3 - "$out" "$CONV_FUSION" "$ALL_CB" > "$runs/fast.env" <<'PY'
+import json, sys
+out, conv, cb = sys.argv[1:4]
+best = None
+for name, flags in (("", ""), ("_convfusion", conv), ("_convfusion_cb", f"{conv} {cb}")):
+    try:
+        rows = json.load(open(f"{out}/update_axes{name}.json"))["rows"]
+    except (OSError, ValueError):
+        continue
+    for r in rows:
+        if r["method"] == "dear" and (best is None or r["ms_per_seed_update"] < best[0]):
+            best = (r["ms_per_seed_update"], r["seed_axis"], flags)
+ms, axis, flags = best
+print(f"export SEED_AXIS={axis}  # DEAR bf16 update {ms:.2f} ms per seed")
+print(f'export XLA_FLAGS="{flags}"')
+PY
+      cat "$runs/fast.env"; source "$runs/fast.env"
+      timeout 200 python3 -m benchmarks.profile_update --method dear --batch 512 --seeds 5 \
+        --seed-axis "$SEED_AXIS" --dtype bfloat16 --top 40 --out "$out/profile_dear_$SEED_AXIS.json" \
+        > "$out/profile_dear_$SEED_AXIS.log" 2>&1
+      head -n 60 "$out/profile_dear_$SEED_AXIS.log" ;;
+    axesloop)
+      export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
+      source "$runs/fast.env"
+      pl="timeout 270 python3 -m benchmarks.profile_loop --envs 16 --dtype bfloat16 --warmup-frames 2400 --log-every 800 --iterations 10 --set agent.seed_axis=$SEED_AXIS"
+      $pl --config configs/walker_dear.py --seeds 5 \
+        --out "$out/profile_loop_dear_$SEED_AXIS.json" > "$out/profile_loop_dear_$SEED_AXIS.log" 2>&1
+      $pl --config configs/walker_drqv2_paper.py --seeds 3 \
+        --out "$out/profile_loop_drqv2_$SEED_AXIS.json" > "$out/profile_loop_drqv2_$SEED_AXIS.log" 2>&1
+      grep -h -A8 "per iteration" "$out"/profile_loop_*_"$SEED_AXIS".log ;;
     loop)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       b=${BACKEND:-config}

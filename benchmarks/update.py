@@ -40,11 +40,22 @@ def random_batch(key, batch, action_dim, far):
 
 
 def update_setup(
-    method, seeds, batch, dtype="float32", seed_axis="vmap", action_dim=6, shift_impl="gather"
+    method,
+    seeds,
+    batch,
+    dtype="float32",
+    seed_axis="vmap",
+    action_dim=6,
+    shift_impl="gather",
+    encoder="pool",
 ):
     """(jitted update over all seeds, fresh agent states, random batches, hparams)."""
     cfg = update.AgentConfig(
-        action_dim=action_dim, method=method, compute_dtype=dtype, shift_impl=shift_impl
+        action_dim=action_dim,
+        method=method,
+        compute_dtype=dtype,
+        shift_impl=shift_impl,
+        encoder=encoder,
     )
     states = jax.jit(functools.partial(update.init_seeds, cfg))(
         jax.random.split(jax.random.key(0), seeds)
@@ -68,11 +79,12 @@ def time_update(
     action_dim: int = 6,
     seed_axis: str = "vmap",
     shift_impl: str = "gather",
+    encoder: str = "pool",
 ) -> dict:
     """Milliseconds per call, and the host's share: the time the calls took to return (dispatch;
     when it nears the time per call, launching the kernels, not running them, sets the pace)."""
     step, states, batches, hp = update_setup(
-        method, seeds, batch, dtype, seed_axis, action_dim, shift_impl
+        method, seeds, batch, dtype, seed_axis, action_dim, shift_impl, encoder
     )
     keys = jax.random.split(jax.random.key(2), (iters + 1, seeds))
     t0 = time.perf_counter()
@@ -90,6 +102,7 @@ def time_update(
         dtype=dtype,
         precision=str(jax.config.jax_default_matmul_precision),
         method=method,
+        encoder=encoder,
         seed_axis=seed_axis,
         shift_impl=shift_impl,
         seeds=seeds,
@@ -109,6 +122,12 @@ def main():
     parser.add_argument("--iters", type=int, default=20)
     parser.add_argument("--seed-axis", nargs="+", default=["vmap"], choices=update.SEED_AXES)
     parser.add_argument("--dtypes", nargs="+", default=["float32"], choices=["float32", "bfloat16"])
+    parser.add_argument(
+        "--drqv2-encoder",
+        default="pool",
+        choices=["pool", "plain"],
+        help="DrQ-v2's encoder (plain: DrQ-v2's own, as in configs/walker_drqv2_paper.py)",
+    )
     parser.add_argument("--shift-impls", nargs="+", default=["gather"], choices=augment.SHIFT_IMPLS)
     parser.add_argument(
         "--precision",
@@ -128,20 +147,23 @@ def main():
                 for how, impl in itertools.product(
                     args.seed_axis if s > 1 else ["vmap"], args.shift_impls
                 ):
+                    encoder = args.drqv2_encoder if m == "drqv2" else "pool"
                     rows.append(
-                        time_update(m, s, args.batch, args.iters, d, seed_axis=how, shift_impl=impl)
+                        time_update(
+                            m, s, args.batch, args.iters, d, 6, how, impl, encoder=encoder
+                        )
                     )
                     r = rows[-1]
                     print(f"{m} {d} {how} {impl} seeds={s}: {r['ms_per_seed_update']:.2f} ms/seed")
     print(f"device: {device.device_kind} ({device.platform}), jax {jax.__version__}")
     print(
-        "| method | dtype | precision | seed axis | shift | seeds | batch | ms per call "
+        "| method | encoder | dtype | precision | seed axis | shift | seeds | batch | ms per call "
         "| host dispatch ms per call | ms per seed-update | vs PyTorch 12.1 ms | compile s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
-            f"| {r['method']} | {r['dtype']} | {r['precision']} | {r['seed_axis']} "
+            f"| {r['method']} | {r['encoder']} | {r['dtype']} | {r['precision']} | {r['seed_axis']} "
             f"| {r['shift_impl']} | {r['seeds']} | {r['batch']} | "
             f"{r['ms_per_call']:.2f} | {r['dispatch_ms_per_call']:.2f} | "
             f"{r['ms_per_seed_update']:.2f} | {PYTORCH_ANCHOR_MS / r['ms_per_seed_update']:.2f}x "

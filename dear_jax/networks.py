@@ -8,6 +8,9 @@ PyTorch's `nn.init.orthogonal_` draws them on its own weight layouts.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+import functools
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -74,10 +77,81 @@ def _conv2d(x: jax.Array, kernel: jax.Array, stride: int, dtype, channels: int) 
     lead = x.shape[:-3]
     x = _pad_axis(x.astype(dtype).reshape(-1, *x.shape[-3:]), -1, channels)
     kernel = _pad_axis(_pad_axis(kernel.astype(dtype), 2, channels), 3, channels)
-    y = jax.lax.conv_general_dilated(
+    conv = _seed_looped_conv if _LOOP_CONVS.get() else _plain_conv
+    y = conv(x, kernel, stride)
+    return y[..., :features].reshape(*lead, *y.shape[-3:-1], features)
+
+
+def _plain_conv(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
+    return jax.lax.conv_general_dilated(
         x, kernel, (stride, stride), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC")
     )
-    return y[..., :features].reshape(*lead, *y.shape[-3:-1], features)
+
+
+# Set while `seed_looped_convs()` is active (at trace time).
+_LOOP_CONVS = contextvars.ContextVar("loop_convs", default=False)
+
+
+@contextlib.contextmanager
+def seed_looped_convs():
+    """Within it, a vmapped convolution runs once per vmapped index instead of batched.
+
+    `jax.vmap` turns a convolution whose weights differ per index into one grouped convolution
+    (and its filter gradient into a batch-grouped one), which cuDNN runs far slower than
+    separate ones (benchmarks/results/update_h100.json). Under this context every convolution
+    of the networks, forward and both gradients, is instead unrolled over the vmapped axis,
+    while everything else (matmuls, element-wise work, the optimiser) stays batched: fewer,
+    larger kernels than looping whole updates (`update.over_seeds(..., "hybrid")`). Values and
+    gradients are those of `jax.vmap` (tests/test_networks.py).
+    """
+    token = _LOOP_CONVS.set(True)
+    try:
+        yield
+    finally:
+        _LOOP_CONVS.reset(token)
+
+
+def _unrolled_under_vmap(fn):
+    """`fn` of arrays, whose `jax.vmap` calls `fn` once per index and stacks the results."""
+    wrapped = jax.custom_batching.custom_vmap(fn)
+
+    @wrapped.def_vmap
+    def _rule(axis_size, in_batched, *args):
+        outs = [
+            fn(*(a[i] if batched else a for a, batched in zip(args, in_batched)))
+            for i in range(axis_size)
+        ]
+        out = jax.tree.map(lambda *xs: jnp.stack(xs), *outs)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return wrapped
+
+
+@functools.cache
+def _looped_conv_parts(stride: int):
+    """(forward, backward) of a VALID NHWC convolution, each unrolled under vmap."""
+    forward = functools.partial(_plain_conv, stride=stride)
+
+    def backward(x, kernel, g):
+        return jax.vjp(forward, x, kernel)[1](g)
+
+    return _unrolled_under_vmap(forward), _unrolled_under_vmap(backward)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
+def _seed_looped_conv(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
+    return _looped_conv_parts(stride)[0](x, kernel)
+
+
+def _seed_looped_conv_fwd(x, kernel, stride):
+    return _seed_looped_conv(x, kernel, stride), (x, kernel)
+
+
+def _seed_looped_conv_bwd(stride, residuals, g):
+    return _looped_conv_parts(stride)[1](*residuals, g)
+
+
+_seed_looped_conv.defvjp(_seed_looped_conv_fwd, _seed_looped_conv_bwd)
 
 
 class Conv(nn.Module):

@@ -182,19 +182,29 @@ def init_seeds(cfg: AgentConfig, keys: jax.Array) -> AgentState:
     return jax.lax.map(functools.partial(init, cfg), keys)
 
 
-SEED_AXES = ("vmap", "loop")
+SEED_AXES = ("vmap", "loop", "hybrid")
 
 
 def over_seeds(fn, how: str = "vmap"):
     """`fn` of one seed applied to every seed of a leading [S] axis, in one traced program.
 
-    how="vmap": `jax.vmap(fn)`. how="loop": one traced call per seed, results stacked. Both give
-    the same numbers; they differ in speed only. A vmapped convolution whose weights differ per
-    seed becomes one grouped convolution, which an H100 ran ~1.5x slower than S plain ones
-    (benchmarks/results/update_h100.json), so the trainer loops on GPUs.
+    how="vmap": `jax.vmap(fn)`. how="loop": one traced call per seed, results stacked.
+    how="hybrid": `jax.vmap(fn)` with every convolution unrolled over the seeds
+    (`networks.seed_looped_convs`). All three give the same numbers; they differ in speed only.
+    A vmapped convolution whose weights differ per seed becomes one grouped convolution, which
+    an H100 ran ~1.5x slower than S plain ones (benchmarks/results/update_h100.json), so GPUs
+    loop the convolutions, either alone ("hybrid") or with the whole update ("loop").
     """
     if how == "vmap":
         return jax.vmap(fn)
+    if how == "hybrid":
+        vmapped = jax.vmap(fn)
+
+        def hybrid(*args):
+            with networks.seed_looped_convs():
+                return vmapped(*args)
+
+        return hybrid
     if how != "loop":
         raise ValueError(f"unknown seed axis {how!r}; valid: {SEED_AXES}")
 

@@ -1,5 +1,7 @@
 """Architecture: parameter counts of the reference, output shapes, DrQ-v2 initialisation."""
 
+import re
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -196,3 +198,41 @@ def test_trunk_with_tensor_core_channels_is_the_same_function():
     np.testing.assert_allclose(loss(padded)(params), loss(plain)(params), rtol=1e-5)
     for g, e in zip(*(jax.tree.leaves(jax.grad(loss(m))(params)) for m in (padded, plain))):
         np.testing.assert_allclose(g, e, rtol=1e-4, atol=1e-4)
+
+
+def test_seed_looped_convs_are_vmap_without_grouped_convolutions():
+    """Under `seed_looped_convs`, a vmapped decoder (transposed convolutions) and encoder give
+    vmap's values and gradients, computed by one ungrouped convolution per seed, forward and
+    backward, where plain vmap makes grouped ones."""
+    seeds = 3
+    dec = networks.PoolDecoder(3)
+    enc = networks.ConvTrunk()
+    z = jax.random.normal(jax.random.key(0), (seeds, 2, 8))
+    obs = jax.random.randint(jax.random.key(1), (seeds, 2, 84, 84, 9), 0, 256).astype(jnp.uint8)
+    params = jax.vmap(lambda k: (dec.init(k, z[0]), enc.init(k, obs[0])))(
+        jax.random.split(jax.random.key(2), seeds)
+    )
+
+    def loss(p, z, obs):
+        return jnp.sum(jnp.sin(dec.apply(p[0], z))) + jnp.sum(jnp.cos(enc.apply(p[1], obs)))
+
+    grads = jax.vmap(jax.value_and_grad(loss, argnums=(0, 1)))
+
+    def looped(p, z, obs):
+        with networks.seed_looped_convs():
+            return grads(p, z, obs)
+
+    np.testing.assert_equal(networks._LOOP_CONVS.get(), False)  # the context was left
+    want, got = jax.jit(grads)(params, z, obs), jax.jit(looped)(params, z, obs)
+    for a, b in zip(jax.tree.leaves(want), jax.tree.leaves(got)):
+        np.testing.assert_allclose(a, b, rtol=2e-4, atol=2e-4)
+
+    def group_counts(fn):
+        text = jax.jit(fn).lower(params, z, obs).as_text()
+        return [int(n) for n in re.findall(r"(?:feature|batch)_group_count = (\d+)", text)]
+
+    assert max(group_counts(grads)) == seeds  # vmap's grouped convolutions
+    counts = group_counts(looped)
+    # 5 decoder + 4 encoder convolutions: forward, filter gradient, and input gradient (not of
+    # the pixels), each once per seed, all ungrouped.
+    assert set(counts) == {1} and len(counts) == 2 * seeds * (9 + 9 + 8)

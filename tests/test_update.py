@@ -175,13 +175,15 @@ def test_vmapped_seeds_every_method(method):
     for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(again)):
         np.testing.assert_array_equal(a, b)
     if method == "dear":
-        # The trainer's default seed axis: one traced update per seed, same numbers as vmap.
-        looped = jax.jit(update.over_seeds(functools.partial(update.update, cfg=cfg), "loop"))
-        loop_state, loop_metrics = looped(states, batches, keys, hp)
-        for a, b in zip(
-            jax.tree.leaves((new, metrics)), jax.tree.leaves((loop_state, loop_metrics))
-        ):
-            np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
+        # The other seed axes: one traced update per seed ("loop"), or vmapped with the
+        # convolutions unrolled over seeds ("hybrid"); the same numbers as vmap.
+        for how in ("loop", "hybrid"):
+            other = jax.jit(update.over_seeds(functools.partial(update.update, cfg=cfg), how))
+            other_state, other_metrics = other(states, batches, keys, hp)
+            for a, b in zip(
+                jax.tree.leaves((new, metrics)), jax.tree.leaves((other_state, other_metrics))
+            ):
+                np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5, err_msg=how)
         np.testing.assert_allclose(
             metrics["loss"],
             metrics["critic_loss"]

@@ -30,8 +30,10 @@
 #             with its plain encoder; 5 seeds, batch 512) with agent.seed_axis loop and hybrid,
 #             with and without $CONV_FUSION (and all command buffers); the profile of the fastest
 #             DEAR way; writes /tmp/runs/fast.env (SEED_AXIS, XLA_FLAGS) for the stages after
-#   axesloop  benchmarks/profile_loop.py for DEAR walker-walk (5 x 16) and the DrQ-v2 learning
-#             check (3 x 16), bf16, the way fast.env names
+#   pl C S A F  benchmarks/profile_loop.py of config C with S seeds x 16 envs, bf16,
+#             agent.seed_axis A, with XLA's conv fusion if F is "cf" ("-": without)
+#   dispatch  benchmarks/dispatch.py: the host's cost per launched op, per kind, with and
+#             without XLA's conv fusion
 #   loop      benchmarks/profile_loop.py: where a training iteration's time goes, per program, for
 #             DEAR walker-walk (5 seeds x 16 envs) and the DrQ-v2 learning check (3 x 16), bf16,
 #             with the physics of $BACKEND (auto, mjx or cpu; default: the config's)
@@ -187,15 +189,19 @@ PY
         --seed-axis "$SEED_AXIS" --dtype bfloat16 --top 40 --out "$out/profile_dear_$SEED_AXIS.json" \
         > "$out/profile_dear_$SEED_AXIS.log" 2>&1
       head -n 60 "$out/profile_dear_$SEED_AXIS.log" ;;
-    axesloop)
+    pl)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
-      source "$runs/fast.env"
-      pl="timeout 270 python3 -m benchmarks.profile_loop --envs 16 --dtype bfloat16 --warmup-frames 2400 --log-every 800 --iterations 10 --set agent.seed_axis=$SEED_AXIS"
-      $pl --config configs/walker_dear.py --seeds 5 \
-        --out "$out/profile_loop_dear_$SEED_AXIS.json" > "$out/profile_loop_dear_$SEED_AXIS.log" 2>&1
-      $pl --config configs/walker_drqv2_paper.py --seeds 3 \
-        --out "$out/profile_loop_drqv2_$SEED_AXIS.json" > "$out/profile_loop_drqv2_$SEED_AXIS.log" 2>&1
-      grep -h -A8 "per iteration" "$out"/profile_loop_*_"$SEED_AXIS".log ;;
+      c=$1 n=$2 a=$3 f=$4; shift 4
+      name=profile_loop_$(basename "$c" .py)_${n}x16_${a}$([ "$f" = cf ] && echo _cf)
+      XLA_FLAGS="$([ "$f" = cf ] && echo "$CONV_FUSION")" timeout 290 python3 -m \
+        benchmarks.profile_loop --config "$c" --seeds "$n" --envs 16 --dtype bfloat16 \
+        --warmup-frames 2400 --log-every 800 --iterations 10 --set "agent.seed_axis=$a" \
+        --out "$out/$name.json" > "$out/$name.log" 2>&1
+      grep -h -A8 "per iteration" "$out/$name.log" ;;
+    dispatch)
+      timeout 150 python3 -m benchmarks.dispatch --out "$out/dispatch.json"
+      XLA_FLAGS="$CONV_FUSION" timeout 150 python3 -m benchmarks.dispatch \
+        --out "$out/dispatch_cf.json" ;;
     loop)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       b=${BACKEND:-config}

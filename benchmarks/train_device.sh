@@ -32,8 +32,8 @@
 #             DEAR way; writes /tmp/runs/fast.env (SEED_AXIS, XLA_FLAGS) for the stages after
 #   pl C S A F  benchmarks/profile_loop.py of config C with S seeds x 16 envs, bf16,
 #             agent.seed_axis A, with XLA's conv fusion if F is "cf" ("-": without)
-#   dispatch  benchmarks/dispatch.py: the host's cost per launched op, per kind, with and
-#             without XLA's conv fusion
+#   dispatch  benchmarks/dispatch.py: the host's cost per launched op, per kind, with XLA's
+#             defaults, its conv fusion, and no autotuning; the DEAR update without autotuning
 #   loop      benchmarks/profile_loop.py: where a training iteration's time goes, per program, for
 #             DEAR walker-walk (5 seeds x 16 envs) and the DrQ-v2 learning check (3 x 16), bf16,
 #             with the physics of $BACKEND (auto, mjx or cpu; default: the config's)
@@ -49,6 +49,7 @@ runs=/tmp/runs
 ALL_CB="--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN --xla_gpu_graph_min_graph_size=1"
 # Convolutions as cuDNN fusions (which command buffers can hold), an experimental XLA pass.
 CONV_FUSION="--xla_gpu_experimental_enable_conv_fusion=true"
+NO_AUTOTUNE="--xla_gpu_autotune_level=0"
 mkdir -p "$out" "$runs"
 while [ $# -gt 0 ]; do
   stage=$1; shift
@@ -199,9 +200,16 @@ PY
         --out "$out/$name.json" > "$out/$name.log" 2>&1
       grep -h -A8 "per iteration" "$out/$name.log" ;;
     dispatch)
+      # benchmarks/dispatch.py under XLA's defaults, its conv fusion, and without autotuning
+      # (cuDNN's heuristic algorithms); then the DEAR bf16 update without autotuning.
       timeout 150 python3 -m benchmarks.dispatch --out "$out/dispatch.json"
       XLA_FLAGS="$CONV_FUSION" timeout 150 python3 -m benchmarks.dispatch \
-        --out "$out/dispatch_cf.json" ;;
+        --out "$out/dispatch_cf.json"
+      XLA_FLAGS="$NO_AUTOTUNE" timeout 150 python3 -m benchmarks.dispatch \
+        --out "$out/dispatch_no_autotune.json"
+      XLA_FLAGS="$NO_AUTOTUNE" timeout 200 python3 -m benchmarks.update --methods dear --seeds 5 \
+        --batch 512 --iters 20 --dtypes bfloat16 --seed-axis hybrid \
+        --out "$out/update_no_autotune.json" ;;
     loop)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       b=${BACKEND:-config}

@@ -78,9 +78,12 @@ def get_config() -> ConfigDict:
     # "bfloat16": encoder/decoder convolutions in bf16 (parameters stay float32); the DEAR update
     # at batch 512 took 6.1 instead of 10.3 ms on an H100 (benchmarks/results/update_h100_512.json).
     c.agent.compute_dtype = "float32"
-    # How the update runs over seeds inside one program: "loop" (one traced update per seed) or
-    # "vmap". Same numbers; "loop" was 1.5x faster on an H100 (benchmarks/results/update_h100.json).
-    c.agent.seed_axis = "loop"
+    # How the update runs over seeds inside one program: "hybrid" (vmapped, each convolution once
+    # per seed), "loop" (one traced update per seed) or "vmap" (grouped convolutions). Same
+    # numbers. On an H100, bf16, 5 seeds, batch 512 (benchmarks/results/update_axes_h100.json):
+    # DEAR 5.10 ms per seed hybrid, 5.20 loop; DrQ-v2 3.08 and 3.21; compiling took 23 s instead
+    # of 65 s. vmap was 1.5x slower than loop (benchmarks/results/update_h100.json).
+    c.agent.seed_axis = "hybrid"
     # How the random shift is computed: "gather" | "pad_slice" | "one_hot" (dear_jax.augment).
     # Same pixels; "gather" made the bf16 DEAR update 5.21 instead of 5.48 ms per seed on an H100
     # (benchmarks/results/update_shift_h100.json).

@@ -7,7 +7,8 @@ The learner's update on an H100 takes about as long to launch as to run
 program here is a chain of --ops ops of one kind at the encoder's shapes (bf16 activations
 [batch, 41, 41, 32], 3x3 kernels), kept apart by optimisation barriers so that XLA cannot fuse
 them: element-wise fusions, small element-wise fusions (one float per op), convolutions, and
-convolutions with their filter or input gradient. For each: milliseconds per call (run to the
+convolutions with their filter gradient (cuDNN's, or dear_jax.wgrad's Pallas kernel:
+conv_wgrad_pallas) or input gradient. For each: milliseconds per call (run to the
 end), the host's dispatch (the time the calls take to return) and both per op. Writes JSON.
 """
 
@@ -20,6 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from benchmarks.common import save_json
+from dear_jax import wgrad
 
 
 def _conv(x, w):
@@ -54,7 +56,7 @@ def chains(ops: int):
     def conv_wgrad(x, w, g):
         grads = []
         for _ in range(ops):
-            grads.append(jax.vjp(lambda w: _conv(x, w), w)[1](g)[0])
+            grads.append(jax.vjp(_conv, x, w)[1](g)[1])
             x = _barrier(jax.nn.relu(_conv(x, w)))
         return x, grads
 
@@ -65,8 +67,21 @@ def chains(ops: int):
             x = _barrier(jax.nn.relu(_conv(x, w)))
         return x, grads
 
+    def conv_wgrad_pallas(x, w, g):
+        grads = []
+        for _ in range(ops):
+            # VALID, as the Pallas kernel computes it: the gradient of the interior output.
+            grads.append(wgrad.filter_gradient(x, g[:, 1:-1, 1:-1], 3))
+            x = _barrier(jax.nn.relu(_conv(x, w)))
+        return x, grads
+
     return dict(
-        fusion=fusion, small_fusion=small, conv=conv, conv_wgrad=conv_wgrad, conv_dgrad=conv_dgrad
+        fusion=fusion,
+        small_fusion=small,
+        conv=conv,
+        conv_wgrad=conv_wgrad,
+        conv_wgrad_pallas=conv_wgrad_pallas,
+        conv_dgrad=conv_dgrad,
     )
 
 
@@ -103,7 +118,9 @@ def main():
     base = {r["kind"]: r for r in rows}["conv"]
     for r in rows:
         minus = base if r["kind"].startswith("conv_") else None
-        r["us_per_op"] = (r["ms_per_call"] - (minus["ms_per_call"] if minus else 0)) / r["ops"] * 1e3
+        r["us_per_op"] = (
+            (r["ms_per_call"] - (minus["ms_per_call"] if minus else 0)) / r["ops"] * 1e3
+        )
         r["dispatch_us_per_op"] = (
             (r["dispatch_ms_per_call"] - (minus["dispatch_ms_per_call"] if minus else 0))
             / r["ops"]

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from benchmarks.common import save_json
-from dear_jax import augment, update
+from dear_jax import augment, networks, update
 from dear_jax.replay import Batch
 
 # DESIGN.md: the PyTorch reference architecture's DEAR update, batch 256, TF32, on an H100.
@@ -48,6 +48,7 @@ def update_setup(
     action_dim=6,
     shift_impl="gather",
     encoder="pool",
+    filter_gradient="cudnn",
 ):
     """(jitted update over all seeds, fresh agent states, random batches, hparams)."""
     cfg = update.AgentConfig(
@@ -56,6 +57,7 @@ def update_setup(
         compute_dtype=dtype,
         shift_impl=shift_impl,
         encoder=encoder,
+        filter_gradient=filter_gradient,
     )
     states = jax.jit(functools.partial(update.init_seeds, cfg))(
         jax.random.split(jax.random.key(0), seeds)
@@ -80,11 +82,12 @@ def time_update(
     seed_axis: str = "vmap",
     shift_impl: str = "gather",
     encoder: str = "pool",
+    filter_gradient: str = "cudnn",
 ) -> dict:
     """Milliseconds per call, and the host's share: the time the calls took to return (dispatch;
     when it nears the time per call, launching the kernels, not running them, sets the pace)."""
     step, states, batches, hp = update_setup(
-        method, seeds, batch, dtype, seed_axis, action_dim, shift_impl, encoder
+        method, seeds, batch, dtype, seed_axis, action_dim, shift_impl, encoder, filter_gradient
     )
     keys = jax.random.split(jax.random.key(2), (iters + 1, seeds))
     t0 = time.perf_counter()
@@ -103,6 +106,7 @@ def time_update(
         precision=str(jax.config.jax_default_matmul_precision),
         method=method,
         encoder=encoder,
+        filter_gradient=filter_gradient,
         seed_axis=seed_axis,
         shift_impl=shift_impl,
         seeds=seeds,
@@ -128,6 +132,9 @@ def main():
         choices=["pool", "plain"],
         help="DrQ-v2's encoder (plain: DrQ-v2's own, as in configs/walker_drqv2_paper.py)",
     )
+    parser.add_argument(
+        "--filter-gradients", nargs="+", default=["cudnn"], choices=networks.FILTER_GRADIENTS
+    )
     parser.add_argument("--shift-impls", nargs="+", default=["gather"], choices=augment.SHIFT_IMPLS)
     parser.add_argument(
         "--precision",
@@ -144,27 +151,28 @@ def main():
     for d in args.dtypes:
         for m in args.methods:
             for s in args.seeds:
-                for how, impl in itertools.product(
-                    args.seed_axis if s > 1 else ["vmap"], args.shift_impls
+                for how, impl, fg in itertools.product(
+                    args.seed_axis if s > 1 else ["vmap"], args.shift_impls, args.filter_gradients
                 ):
                     encoder = args.drqv2_encoder if m == "drqv2" else "pool"
                     rows.append(
-                        time_update(
-                            m, s, args.batch, args.iters, d, 6, how, impl, encoder=encoder
-                        )
+                        time_update(m, s, args.batch, args.iters, d, 6, how, impl, encoder, fg)
                     )
                     r = rows[-1]
-                    print(f"{m} {d} {how} {impl} seeds={s}: {r['ms_per_seed_update']:.2f} ms/seed")
+                    print(
+                        f"{m} {d} {how} {impl} {fg} seeds={s}: "
+                        f"{r['ms_per_seed_update']:.2f} ms/seed"
+                    )
     print(f"device: {device.device_kind} ({device.platform}), jax {jax.__version__}")
     print(
-        "| method | encoder | dtype | precision | seed axis | shift | seeds | batch | ms per call "
+        "| method | encoder | dtype | precision | seed axis | shift | filter gradient | seeds | batch | ms per call "
         "| host dispatch ms per call | ms per seed-update | vs PyTorch 12.1 ms | compile s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
             f"| {r['method']} | {r['encoder']} | {r['dtype']} | {r['precision']} | {r['seed_axis']} "
-            f"| {r['shift_impl']} | {r['seeds']} | {r['batch']} | "
+            f"| {r['shift_impl']} | {r['filter_gradient']} | {r['seeds']} | {r['batch']} | "
             f"{r['ms_per_call']:.2f} | {r['dispatch_ms_per_call']:.2f} | "
             f"{r['ms_per_seed_update']:.2f} | {PYTORCH_ANCHOR_MS / r['ms_per_seed_update']:.2f}x "
             f"| {r['compile_s']:.1f} |"

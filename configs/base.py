@@ -88,6 +88,11 @@ def get_config() -> ConfigDict:
     # Same pixels; "gather" made the bf16 DEAR update 5.21 instead of 5.48 ms per seed on an H100
     # (benchmarks/results/update_shift_h100.json).
     c.agent.shift_impl = "gather"
+    # The convolutions' filter gradients: "cudnn" (XLA's) or "pallas" (dear_jax/wgrad.py, one
+    # kernel for all seeds; stride-1 layers with power-of-2 channels). Same numbers. cuDNN's cost
+    # the host more to launch than they run on an H100 (benchmarks/results/dispatch_h100.json);
+    # "pallas" is not yet measured on a GPU.
+    c.agent.filter_gradient = "cudnn"
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
     c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)
     c.agent.beta = 100.0  # orthogonality loss weight (DEAR)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import dataclasses
 import functools
 import math
 from collections.abc import Sequence
@@ -18,6 +19,8 @@ from typing import Any
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+
+from dear_jax import wgrad
 
 LINEAR_INIT = nn.initializers.orthogonal(1.0)
 # A conv kernel [kh, kw, in, out] flattened to [kh*kw*in, out] is the transpose of PyTorch's
@@ -77,8 +80,11 @@ def _conv2d(x: jax.Array, kernel: jax.Array, stride: int, dtype, channels: int) 
     lead = x.shape[:-3]
     x = _pad_axis(x.astype(dtype).reshape(-1, *x.shape[-3:]), -1, channels)
     kernel = _pad_axis(_pad_axis(kernel.astype(dtype), 2, channels), 3, channels)
-    conv = _seed_looped_conv if _LOOP_CONVS.get() else _plain_conv
-    y = conv(x, kernel, stride)
+    settings = _CONV.get()
+    if settings == ConvSettings():
+        y = _plain_conv(x, kernel, stride)
+    else:
+        y = _custom_conv(x, kernel, stride, settings)
     return y[..., :features].reshape(*lead, *y.shape[-3:-1], features)
 
 
@@ -88,27 +94,48 @@ def _plain_conv(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
     )
 
 
-# Set while `seed_looped_convs()` is active (at trace time).
-_LOOP_CONVS = contextvars.ContextVar("loop_convs", default=False)
+@dataclasses.dataclass(frozen=True)
+class ConvSettings:
+    """How the networks' convolutions are computed (the same function either way).
+
+    loop_seeds: under `jax.vmap`, each convolution (forward and both gradients) runs once per
+        vmapped index, ungrouped. vmap alone turns a convolution whose weights differ per index
+        into one grouped convolution (its filter gradient a batch-grouped one), which cuDNN runs
+        far slower than separate ones (benchmarks/results/update_h100.json). Everything else
+        stays batched (`update.over_seeds(..., "hybrid")`).
+    filter_gradient: "cudnn" (XLA's convolution) or "pallas" (`dear_jax.wgrad`, one kernel,
+        also for all vmapped seeds at once) where it takes the shape; meant for GPUs: elsewhere
+        it runs in Pallas' interpreter.
+    """
+
+    loop_seeds: bool = False
+    filter_gradient: str = "cudnn"
+
+
+FILTER_GRADIENTS = ("cudnn", "pallas")
+# Read at trace time by every convolution of the networks; set by `conv_settings`.
+_CONV = contextvars.ContextVar("conv_settings", default=ConvSettings())  # noqa: B039 (frozen)
 
 
 @contextlib.contextmanager
-def seed_looped_convs():
-    """Within it, a vmapped convolution runs once per vmapped index instead of batched.
-
-    `jax.vmap` turns a convolution whose weights differ per index into one grouped convolution
-    (and its filter gradient into a batch-grouped one), which cuDNN runs far slower than
-    separate ones (benchmarks/results/update_h100.json). Under this context every convolution
-    of the networks, forward and both gradients, is instead unrolled over the vmapped axis,
-    while everything else (matmuls, element-wise work, the optimiser) stays batched: fewer,
-    larger kernels than looping whole updates (`update.over_seeds(..., "hybrid")`). Values and
-    gradients are those of `jax.vmap` (tests/test_networks.py).
-    """
-    token = _LOOP_CONVS.set(True)
+def conv_settings(**changes):
+    """Within it (while tracing), the networks' convolutions follow `ConvSettings(**changes)`
+    (fields not named keep their current values)."""
+    settings = dataclasses.replace(_CONV.get(), **changes)
+    if settings.filter_gradient not in FILTER_GRADIENTS:
+        raise ValueError(
+            f"unknown filter_gradient {settings.filter_gradient!r}; valid: {FILTER_GRADIENTS}"
+        )
+    token = _CONV.set(settings)
     try:
         yield
     finally:
-        _LOOP_CONVS.reset(token)
+        _CONV.reset(token)
+
+
+def seed_looped_convs():
+    """`conv_settings(loop_seeds=True)`: vmapped convolutions run once per vmapped index."""
+    return conv_settings(loop_seeds=True)
 
 
 def _unrolled_under_vmap(fn):
@@ -128,30 +155,44 @@ def _unrolled_under_vmap(fn):
 
 
 @functools.cache
-def _looped_conv_parts(stride: int):
-    """(forward, backward) of a VALID NHWC convolution, each unrolled under vmap."""
+def _conv_parts(stride: int, settings: ConvSettings):
+    """(forward, input gradient, filter gradient) of a VALID NHWC convolution."""
     forward = functools.partial(_plain_conv, stride=stride)
 
-    def backward(x, kernel, g):
-        return jax.vjp(forward, x, kernel)[1](g)
+    def input_grad(x, kernel, g):
+        return jax.vjp(lambda x: forward(x, kernel), x)[1](g)[0]
 
-    return _unrolled_under_vmap(forward), _unrolled_under_vmap(backward)
+    def cudnn_filter_grad(x, kernel, g):
+        return jax.vjp(lambda w: forward(x, w), kernel)[1](g)[0]
+
+    each = _unrolled_under_vmap if settings.loop_seeds else (lambda fn: fn)
+    cudnn_filter_grad = each(cudnn_filter_grad)
+
+    def filter_grad(x, kernel, g):
+        # Decided per shape (under vmap these are one index's shapes); the Pallas kernel
+        # batches itself under vmap, one launch for every index.
+        if settings.filter_gradient == "pallas" and wgrad.supported(x.shape, kernel.shape, stride):
+            return wgrad.filter_gradient(x, g, kernel.shape[0]).astype(kernel.dtype)
+        return cudnn_filter_grad(x, kernel, g)
+
+    return each(forward), each(input_grad), filter_grad
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
-def _seed_looped_conv(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
-    return _looped_conv_parts(stride)[0](x, kernel)
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
+def _custom_conv(x, kernel, stride: int, settings: ConvSettings) -> jax.Array:
+    return _conv_parts(stride, settings)[0](x, kernel)
 
 
-def _seed_looped_conv_fwd(x, kernel, stride):
-    return _seed_looped_conv(x, kernel, stride), (x, kernel)
+def _custom_conv_fwd(x, kernel, stride, settings):
+    return _custom_conv(x, kernel, stride, settings), (x, kernel)
 
 
-def _seed_looped_conv_bwd(stride, residuals, g):
-    return _looped_conv_parts(stride)[1](*residuals, g)
+def _custom_conv_bwd(stride, settings, residuals, g):
+    _, input_grad, filter_grad = _conv_parts(stride, settings)
+    return input_grad(*residuals, g), filter_grad(*residuals, g)
 
 
-_seed_looped_conv.defvjp(_seed_looped_conv_fwd, _seed_looped_conv_bwd)
+_custom_conv.defvjp(_custom_conv_fwd, _custom_conv_bwd)
 
 
 class Conv(nn.Module):

@@ -51,7 +51,7 @@ from jax.sharding import PartitionSpec as P
 from ml_collections import ConfigDict
 
 import envs
-from dear_jax import augment, lanes, losses, replay, replay_disk, update
+from dear_jax import augment, lanes, losses, networks, replay, replay_disk, update
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.lock import WorkdirLock
 from dear_jax.logger import RunLogger, format_table, read_csv, write_text_atomic
@@ -79,6 +79,7 @@ RESUMABLE_CHANGES = (
     "eval_in_background",
     "agent.seed_axis",
     "agent.shift_impl",
+    "agent.filter_gradient",
     "replay.disk",
     "devices",
 )
@@ -267,6 +268,7 @@ def validate(config: ConfigDict) -> None:
         "agent.ortho_form": losses.ORTHOGONALITY_FORMS,
         "agent.seed_axis": update.SEED_AXES,
         "agent.shift_impl": augment.SHIFT_IMPLS,
+        "agent.filter_gradient": networks.FILTER_GRADIENTS,
         "env.backend": ("auto", "mjx", "cpu"),
         "env.eval_backend": ("cpu", "train"),
         "env.distraction": ("none", "easy", "medium", "hard"),
@@ -328,6 +330,7 @@ def agent_config(config: ConfigDict, action_dim: int) -> update.AgentConfig:
         ortho_form=a.ortho_form,
         compute_dtype=a.compute_dtype,
         shift_impl=a.shift_impl,
+        filter_gradient=a.filter_gradient,
     )
 
 

@@ -46,6 +46,7 @@ class AgentConfig:
     augment_pad: int = 4
     compute_dtype: str = "float32"  # "bfloat16": convolutions of encoder and decoders in bf16
     shift_impl: str = "gather"  # how the random shift is computed (augment.SHIFT_IMPLS)
+    filter_gradient: str = "cudnn"  # convolutions' filter gradients (networks.FILTER_GRADIENTS)
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -61,6 +62,11 @@ class AgentConfig:
         if self.shift_impl not in augment.SHIFT_IMPLS:
             raise ValueError(
                 f"unknown shift_impl {self.shift_impl!r}; valid: {augment.SHIFT_IMPLS}"
+            )
+        if self.filter_gradient not in networks.FILTER_GRADIENTS:
+            raise ValueError(
+                f"unknown filter_gradient {self.filter_gradient!r}; valid: "
+                f"{networks.FILTER_GRADIENTS}"
             )
         if self.method != "drqv2" and self.encoder != "pool":
             raise ValueError(
@@ -383,6 +389,11 @@ def update(
     state: AgentState, batch: Batch, key: jax.Array, hp: HParams, *, cfg: AgentConfig
 ) -> tuple[AgentState, dict]:
     """One DrQ-v2 update for one seed; bind `cfg` (functools.partial) before jit/vmap."""
+    with networks.conv_settings(filter_gradient=cfg.filter_gradient):
+        return _update(state, batch, key, hp, cfg)
+
+
+def _update(state, batch, key, hp, cfg):
     main_opt, actor_opt = _optimizers(cfg)
     k_learner, k_actor = jax.random.split(key)
     std = std_schedule(state.steps, hp)

@@ -222,7 +222,7 @@ def test_seed_looped_convs_are_vmap_without_grouped_convolutions():
         with networks.seed_looped_convs():
             return grads(p, z, obs)
 
-    np.testing.assert_equal(networks._LOOP_CONVS.get(), False)  # the context was left
+    assert networks._CONV.get() == networks.ConvSettings()  # the context was left
     want, got = jax.jit(grads)(params, z, obs), jax.jit(looped)(params, z, obs)
     for a, b in zip(jax.tree.leaves(want), jax.tree.leaves(got)):
         np.testing.assert_allclose(a, b, rtol=2e-4, atol=2e-4)
@@ -236,3 +236,68 @@ def test_seed_looped_convs_are_vmap_without_grouped_convolutions():
     # 5 decoder + 4 encoder convolutions: forward, filter gradient, and input gradient (not of
     # the pixels), each once per seed, all ungrouped.
     assert set(counts) == {1} and len(counts) == 2 * seeds * (9 + 9 + 8)
+
+
+def test_pallas_filter_gradient_equals_cudnns():
+    """`dear_jax.wgrad.filter_gradient` (Pallas; here its interpreter) is the filter gradient
+    of a stride-1 VALID convolution: kernel sizes 1-3 and the decoder's channel counts, one
+    image per program or several; under vmap (one launch for all indices) too."""
+    from dear_jax import wgrad
+
+    def cudnn(x, g, k):
+        conv = lambda w: networks._plain_conv(x, w, 1)  # noqa: E731
+        return jax.vjp(conv, jnp.zeros((k, k, x.shape[-1], g.shape[-1]), x.dtype))[1](g)[0]
+
+    for n, size, c, f, k, images in (
+        (2, 11, 16, 32, 3, 1),
+        (4, 9, 32, 16, 2, 2),
+        (3, 5, 16, 256, 1, 3),
+    ):
+        kx, kg = jax.random.split(jax.random.key(size))
+        x = jax.random.normal(kx, (n, size, size, c))
+        g = jax.random.normal(kg, (n, size - k + 1, size - k + 1, f))
+        assert wgrad.supported(x.shape, (k, k, c, f), 1)
+        np.testing.assert_allclose(
+            wgrad.filter_gradient(x, g, k, images=images), cudnn(x, g, k), rtol=1e-5, atol=1e-4
+        )
+    stacked = jax.vmap(lambda x, g: wgrad.filter_gradient(x, g, 3))
+    xs = jax.random.normal(jax.random.key(1), (2, 2, 7, 7, 16))
+    gs = jax.random.normal(jax.random.key(2), (2, 2, 5, 5, 32))
+    for i in range(2):
+        np.testing.assert_allclose(stacked(xs, gs)[i], cudnn(xs[i], gs[i], 3), rtol=1e-5, atol=1e-4)
+    assert not wgrad.supported((2, 11, 11, 16), (3, 3, 16, 32), 2)  # stride 2 stays on cuDNN
+    assert not wgrad.supported((2, 11, 11, 12), (3, 3, 12, 32), 1)  # 12 channels: not a power of 2
+    with pytest.raises(ValueError, match="not the gradient"):
+        wgrad.filter_gradient(xs[0], gs[0][:, :4], 3)
+
+
+@pytest.mark.parametrize("loop_seeds", [False, True])
+def test_networks_with_pallas_filter_gradients_are_the_same_function(loop_seeds):
+    """With filter_gradient="pallas" the decoder and the encoder (stride 2 first: cuDNN) give the
+    values and gradients of the plain convolutions, vmapped over seeds with and without
+    loop_seeds."""
+    seeds = 2
+    dec, enc = networks.PoolDecoder(3), networks.ConvTrunk()
+    z = jax.random.normal(jax.random.key(0), (seeds, 1, 8))
+    obs = jax.random.randint(jax.random.key(1), (seeds, 1, 84, 84, 9), 0, 256).astype(jnp.uint8)
+    params = jax.vmap(lambda k: (dec.init(k, z[0]), enc.init(k, obs[0])))(
+        jax.random.split(jax.random.key(2), seeds)
+    )
+
+    def loss(p, z, obs):
+        return jnp.sum(jnp.sin(dec.apply(p[0], z))) + jnp.sum(jnp.cos(enc.apply(p[1], obs)))
+
+    grads = jax.vmap(jax.value_and_grad(loss))
+
+    def pallas(p, z, obs):
+        with networks.conv_settings(loop_seeds=loop_seeds, filter_gradient="pallas"):
+            return grads(p, z, obs)
+
+    text = jax.jit(pallas).lower(params, z, obs).as_text()
+    assert "triton" in text or "pallas" in text  # the kernel is in the program
+    want, got = jax.jit(grads)(params, z, obs), jax.jit(pallas)(params, z, obs)
+    for a, b in zip(jax.tree.leaves(want), jax.tree.leaves(got)):
+        np.testing.assert_allclose(a, b, rtol=2e-4, atol=2e-4)
+    with pytest.raises(ValueError, match="unknown filter_gradient"):
+        with networks.conv_settings(filter_gradient="cutlass"):
+            pass

@@ -1,5 +1,6 @@
 """The learner: where gradients flow, acting, and the vmapped update over seeds."""
 
+import dataclasses
 import functools
 
 import jax
@@ -177,13 +178,17 @@ def test_vmapped_seeds_every_method(method):
     if method == "dear":
         # The other seed axes: one traced update per seed ("loop"), or vmapped with the
         # convolutions unrolled over seeds ("hybrid"); the same numbers as vmap.
-        for how in ("loop", "hybrid"):
-            other = jax.jit(update.over_seeds(functools.partial(update.update, cfg=cfg), how))
+        # And with the Pallas filter gradients (in its interpreter here), vmapped or looped.
+        pallas = dataclasses.replace(cfg, filter_gradient="pallas")
+        for how, c in (("loop", cfg), ("hybrid", cfg), ("hybrid", pallas), ("loop", pallas)):
+            other = jax.jit(update.over_seeds(functools.partial(update.update, cfg=c), how))
             other_state, other_metrics = other(states, batches, keys, hp)
             for a, b in zip(
                 jax.tree.leaves((new, metrics)), jax.tree.leaves((other_state, other_metrics))
             ):
-                np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5, err_msg=how)
+                np.testing.assert_allclose(
+                    a, b, rtol=1e-4, atol=1e-5, err_msg=f"{how} {c.filter_gradient}"
+                )
         np.testing.assert_allclose(
             metrics["loss"],
             metrics["critic_loss"]

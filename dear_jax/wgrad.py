@@ -3,7 +3,8 @@
 Why: on an H100, cuDNN's filter gradient at the encoder's shapes costs the host 175-200 µs to
 launch, more than the 163 µs it runs, and a DEAR update has 9 per seed
 (benchmarks/results/dispatch_h100.json, `python -m benchmarks.dispatch`). This kernel is one
-launch that reads the input and the output gradient once.
+launch that reads the input and the output gradient once. Not yet compiled or timed on a GPU
+(`bash benchmarks/train_device.sh pallas`); tested against cuDNN's in Pallas' interpreter.
 
 dW[i, j, c, f] = sum over n, h, w of x[n, h + i, w + j, c] * g[n, h, w, f]. Program p takes
 `images` images; for each output row it loads the row of g ([Wo, F], padded to a power of two

@@ -1,9 +1,25 @@
-"""What every benchmark script shares: writing its result as JSON."""
+"""What the benchmark scripts share: timing calls with their host dispatch; writing JSON."""
 
 from __future__ import annotations
 
 import json
 import pathlib
+import time
+
+import jax
+
+
+def timed_calls(call, iters: int) -> tuple[float, float]:
+    """(ms per call, host dispatch ms per call) of `call(i)` for i in range(iters), run to the
+    end. Dispatch is the time the calls take to return: launching their work; where it nears
+    the time per call, the launches, not the GPU, set the pace."""
+    t0, dispatch, out = time.perf_counter(), 0.0, None
+    for i in range(iters):
+        t = time.perf_counter()
+        out = call(i)
+        dispatch += time.perf_counter() - t
+    jax.block_until_ready(out)
+    return (time.perf_counter() - t0) / iters * 1e3, dispatch / iters * 1e3
 
 
 def save_json(result: dict, out: str | None, default: str | None = None) -> pathlib.Path | None:

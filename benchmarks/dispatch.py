@@ -15,12 +15,11 @@ end), the host's dispatch (the time the calls take to return) and both per op. W
 from __future__ import annotations
 
 import argparse
-import time
 
 import jax
 import jax.numpy as jnp
 
-from benchmarks.common import save_json
+from benchmarks.common import save_json, timed_calls
 from dear_jax import wgrad
 
 
@@ -89,13 +88,7 @@ def time_chain(fn, args, iters: int) -> tuple[float, float]:
     """(ms per call, host dispatch ms per call) of jit(fn) after one compiling call."""
     step = jax.jit(fn)
     jax.block_until_ready(step(*args))
-    t0, dispatch = time.perf_counter(), 0.0
-    for _ in range(iters):
-        t = time.perf_counter()
-        out = step(*args)
-        dispatch += time.perf_counter() - t
-    jax.block_until_ready(out)
-    return (time.perf_counter() - t0) / iters * 1e3, dispatch / iters * 1e3
+    return timed_calls(lambda _: step(*args), iters)
 
 
 def main():

@@ -28,8 +28,8 @@
 #             op kind in them ($CB_FLAGS)
 #   axes      the seed axis and XLA's conv fusion: benchmarks/update.py (DEAR bf16, DrQ-v2 bf16
 #             with its plain encoder; 5 seeds, batch 512) with agent.seed_axis loop and hybrid,
-#             with and without $CONV_FUSION (and all command buffers); the profile of the fastest
-#             DEAR way; writes /tmp/runs/fast.env (SEED_AXIS, XLA_FLAGS) for the stages after
+#             with and without $CONV_FUSION (and all command buffers); the profile of the
+#             hybrid DEAR update (XLA's defaults)
 #   pl C S A F  benchmarks/profile_loop.py of config C with S seeds x 16 envs, bf16,
 #             agent.seed_axis A, with XLA's conv fusion if F is "cf" ("-": without)
 #   dispatch  benchmarks/dispatch.py: the host's cost per launched op, per kind, with XLA's
@@ -169,27 +169,10 @@ PY
       XLA_FLAGS="$CONV_FUSION" timeout 240 $u --methods dear --out "$out/update_axes_convfusion.json"
       XLA_FLAGS="$CONV_FUSION $ALL_CB" timeout 240 $u --methods dear \
         --out "$out/update_axes_convfusion_cb.json"
-      python3 - "$out" "$CONV_FUSION" "$ALL_CB" > "$runs/fast.env" <<'PY'
-import json, sys
-out, conv, cb = sys.argv[1:4]
-best = None
-for name, flags in (("", ""), ("_convfusion", conv), ("_convfusion_cb", f"{conv} {cb}")):
-    try:
-        rows = json.load(open(f"{out}/update_axes{name}.json"))["rows"]
-    except (OSError, ValueError):
-        continue
-    for r in rows:
-        if r["method"] == "dear" and (best is None or r["ms_per_seed_update"] < best[0]):
-            best = (r["ms_per_seed_update"], r["seed_axis"], flags)
-ms, axis, flags = best
-print(f"export SEED_AXIS={axis}  # DEAR bf16 update {ms:.2f} ms per seed")
-print(f'export XLA_FLAGS="{flags}"')
-PY
-      cat "$runs/fast.env"; source "$runs/fast.env"
       timeout 200 python3 -m benchmarks.profile_update --method dear --batch 512 --seeds 5 \
-        --seed-axis "$SEED_AXIS" --dtype bfloat16 --top 40 --out "$out/profile_dear_$SEED_AXIS.json" \
-        > "$out/profile_dear_$SEED_AXIS.log" 2>&1
-      head -n 60 "$out/profile_dear_$SEED_AXIS.log" ;;
+        --seed-axis hybrid --dtype bfloat16 --top 40 --out "$out/profile_dear_hybrid.json" \
+        > "$out/profile_dear_hybrid.log" 2>&1
+      head -n 60 "$out/profile_dear_hybrid.log" ;;
     pl)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       c=$1 n=$2 a=$3 f=$4; shift 4

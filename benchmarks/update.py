@@ -16,7 +16,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-from benchmarks.common import save_json
+from benchmarks.common import save_json, timed_calls
 from dear_jax import augment, networks, update
 from dear_jax.replay import Batch
 
@@ -84,8 +84,7 @@ def time_update(
     encoder: str = "pool",
     filter_gradient: str = "cudnn",
 ) -> dict:
-    """Milliseconds per call, and the host's share: the time the calls took to return (dispatch;
-    when it nears the time per call, launching the kernels, not running them, sets the pace)."""
+    """Milliseconds per call, and the host's dispatch per call (`common.timed_calls`)."""
     step, states, batches, hp = update_setup(
         method, seeds, batch, dtype, seed_axis, action_dim, shift_impl, encoder, filter_gradient
     )
@@ -94,13 +93,13 @@ def time_update(
     states, metrics = step(states, batches, keys[0], hp)
     jax.block_until_ready(metrics)
     compile_s = time.perf_counter() - t0
-    t0, dispatch = time.perf_counter(), 0.0
-    for i in range(iters):
-        t = time.perf_counter()
+
+    def call(i):
+        nonlocal states
         states, metrics = step(states, batches, keys[i + 1], hp)
-        dispatch += time.perf_counter() - t
-    jax.block_until_ready(metrics)
-    ms = (time.perf_counter() - t0) / iters * 1e3
+        return metrics
+
+    ms, dispatch = timed_calls(call, iters)
     return dict(
         dtype=dtype,
         precision=str(jax.config.jax_default_matmul_precision),
@@ -113,7 +112,7 @@ def time_update(
         batch=batch,
         ms_per_call=ms,
         ms_per_seed_update=ms / seeds,
-        dispatch_ms_per_call=dispatch / iters * 1e3,
+        dispatch_ms_per_call=dispatch,
         compile_s=compile_s,
     )
 

@@ -133,11 +133,6 @@ def conv_settings(**changes):
         _CONV.reset(token)
 
 
-def seed_looped_convs():
-    """`conv_settings(loop_seeds=True)`: vmapped convolutions run once per vmapped index."""
-    return conv_settings(loop_seeds=True)
-
-
 def _unrolled_under_vmap(fn):
     """`fn` of arrays, whose `jax.vmap` calls `fn` once per index and stacks the results."""
     wrapped = jax.custom_batching.custom_vmap(fn)

@@ -196,7 +196,7 @@ def over_seeds(fn, how: str = "vmap"):
 
     how="vmap": `jax.vmap(fn)`. how="loop": one traced call per seed, results stacked.
     how="hybrid": `jax.vmap(fn)` with every convolution unrolled over the seeds
-    (`networks.seed_looped_convs`). All three give the same numbers; they differ in speed only.
+    (`networks.conv_settings(loop_seeds=True)`). All three give the same numbers; they differ in speed only.
     A vmapped convolution whose weights differ per seed becomes one grouped convolution, which
     an H100 ran ~1.5x slower than S plain ones (benchmarks/results/update_h100.json), so GPUs
     loop the convolutions, either alone ("hybrid") or with the whole update ("loop").
@@ -207,7 +207,7 @@ def over_seeds(fn, how: str = "vmap"):
         vmapped = jax.vmap(fn)
 
         def hybrid(*args):
-            with networks.seed_looped_convs():
+            with networks.conv_settings(loop_seeds=True):
                 return vmapped(*args)
 
         return hybrid

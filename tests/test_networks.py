@@ -200,15 +200,13 @@ def test_trunk_with_tensor_core_channels_is_the_same_function():
         np.testing.assert_allclose(g, e, rtol=1e-4, atol=1e-4)
 
 
-def test_seed_looped_convs_are_vmap_without_grouped_convolutions():
-    """Under `seed_looped_convs`, a vmapped decoder (transposed convolutions) and encoder give
-    vmap's values and gradients, computed by one ungrouped convolution per seed, forward and
-    backward, where plain vmap makes grouped ones."""
-    seeds = 3
-    dec = networks.PoolDecoder(3)
-    enc = networks.ConvTrunk()
-    z = jax.random.normal(jax.random.key(0), (seeds, 2, 8))
-    obs = jax.random.randint(jax.random.key(1), (seeds, 2, 84, 84, 9), 0, 256).astype(jnp.uint8)
+def _vmapped_decoder_and_encoder(seeds: int, batch: int):
+    """(params, z, obs, f): a mask decoder and a conv trunk per seed, and f = vmap over seeds of
+    the value and gradient (in params and z) of a loss that reads both networks' outputs."""
+    dec, enc = networks.PoolDecoder(3), networks.ConvTrunk()
+    z = jax.random.normal(jax.random.key(0), (seeds, batch, 8))
+    obs = jax.random.randint(jax.random.key(1), (seeds, batch, 84, 84, 9), 0, 256)
+    obs = obs.astype(jnp.uint8)
     params = jax.vmap(lambda k: (dec.init(k, z[0]), enc.init(k, obs[0])))(
         jax.random.split(jax.random.key(2), seeds)
     )
@@ -216,10 +214,18 @@ def test_seed_looped_convs_are_vmap_without_grouped_convolutions():
     def loss(p, z, obs):
         return jnp.sum(jnp.sin(dec.apply(p[0], z))) + jnp.sum(jnp.cos(enc.apply(p[1], obs)))
 
-    grads = jax.vmap(jax.value_and_grad(loss, argnums=(0, 1)))
+    return params, z, obs, jax.vmap(jax.value_and_grad(loss, argnums=(0, 1)))
+
+
+def test_seed_looped_convs_are_vmap_without_grouped_convolutions():
+    """Under `conv_settings(loop_seeds=True)`, a vmapped decoder (transposed convolutions) and
+    encoder give vmap's values and gradients, computed by one ungrouped convolution per seed,
+    forward and backward, where plain vmap makes grouped ones."""
+    seeds = 3
+    params, z, obs, grads = _vmapped_decoder_and_encoder(seeds, 2)
 
     def looped(p, z, obs):
-        with networks.seed_looped_convs():
+        with networks.conv_settings(loop_seeds=True):
             return grads(p, z, obs)
 
     assert networks._CONV.get() == networks.ConvSettings()  # the context was left
@@ -276,18 +282,7 @@ def test_networks_with_pallas_filter_gradients_are_the_same_function(loop_seeds)
     """With filter_gradient="pallas" the decoder and the encoder (stride 2 first: cuDNN) give the
     values and gradients of the plain convolutions, vmapped over seeds with and without
     loop_seeds."""
-    seeds = 2
-    dec, enc = networks.PoolDecoder(3), networks.ConvTrunk()
-    z = jax.random.normal(jax.random.key(0), (seeds, 1, 8))
-    obs = jax.random.randint(jax.random.key(1), (seeds, 1, 84, 84, 9), 0, 256).astype(jnp.uint8)
-    params = jax.vmap(lambda k: (dec.init(k, z[0]), enc.init(k, obs[0])))(
-        jax.random.split(jax.random.key(2), seeds)
-    )
-
-    def loss(p, z, obs):
-        return jnp.sum(jnp.sin(dec.apply(p[0], z))) + jnp.sum(jnp.cos(enc.apply(p[1], obs)))
-
-    grads = jax.vmap(jax.value_and_grad(loss))
+    params, z, obs, grads = _vmapped_decoder_and_encoder(2, 1)
 
     def pallas(p, z, obs):
         with networks.conv_settings(loop_seeds=loop_seeds, filter_gradient="pallas"):

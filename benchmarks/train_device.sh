@@ -31,7 +31,12 @@
 #             with and without $CONV_FUSION (and all command buffers); the profile of the
 #             hybrid DEAR update (XLA's defaults)
 #   pl C S A F  benchmarks/profile_loop.py of config C with S seeds x 16 envs, bf16,
-#             agent.seed_axis A, with XLA's conv fusion if F is "cf" ("-": without)
+#             agent.seed_axis A, with XLA's conv fusion if F is "cf" ("-": without); another
+#             config field from $PL_SET (e.g. PL_SET=agent.filter_gradient=pallas)
+#   pallas    the Pallas filter gradient (dear_jax/wgrad.py): benchmarks/wgrad.py (against
+#             cuDNN; its images-per-program x warps choices), the fastest choice made wgrad's
+#             default in this tree, then benchmarks/update.py (DEAR bf16, DrQ-v2 bf16 plain
+#             encoder; 5 seeds, batch 512, hybrid) with cuDNN's and the kernel's filter gradients
 #   dispatch  benchmarks/dispatch.py: the host's cost per launched op, per kind, with XLA's
 #             defaults, its conv fusion, and no autotuning; the DEAR update without autotuning
 #   loop      benchmarks/profile_loop.py: where a training iteration's time goes, per program, for
@@ -177,10 +182,11 @@ PY
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       c=$1 n=$2 a=$3 f=$4; shift 4
       name=profile_loop_$(basename "$c" .py)_${n}x16_${a}$([ "$f" = cf ] && echo _cf)
+      name=$name${PL_SET:+_${PL_SET##*=}}
       XLA_FLAGS="$([ "$f" = cf ] && echo "$CONV_FUSION")" timeout 290 python3 -m \
         benchmarks.profile_loop --config "$c" --seeds "$n" --envs 16 --dtype bfloat16 \
         --warmup-frames 2400 --log-every 800 --iterations 10 --set "agent.seed_axis=$a" \
-        --out "$out/$name.json" > "$out/$name.log" 2>&1
+        ${PL_SET:+--set "$PL_SET"} --out "$out/$name.json" > "$out/$name.log" 2>&1
       grep -h -A8 "per iteration" "$out/$name.log" ;;
     dispatch)
       # benchmarks/dispatch.py under XLA's defaults, its conv fusion, and without autotuning
@@ -193,6 +199,22 @@ PY
       XLA_FLAGS="$NO_AUTOTUNE" timeout 200 python3 -m benchmarks.update --methods dear --seeds 5 \
         --batch 512 --iters 20 --dtypes bfloat16 --seed-axis hybrid \
         --out "$out/update_no_autotune.json" ;;
+    pallas)
+      export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
+      timeout 240 python3 -m benchmarks.wgrad --out "$out/wgrad.json"
+      python3 - "$out/wgrad.json" <<'PY'
+import json, pathlib, re, sys
+rows = [r for r in json.load(open(sys.argv[1]))["rows"] if r["variant"].startswith("pallas")]
+best = min((r for r in rows if "ms_per_call" in r), key=lambda r: r["ms_per_call"])
+images, warps = map(int, re.findall(r"\d+", best["variant"]))
+p = pathlib.Path("dear_jax/wgrad.py")
+text = re.sub(r"(?m)^IMAGES = \d+", f"IMAGES = {images}", p.read_text())
+p.write_text(re.sub(r"(?m)^NUM_WARPS = \d+", f"NUM_WARPS = {warps}", text))
+print(f"wgrad defaults in this tree: IMAGES={images} NUM_WARPS={warps}")
+PY
+      timeout 300 python3 -m benchmarks.update --methods dear drqv2 --drqv2-encoder plain \
+        --seeds 5 --batch 512 --iters 20 --dtypes bfloat16 --seed-axis hybrid \
+        --filter-gradients cudnn pallas --out "$out/update_pallas.json" ;;
     loop)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       b=${BACKEND:-config}

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from benchmarks.common import save_json, timed_calls
-from dear_jax import augment, networks, update
+from dear_jax import augment, networks, update, wgrad
 from dear_jax.replay import Batch
 
 # DESIGN.md: the PyTorch reference architecture's DEAR update, batch 256, TF32, on an H100.
@@ -106,6 +106,7 @@ def time_update(
         method=method,
         encoder=encoder,
         filter_gradient=filter_gradient,
+        wgrad=dict(images=wgrad.IMAGES, num_warps=wgrad.NUM_WARPS),
         seed_axis=seed_axis,
         shift_impl=shift_impl,
         seeds=seeds,

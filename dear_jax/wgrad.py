@@ -27,6 +27,8 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
 MAX_WIDTH = 128  # output rows wider than this stay on cuDNN
+IMAGES = 1  # images per program
+NUM_WARPS = 4
 
 
 def _pow2(n: int) -> int:
@@ -55,8 +57,8 @@ def _kernel(x_ref, g_ref, o_ref, *, k: int, width: int, ho: int, wo: int, bw: in
     g_mask = jnp.broadcast_to(valid[:, None], (bw, f))
 
     def row(i, accs):
-        n = p * images + i // ho
-        r = i % ho
+        n = p * images + jax.lax.div(i, ho)  # i >= 0: truncating division, as Triton lowers
+        r = jax.lax.rem(i, ho)
         g = plt.load(g_ref.at[n, pl.ds(r * wo, bw), :], mask=g_mask, other=0.0)
         out = []
         for t in range(k * k):
@@ -71,12 +73,18 @@ def _kernel(x_ref, g_ref, o_ref, *, k: int, width: int, ho: int, wo: int, bw: in
         o_ref[p, t] = accs[t]
 
 
-@functools.partial(jax.jit, static_argnames=("kernel_size", "images", "interpret"))
+@functools.partial(jax.jit, static_argnames=("kernel_size", "images", "num_warps", "interpret"))
 def filter_gradient(
-    x: jax.Array, g: jax.Array, kernel_size: int, images: int = 1, interpret: bool | None = None
+    x: jax.Array,
+    g: jax.Array,
+    kernel_size: int,
+    images: int = IMAGES,
+    num_warps: int = NUM_WARPS,
+    interpret: bool | None = None,
 ) -> jax.Array:
     """dW [k, k, C, F] (float32) of `lax.conv_general_dilated(x, W, (1, 1), "VALID", NHWC/HWIO)`
-    for x [N, H, W, C] and the output's gradient g [N, H-k+1, W-k+1, F]."""
+    for x [N, H, W, C] and the output's gradient g [N, H-k+1, W-k+1, F]. Each program takes
+    `images` images and runs on `num_warps` warps (benchmarks/wgrad.py times the choices)."""
     n, h, width, c = x.shape
     k = kernel_size
     ho, wo, f = g.shape[1], g.shape[2], g.shape[3]
@@ -94,5 +102,7 @@ def filter_gradient(
         out_shape=jax.ShapeDtypeStruct((programs, k * k, c, f), jnp.float32),
         grid=(programs,),
         interpret=interpret,
+        # Triton's parameters also pick Pallas' Triton backend (not Mosaic GPU).
+        compiler_params=plt.CompilerParams(num_warps=num_warps, num_stages=1),
     )(x.reshape(n, h * width, c), g.reshape(n, ho * wo, f))
     return partials.sum(0).reshape(k, k, c, f)

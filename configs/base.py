@@ -91,7 +91,8 @@ def get_config() -> ConfigDict:
     # The convolutions' filter gradients: "cudnn" (XLA's) or "pallas" (dear_jax/wgrad.py, one
     # kernel for all seeds; stride-1 layers with power-of-2 channels). Same numbers. cuDNN's cost
     # the host more to launch than they run on an H100 (benchmarks/results/dispatch_h100.json);
-    # "pallas" is not yet measured on a GPU.
+    # "pallas" launches cheaply, but the update ran 2-3% slower with it
+    # (benchmarks/results/update_pallas_h100.json).
     c.agent.filter_gradient = "cudnn"
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
     c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)

@@ -277,6 +277,19 @@ def test_pallas_filter_gradient_equals_cudnns():
         wgrad.filter_gradient(xs[0], gs[0][:, :4], 3)
 
 
+def test_pallas_filter_gradient_lowers_for_cuda_as_one_triton_kernel():
+    """Compiled (not interpreted), the kernel lowers for CUDA on any machine, through Pallas'
+    Triton backend: JAX's default GPU backend, Mosaic GPU, refused it (shared memory), and
+    Triton's lowering refused Python's integer `//`. Under vmap it stays one launch."""
+    from dear_jax import wgrad
+
+    x = jax.ShapeDtypeStruct((2, 8, 41, 41, 32), jnp.bfloat16)  # 2 seeds
+    g = jax.ShapeDtypeStruct((2, 8, 39, 39, 32), jnp.bfloat16)
+    fn = jax.vmap(lambda x, g: wgrad.filter_gradient(x, g, 3, interpret=False))
+    text = jax.jit(fn).trace(x, g).lower(lowering_platforms=("cuda",)).as_text()
+    assert text.count("xla.gpu.triton") == 1
+
+
 @pytest.mark.parametrize("loop_seeds", [False, True])
 def test_networks_with_pallas_filter_gradients_are_the_same_function(loop_seeds):
     """With filter_gradient="pallas" the decoder and the encoder (stride 2 first: cuDNN) give the

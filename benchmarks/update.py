@@ -106,7 +106,10 @@ def time_update(
         method=method,
         encoder=encoder,
         filter_gradient=filter_gradient,
-        wgrad=dict(images=wgrad.IMAGES, num_warps=wgrad.NUM_WARPS),
+        # the Pallas kernel's choices, where it ran
+        wgrad=dict(images=wgrad.IMAGES, num_warps=wgrad.NUM_WARPS)
+        if filter_gradient == "pallas"
+        else None,
         seed_axis=seed_axis,
         shift_impl=shift_impl,
         seeds=seeds,

@@ -9,7 +9,8 @@
 #   paper     start the learning check detached: ${LEARN_CONFIG:-configs/walker_drqv2_paper.py}
 #             (e.g. LEARN_CONFIG=configs/walker_dear.py; several configs, space-separated, train
 #             side by side; DTYPES="float32 bfloat16": each config once per dtype;
-#             CONFIG:DTYPE: that config in that dtype), 3 seeds
+#             CONFIG:DTYPE: that config in that dtype; configs/paper.py:walker,dear,medium,noisy
+#             names a paper.py experiment, in runs/paper_walker_dear_medium_noisy), 3 seeds
 #             each, physics of $BACKEND if set,
 #             more flags from $LEARN_ARGS (e.g. --config.envs_per_seed=16), from a copy of
 #             the tree (keep the machine with `wait`, then `collect`)
@@ -30,6 +31,8 @@
 #             with its plain encoder; 5 seeds, batch 512) with agent.seed_axis loop and hybrid,
 #             with and without $CONV_FUSION (and all command buffers); the profile of the
 #             hybrid DEAR update (XLA's defaults)
+#   evaldev   benchmarks/train.py: the DrQ-v2 learning check's loop evaluating in the background
+#             on the GPU (eval_device=train), on the host's CPU (cpu), and not at all
 #   pl C S A F  benchmarks/profile_loop.py of config C with S seeds x 16 envs, bf16,
 #             agent.seed_axis A, with XLA's conv fusion if F is "cf" ("-": without); another
 #             config field from $PL_SET (e.g. PL_SET=agent.filter_gradient=pallas)
@@ -94,15 +97,18 @@ while [ $# -gt 0 ]; do
       # an equal share of the GPU's memory; with $DTYPES (e.g. "float32 bfloat16") each config
       # trains once per compute dtype, in <name>_<dtype>; CONFIG:DTYPE names one run's dtype.
       rm -rf /tmp/paper_tree; cp -r "$PWD" /tmp/paper_tree
+      # A config file may carry its argument (configs/paper.py:walker,dear,medium,noisy).
       runs_=()
       for lc in ${LEARN_CONFIG:-configs/walker_drqv2_paper.py}; do
-        if [[ $lc == *:* ]]; then runs_+=("$lc")
+        if [[ $lc == *:float32 || $lc == *:bfloat16 ]]; then runs_+=("$lc")
         elif [ -n "${DTYPES:-}" ]; then for d in $DTYPES; do runs_+=("$lc:$d"); done
         else runs_+=("$lc:"); fi
       done
       share=$(python3 -c "print(round(0.9 / ${#runs_[@]}, 3))")
       for r in "${runs_[@]}"; do
-        lc=${r%%:*}; d=${r#*:}; name=$(basename "$lc" .py)${d:+_$d}
+        lc=${r%:*}; d=${r##*:}; name=$(basename "${lc%%:*}" .py)
+        [[ $lc == *:* ]] && name=${name}_$(echo "${lc#*:}" | tr , _)
+        name=$name${d:+_$d}
         (cd /tmp/paper_tree && XLA_PYTHON_CLIENT_MEM_FRACTION=$share setsid nohup python3 run.py \
           --config "$lc" --workdir "$runs/$name" --config.seeds=3 --config.progress=False \
           ${BACKEND:+--config.env.backend=$BACKEND} ${LEARN_ARGS:-} \
@@ -178,6 +184,18 @@ PY
         --seed-axis hybrid --dtype bfloat16 --top 40 --out "$out/profile_dear_hybrid.json" \
         > "$out/profile_dear_hybrid.log" 2>&1
       head -n 60 "$out/profile_dear_hybrid.log" ;;
+    evaldev)
+      # The evaluation's device (config eval_device) in the DrQ-v2 learning check's loop:
+      # 3 seeds x 16 envs, bf16, 10 episodes per seed every 5,000 frames per seed, in the
+      # background, on the training's GPU and on the host's CPU; and without evaluating.
+      export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
+      t="python3 -m benchmarks.train --config configs/walker_drqv2_paper.py --seeds 3 --envs 16 --dtype bfloat16 --backend cpu --warmup-frames 2400 --frames 15000 --log-every 2500 --eval-episodes 10 --skip split --set replay.disk=false"
+      for d in train cpu; do
+        timeout 200 $t --eval-every 5000 --set eval_device=$d --out "$out/train_eval_$d.json" \
+          > "$out/train_eval_$d.log" 2>&1
+      done
+      timeout 200 $t --out "$out/train_eval_none.json" > "$out/train_eval_none.log" 2>&1
+      grep -h -B1 -A1 "End to end" "$out"/train_eval_*.log ;;
     pl)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       c=$1 n=$2 a=$3 f=$4; shift 4

@@ -46,7 +46,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding
+from jax.sharding import Mesh, NamedSharding, SingleDeviceSharding
 from jax.sharding import PartitionSpec as P
 from ml_collections import ConfigDict
 
@@ -77,6 +77,7 @@ RESUMABLE_CHANGES = (
     "env.render.num_workers",
     "env.eval_backend",
     "eval_in_background",
+    "eval_device",
     "agent.seed_axis",
     "agent.shift_impl",
     "agent.filter_gradient",
@@ -102,6 +103,8 @@ def fingerprint(config: ConfigDict) -> dict:
 
 # Offset of process p's env seeds (and episode-start keys): p * HOST_SEED_STRIDE.
 HOST_SEED_STRIDE = 1_000_033
+
+EVAL_DEVICES = ("auto", "cpu", "train")
 
 
 def _get(config: ConfigDict, dotted: str):
@@ -271,6 +274,7 @@ def validate(config: ConfigDict) -> None:
         "agent.filter_gradient": networks.FILTER_GRADIENTS,
         "env.backend": ("auto", "mjx", "cpu"),
         "env.eval_backend": ("cpu", "train"),
+        "eval_device": EVAL_DEVICES,
         "env.distraction": ("none", "easy", "medium", "hard"),
         "env.mask": ("true", "noisy", "approximate"),
     }
@@ -344,6 +348,22 @@ def hparams(config: ConfigDict) -> update.HParams:
     )
 
 
+def eval_device(config: ConfigDict, hosts: Hosts) -> jax.Device | None:
+    """The device of the evaluation's policy and pixels (config.eval_device): the host's CPU, or
+    None for the training's devices."""
+    choice = config.eval_device
+    if choice == "auto":
+        choice = "train" if hosts.multi else "cpu"
+    if choice == "train":
+        return None
+    if hosts.multi:
+        raise ValueError(
+            f"eval_device='cpu' evaluates in one process, and this run has {hosts.count}; set "
+            "eval_device='train' or 'auto'"
+        )
+    return jax.devices("cpu")[0]
+
+
 def make_env(
     config: ConfigDict,
     *,
@@ -353,9 +373,11 @@ def make_env(
     backend: str | None = None,
     mesh: Mesh | None = None,
     hosts: Hosts | None = None,
+    device: jax.Device | None = None,
 ) -> envs.Env:
     """The batched env of the config (`backend` overrides env.backend; seeds split over `mesh`);
-    with several processes (`hosts`), of this process's lanes on its devices."""
+    with several processes (`hosts`), of this process's lanes on its devices; with a `device`,
+    every lane's arrays on that one device instead."""
     e = config.env
     hosts = hosts or Hosts(mesh, lanes.num_lanes(config))
     # Each process draws its own lanes' episode starts and distractions.
@@ -375,7 +397,7 @@ def make_env(
         seed=seed,
         action_repeat=e.action_repeat,
         episode_frames=e.episode_frames or None,
-        sharding=hosts.local,
+        sharding=hosts.local if device is None else SingleDeviceSharding(device),
     )
     return env
 
@@ -390,6 +412,9 @@ class Programs:
     # (params, obs) -> (actions, {cos_agent_env, abs_cos_agent_env: [S]}, predicted mask of env 0
     # [S,H,W])
     evaluate_step: callable
+    # The same on one device (eval_device="cpu": params and obs on the host's CPU), in float32:
+    # XLA:CPU runs bfloat16 convolutions at half float32's speed.
+    evaluate_step_host: callable
     accumulate: callable  # (returns [S,E], ts) -> returns
     add_metrics: callable  # (metrics, metrics) -> elementwise sum
 
@@ -479,7 +504,7 @@ def build_programs(
             buffer, ts.frame, ts.mask, action, ts.reward, ts.discount, ts.first
         )
 
-    def evaluate_step(params, obs):
+    def evaluate_step(nets):
         def one(params, obs):
             z = nets.encoder.apply({"params": params["encoder"]}, obs)
             action = nets.actor.apply({"params": params["actor"]}, z)
@@ -492,7 +517,9 @@ def build_programs(
                 pred = jax.nn.sigmoid(logits[0, ..., -1])
             return action, cos, pred
 
-        return over_seeds(one)(params, obs)
+        return one
+
+    nets_f32 = update.make_networks(dataclasses.replace(acfg, compute_dtype="float32"))
 
     def accumulate(returns, ts):
         return jnp.where(ts.first, 0.0, returns) + ts.reward
@@ -501,7 +528,8 @@ def build_programs(
         act=jax.jit(act, donate_argnums=0),
         learn=jax.jit(learn, donate_argnums=0),
         add=jax.jit(add, donate_argnums=0),
-        evaluate_step=jax.jit(evaluate_step),
+        evaluate_step=jax.jit(over_seeds(evaluate_step(nets))),
+        evaluate_step_host=jax.jit(update.over_seeds(evaluate_step(nets_f32), a.seed_axis)),
         accumulate=jax.jit(accumulate),
         add_metrics=jax.jit(lambda a, b: jax.tree.map(jnp.add, a, b)),
     )
@@ -513,7 +541,7 @@ class EvalAborted(Exception):
 
 def evaluate(
     env: envs.Env,
-    programs: Programs,
+    step,
     params,
     key,
     *,
@@ -522,7 +550,8 @@ def evaluate(
     hosts: Hosts | None = None,
 ) -> tuple[dict, dict]:
     """One episode in each of the eval env's E envs per seed, deterministic actions of the
-    policy with `params` (the agent's, [S]-stacked).
+    policy with `params` (the agent's, [S]-stacked); `step` is `Programs.evaluate_step` or, with
+    params and env on the host's CPU, `Programs.evaluate_step_host`.
 
     Returns per-seed metrics ([S] arrays) and, if asked, video frames of env 0 per seed.
     Raises EvalAborted when `stop()` turns true (checked every step). With several processes
@@ -537,7 +566,7 @@ def evaluate(
     cos_sum, steps = None, 0
     frames = []
     while True:
-        action, cos, pred = programs.evaluate_step(params, hosts.to_global(ts.obs))
+        action, cos, pred = step(params, hosts.to_global(ts.obs))
         action, cos, pred = hosts.to_local((action, cos, pred))
         if video:
             frames.append((ts.frame[:, 0], ts.true_mask[:, 0], pred))
@@ -683,6 +712,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
         store = _replay_store(config, spec, workdir, hosts)
         if store is not None:
             stack.callback(store.close)
+        eval_on = eval_device(config, hosts)
         eval_env = stack.enter_context(
             make_env(
                 config,
@@ -692,6 +722,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 backend="cpu" if config.env.eval_backend == "cpu" else None,
                 mesh=mesh,
                 hosts=hosts,
+                device=eval_on,
             )
         )
         if mesh is not None:
@@ -706,7 +737,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 hosts.lanes[0],
                 hosts.lanes[-1],
             )
-        run = _Run(config, spec, ckpt, store, env, eval_env, mesh, hosts)
+        run = _Run(config, spec, ckpt, store, env, eval_env, mesh, hosts, eval_on)
         if hosts.index == 0:
             (workdir / "config.json").write_text(config.to_json(indent=1))
         names = [lane.name for lane in mine]
@@ -855,9 +886,11 @@ class _Run:
         eval_env: envs.Env,
         mesh: Mesh | None = None,
         hosts: Hosts | None = None,
+        eval_on: jax.Device | None = None,
     ):
         self.config, self.spec, self.ckpt, self.store = config, spec, ckpt, store
         self.env, self.eval_env, self.mesh = env, eval_env, mesh
+        self.eval_on = eval_on  # eval_device(): the host's CPU, or None (the training's devices)
         self.lanes = lanes.lanes(config)
         self.hosts = hosts or Hosts(mesh, len(self.lanes))
         self.mine = [self.lanes[i] for i in self.hosts.lanes]
@@ -1114,10 +1147,15 @@ class _Run:
                     replay.num_transitions(hosts.to_local(self.buffer), self.acfg.frame_stack),
                     config.agent.batch_size,
                 )
-            # While an evaluation runs in the background, its steps' programs queue on the same
-            # device behind the updates dispatched before them: each update is dispatched only
-            # once the one before it has finished, so they wait for one update, not for all.
-            short_queue = self._pending_eval is not None and self._eval_thread is not None
+            # While an evaluation runs in the background on the training's devices, its steps'
+            # programs queue behind the updates dispatched before them: each update is
+            # dispatched only once the one before it has finished, so they wait for one update,
+            # not for all. (On the host's CPU, eval_device="cpu", they queue behind nothing.)
+            short_queue = (
+                self._pending_eval is not None
+                and self._eval_thread is not None
+                and self.eval_on is None
+            )
             for k in jax.random.split(k_learn, n) if n else ():
                 if short_queue and self.metric_sum is not None:
                     jax.block_until_ready(self.metric_sum)
@@ -1207,22 +1245,26 @@ class _Run:
         background = self._eval_thread is not None
         # A copy: the loop donates the agent's buffers to its next update.
         params = jax.tree.map(jnp.copy, self.agent.params) if background else self.agent.params
-        key = jax.random.fold_in(self.eval_root, frame)
+        key = self._env_key(jax.random.fold_in(self.eval_root, frame))
+        on = self.eval_on
+        step = self.programs.evaluate_step if on is None else self.programs.evaluate_step_host
 
         def run():
             t0 = time.perf_counter()
             # A stop cuts short an evaluation that holds up the loop; one in the background
             # runs to its end first, so the checkpoint after it holds its row.
             abort = (lambda: False) if background else (lambda: bool(stop))
-            metrics, clips = evaluate(
-                self.eval_env,
-                self.programs,
-                params,
-                self._env_key(key),
-                video=config.save_video,
-                stop=abort,
-                hosts=self.hosts,
-            )
+            # On the host's CPU every array of the evaluation, those it makes included, is there.
+            with contextlib.nullcontext() if on is None else jax.default_device(on):
+                metrics, clips = evaluate(
+                    self.eval_env,
+                    step,
+                    params if on is None else jax.device_put(params, on),
+                    key if on is None else jax.device_put(key, on),
+                    video=config.save_video,
+                    stop=abort,
+                    hosts=self.hosts,
+                )
             return metrics, clips, time.perf_counter() - t0
 
         pending = {

@@ -443,9 +443,9 @@ def test_evaluation_counts_each_envs_first_episode():
             return self._ts(state.step + 1)
 
     cos = {"cos_agent_env": jnp.zeros(1), "abs_cos_agent_env": jnp.zeros(1)}
-    programs = types.SimpleNamespace(
-        evaluate_step=lambda params, obs: (jnp.zeros((1, 3, 9)), cos, jnp.zeros((4, 4)))
-    )
-    metrics, _ = train.evaluate(FakeEnv(), programs, None, None, video=False)
+    def step(params, obs):
+        return jnp.zeros((1, 3, 9)), cos, jnp.zeros((4, 4))
+
+    metrics, _ = train.evaluate(FakeEnv(), step, None, None, video=False)
     np.testing.assert_allclose(metrics["episode_return"], [2 / 3])
     np.testing.assert_allclose(metrics["success"], [2 / 3])

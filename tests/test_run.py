@@ -11,11 +11,12 @@ import time
 
 import cv2
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from configs import smoke
-from dear_jax import replay_disk, report, train
+from dear_jax import replay_disk, report, train, update
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.config import resolve_config_path
 from dear_jax.logger import read_csv
@@ -188,16 +189,42 @@ def test_resumed_run_equals_the_uninterrupted_one(run):
 
 def test_evaluating_in_the_foreground_and_tracing_change_nothing_but_timing(run, tmp_path):
     """The fixture's runs evaluate in a background thread on a copy of the parameters while
-    training goes on; a run whose loop waits for each evaluation, and traces a few of its
+    training goes on, on the host's CPU (eval_device "auto"); a run whose loop waits for each
+    evaluation, run by the training's programs (eval_device "train"), and traces a few of its
     iterations with jax.profiler (`config.profile`), logs the same eval rows and trains exactly
     the same run, and leaves the trace in workdir/profile."""
     workdir = tmp_path / "foreground"
-    config = tiny_config(total_frames=280, eval_in_background=False)
+    config = tiny_config(total_frames=280, eval_in_background=False, eval_device="train")
     config.profile.at_frame, config.profile.iterations = 160, 3
     train.train(config, workdir)
     assert_same_run(run[-1], workdir, 280)
     assert len(read_csv(workdir / "seed_0" / "eval.csv")["frame"]) >= 3
     assert len(list((workdir / "profile").rglob("*.xplane.pb"))) == 1
+
+
+def test_the_evaluation_runs_on_the_host_cpu_in_float32_unless_told_otherwise():
+    """eval_device "auto" is the host's CPU in one process, where the policy runs in float32
+    whatever agent.compute_dtype says (its actions those of the bf16 program up to bf16's
+    rounding); "train" keeps the training's devices and dtype."""
+    config = tiny_config(**{"agent.compute_dtype": "bfloat16"})
+    hosts = train.Hosts(None, config.seeds)
+    assert train.eval_device(config, hosts) == jax.devices("cpu")[0]
+    config.eval_device = "train"
+    assert train.eval_device(config, hosts) is None
+    acfg = train.agent_config(config, action_dim=6)
+    programs = train.build_programs(acfg, train.hparams(config), config)
+    params = update.init_seeds(acfg, jax.random.split(jax.random.key(0), config.seeds)).params
+    obs = jax.random.randint(jax.random.key(1), (config.seeds, 3, 84, 84, 9), 0, 256, jnp.uint8)
+    host = jax.make_jaxpr(programs.evaluate_step_host)(params, obs)
+    trained = jax.make_jaxpr(programs.evaluate_step)(params, obs)
+    assert "bf16" in str(trained) and "bf16" not in str(host)
+    (a_host, cos_host, pred_host), (a, cos, pred) = (
+        step(params, obs) for step in (programs.evaluate_step_host, programs.evaluate_step)
+    )
+    assert a_host.shape == a.shape == (config.seeds, 3, 6) and pred_host.shape == (2, 84, 84)
+    np.testing.assert_allclose(a_host, a, atol=0.03)
+    np.testing.assert_allclose(pred_host, pred, atol=0.03)
+    assert not np.array_equal(a_host, a)  # two programs, not one
 
 
 def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):
@@ -366,6 +393,8 @@ def test_bad_values_fail_with_valid_choices(tmp_path):
         train.train(tiny_config(**{"replay.capacity": 10**9}), tmp_path)
     with pytest.raises(ValueError, match="agent.shift_impl 'roll'; valid: pad_slice, gather"):
         train.train(tiny_config(**{"agent.shift_impl": "roll"}), tmp_path)
+    with pytest.raises(ValueError, match="eval_device 'gpu'; valid: auto, cpu, train"):
+        train.train(tiny_config(eval_device="gpu"), tmp_path)
 
 
 def test_benchmarks_set_any_config_field_typed_and_by_known_name():

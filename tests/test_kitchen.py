@@ -443,6 +443,7 @@ def test_evaluation_counts_each_envs_first_episode():
             return self._ts(state.step + 1)
 
     cos = {"cos_agent_env": jnp.zeros(1), "abs_cos_agent_env": jnp.zeros(1)}
+
     def step(params, obs):
         return jnp.zeros((1, 3, 9)), cos, jnp.zeros((4, 4))
 

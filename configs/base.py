@@ -28,10 +28,11 @@ def get_config() -> ConfigDict:
     # Evaluate in a background thread on a copy of the parameters while training goes on (the
     # row is logged with the frame it started at); False: training waits for each evaluation.
     c.eval_in_background = True
-    # Where the evaluation's policy and pixels run: "cpu" (the host's CPU through XLA:CPU, the
-    # policy in float32, so that an evaluation never queues work on the accelerator behind the
-    # training's updates), "train" (the training's devices and agent.compute_dtype) or "auto"
-    # ("cpu" in a single process, "train" with several: their evaluations are global programs).
+    # Where evaluations run: "cpu", a process of their own on the host's CPU (its own Python,
+    # XLA:CPU with the policy in float32, render workers), so that evaluating takes neither the
+    # accelerator nor this process's threads from the training; "train", this process on the
+    # training's devices and agent.compute_dtype; "auto": "cpu" for a run of one process,
+    # "train" for one of several (their evaluations are programs over every process's lanes).
     c.eval_device = "auto"
     c.log_every_frames = 5_000  # per seed: train metrics to CSV / TensorBoard
     c.checkpoint_every_frames = 100_000  # per seed; 0 disables periodic checkpoints

@@ -46,17 +46,18 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, SingleDeviceSharding
+from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 from ml_collections import ConfigDict
 
 import envs
 from dear_jax import augment, lanes, losses, networks, replay, replay_disk, update
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
+from dear_jax.evaluator import EvalAborted, EvalProcess, LocalEvaluator
 from dear_jax.lock import WorkdirLock
 from dear_jax.logger import RunLogger, format_table, read_csv, write_text_atomic
 from dear_jax.signals import Stopped, StopRequest
-from dear_jax.video import side_by_side, write_video
+from dear_jax.video import write_video
 
 log = logging.getLogger("dear_jax")
 
@@ -348,20 +349,18 @@ def hparams(config: ConfigDict) -> update.HParams:
     )
 
 
-def eval_device(config: ConfigDict, hosts: Hosts) -> jax.Device | None:
-    """The device of the evaluation's policy and pixels (config.eval_device): the host's CPU, or
-    None for the training's devices."""
+def eval_device(config: ConfigDict, hosts: Hosts) -> str:
+    """Where the evaluations run (config.eval_device, "auto" resolved): "cpu", a process of
+    their own on the host's CPU (dear_jax/evaluator.py), or "train", this process."""
     choice = config.eval_device
     if choice == "auto":
         choice = "train" if hosts.multi else "cpu"
-    if choice == "train":
-        return None
-    if hosts.multi:
+    if choice == "cpu" and hosts.multi:
         raise ValueError(
             f"eval_device='cpu' evaluates in one process, and this run has {hosts.count}; set "
             "eval_device='train' or 'auto'"
         )
-    return jax.devices("cpu")[0]
+    return choice
 
 
 def make_env(
@@ -373,11 +372,9 @@ def make_env(
     backend: str | None = None,
     mesh: Mesh | None = None,
     hosts: Hosts | None = None,
-    device: jax.Device | None = None,
 ) -> envs.Env:
     """The batched env of the config (`backend` overrides env.backend; seeds split over `mesh`);
-    with several processes (`hosts`), of this process's lanes on its devices; with a `device`,
-    every lane's arrays on that one device instead."""
+    with several processes (`hosts`), of this process's lanes on its devices."""
     e = config.env
     hosts = hosts or Hosts(mesh, lanes.num_lanes(config))
     # Each process draws its own lanes' episode starts and distractions.
@@ -397,7 +394,7 @@ def make_env(
         seed=seed,
         action_repeat=e.action_repeat,
         episode_frames=e.episode_frames or None,
-        sharding=hosts.local if device is None else SingleDeviceSharding(device),
+        sharding=hosts.local,
     )
     return env
 
@@ -412,8 +409,8 @@ class Programs:
     # (params, obs) -> (actions, {cos_agent_env, abs_cos_agent_env: [S]}, predicted mask of env 0
     # [S,H,W])
     evaluate_step: callable
-    # The same on one device (eval_device="cpu": params and obs on the host's CPU), in float32:
-    # XLA:CPU runs bfloat16 convolutions at half float32's speed.
+    # The same in float32, for the evaluation process on the host's CPU (eval_device="cpu",
+    # dear_jax/evaluator.py): XLA:CPU runs bfloat16 convolutions at half float32's speed.
     evaluate_step_host: callable
     accumulate: callable  # (returns [S,E], ts) -> returns
     add_metrics: callable  # (metrics, metrics) -> elementwise sum
@@ -535,65 +532,6 @@ def build_programs(
     )
 
 
-class EvalAborted(Exception):
-    """An evaluation was cut short by a stop request; the run evaluates again after resuming."""
-
-
-def evaluate(
-    env: envs.Env,
-    step,
-    params,
-    key,
-    *,
-    video: bool,
-    stop=lambda: False,
-    hosts: Hosts | None = None,
-) -> tuple[dict, dict]:
-    """One episode in each of the eval env's E envs per seed, deterministic actions of the
-    policy with `params` (the agent's, [S]-stacked); `step` is `Programs.evaluate_step` or, with
-    params and env on the host's CPU, `Programs.evaluate_step_host`.
-
-    Returns per-seed metrics ([S] arrays) and, if asked, video frames of env 0 per seed.
-    Raises EvalAborted when `stop()` turns true (checked every step). With several processes
-    (`hosts`), those of this process's lanes, whose envs `env` steps; the episodes end when
-    every process's have.
-    """
-    hosts = hosts or Hosts(None, env.shape[0])
-    state, ts = env.reset(key)
-    returns = jnp.zeros(env.shape)
-    success = jnp.zeros(env.shape)
-    done = np.zeros(env.shape, bool)  # envs whose first episode has ended (kitchen: at success)
-    cos_sum, steps = None, 0
-    frames = []
-    while True:
-        action, cos, pred = step(params, hosts.to_global(ts.obs))
-        action, cos, pred = hosts.to_local((action, cos, pred))
-        if video:
-            frames.append((ts.frame[:, 0], ts.true_mask[:, 0], pred))
-        cos_sum = cos if cos_sum is None else jax.tree.map(jnp.add, cos_sum, cos)
-        steps += 1
-        done |= np.asarray(state.last)
-        if hosts.agree([done.all()]).all():
-            break
-        if stop():
-            raise EvalAborted
-        live = jnp.asarray(~done)  # an ended env restarts; its next episode does not count
-        state, ts = env.step(state, action)
-        returns = returns + jnp.where(live, ts.reward, 0.0)
-        success = jnp.maximum(success, jnp.where(live, ts.success, 0.0))
-    metrics = {
-        "episode_return": np.asarray(returns.mean(1)),
-        **{name: np.asarray(total / steps) for name, total in cos_sum.items()},
-    }
-    if env.spec.has_success:
-        metrics["success"] = np.asarray(success.mean(1))
-    clips = {}
-    if video:
-        rgb, true_mask, pred = (np.asarray(jnp.stack(x, 1)) for x in zip(*frames))
-        clips = {s: side_by_side(rgb[s], true_mask[s], pred[s]) for s in range(rgb.shape[0])}
-    return metrics, clips
-
-
 def _pbar(config, total, initial):
     """The progress bar, on a terminal only (detached runs log a line per log interval instead)."""
     if not config.progress or not sys.stderr.isatty():
@@ -712,9 +650,10 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
         store = _replay_store(config, spec, workdir, hosts)
         if store is not None:
             stack.callback(store.close)
-        eval_on = eval_device(config, hosts)
-        eval_env = stack.enter_context(
-            make_env(
+        if eval_device(config, hosts) == "cpu":  # starts now, builds while this one compiles
+            evaluator = EvalProcess(config)
+        else:
+            eval_env = make_env(
                 config,
                 envs_per_seed=config.num_eval_episodes,
                 split="val",
@@ -722,9 +661,12 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 backend="cpu" if config.env.eval_backend == "cpu" else None,
                 mesh=mesh,
                 hosts=hosts,
-                device=eval_on,
             )
-        )
+            acfg = agent_config(config, spec.action_dim)
+            evaluator = LocalEvaluator(
+                eval_env, cached_programs(acfg, config, mesh).evaluate_step, hosts
+            )
+        stack.callback(evaluator.close)
         if mesh is not None:
             log.info(
                 "%d lanes split over %d devices (%d each) of %d process(es): %s; here lanes "
@@ -737,7 +679,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 hosts.lanes[0],
                 hosts.lanes[-1],
             )
-        run = _Run(config, spec, ckpt, store, env, eval_env, mesh, hosts, eval_on)
+        run = _Run(config, spec, ckpt, store, env, evaluator, mesh, hosts)
         if hosts.index == 0:
             (workdir / "config.json").write_text(config.to_json(indent=1))
         names = [lane.name for lane in mine]
@@ -883,14 +825,12 @@ class _Run:
         ckpt: Checkpointer,
         store,
         env: envs.Env,
-        eval_env: envs.Env,
+        evaluator: LocalEvaluator | EvalProcess,
         mesh: Mesh | None = None,
         hosts: Hosts | None = None,
-        eval_on: jax.Device | None = None,
     ):
         self.config, self.spec, self.ckpt, self.store = config, spec, ckpt, store
-        self.env, self.eval_env, self.mesh = env, eval_env, mesh
-        self.eval_on = eval_on  # eval_device(): the host's CPU, or None (the training's devices)
+        self.env, self.evaluator, self.mesh = env, evaluator, mesh
         self.lanes = lanes.lanes(config)
         self.hosts = hosts or Hosts(mesh, len(self.lanes))
         self.mine = [self.lanes[i] for i in self.hosts.lanes]
@@ -1022,7 +962,7 @@ class _Run:
                 _to_host(x) for x in jax.tree.leaves(self.state) if self._saved_on_host(x)
             ],
             "env_rng": self.env.host_state(),
-            "eval_env_rng": self.eval_env.host_state(),
+            "eval_env_rng": self.evaluator.host_state(),
             "replay_on_disk": self.store is not None,
             "processes": self.hosts.count,
         }
@@ -1060,7 +1000,7 @@ class _Run:
             [_like(x, next(host)) if self._saved_on_host(x) else next(device) for x in leaves]
         )
         self.env.set_host_state(extra["env_rng"])
-        self.eval_env.set_host_state(extra["eval_env_rng"])
+        self.evaluator.set_host_state(extra["eval_env_rng"])
         self.counters = extra["counters"]
         self.lv.update(extra["loop"])
         frame = self.counters["frame"]
@@ -1154,7 +1094,7 @@ class _Run:
             short_queue = (
                 self._pending_eval is not None
                 and self._eval_thread is not None
-                and self.eval_on is None
+                and isinstance(self.evaluator, LocalEvaluator)
             )
             for k in jax.random.split(k_learn, n) if n else ():
                 if short_queue and self.metric_sum is not None:
@@ -1246,31 +1186,22 @@ class _Run:
         # A copy: the loop donates the agent's buffers to its next update.
         params = jax.tree.map(jnp.copy, self.agent.params) if background else self.agent.params
         key = self._env_key(jax.random.fold_in(self.eval_root, frame))
-        on = self.eval_on
-        step = self.programs.evaluate_step if on is None else self.programs.evaluate_step_host
 
         def run():
             t0 = time.perf_counter()
             # A stop cuts short an evaluation that holds up the loop; one in the background
-            # runs to its end first, so the checkpoint after it holds its row.
+            # (or in its own process) runs to its end first, so the checkpoint after it holds
+            # its row.
             abort = (lambda: False) if background else (lambda: bool(stop))
-            # On the host's CPU every array of the evaluation, those it makes included, is there.
-            with contextlib.nullcontext() if on is None else jax.default_device(on):
-                metrics, clips = evaluate(
-                    self.eval_env,
-                    step,
-                    params if on is None else jax.device_put(params, on),
-                    key if on is None else jax.device_put(key, on),
-                    video=config.save_video,
-                    stop=abort,
-                    hosts=self.hosts,
-                )
+            metrics, clips = self.evaluator.evaluate(
+                params, key, video=config.save_video, stop=abort
+            )
             return metrics, clips, time.perf_counter() - t0
 
         pending = {
             "frame": frame,
             "wall_s": wall_s,
-            "env_state": self.eval_env.host_state(),
+            "env_state": self.evaluator.host_state(),
             "loop": {k: lv[k] for k in ("last_eval_frame", "next_eval")},
         }
         lv["last_eval_frame"] = frame
@@ -1296,7 +1227,7 @@ class _Run:
         try:
             metrics, clips, eval_s = pending["future"].result()
         except EvalAborted:  # the resumed run evaluates from here again
-            self.eval_env.set_host_state(pending["env_state"])
+            self.evaluator.set_host_state(pending["env_state"])
             lv.update(pending["loop"])
             return
         fps_per_seed = frame / pending["wall_s"] if frame else np.nan  # nothing trained at 0

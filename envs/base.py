@@ -25,8 +25,7 @@ a checkpointed run continues exactly.
 Devices: with `sharding` (a NamedSharding of the seeds axis, `dear_jax/train.py`), every host ->
 device upload (frames, labels, rewards, flags, episode starts) lands split over the devices by
 seed and the device programs keep it so: the one render pool feeds every device, and no array is
-gathered onto one device. A SingleDeviceSharding puts every array on that device (the
-evaluation's env on the host's CPU). Without one, arrays go to the default device, uncommitted.
+gathered onto one device. Without it, arrays go to the default device, uncommitted.
 """
 
 from __future__ import annotations
@@ -160,7 +159,7 @@ class Env:
         action_repeat: int = 2,
         solver: SolverSettings | None = None,
         episode_frames: int | None = None,
-        sharding: jax.sharding.Sharding | None = None,
+        sharding: jax.sharding.NamedSharding | None = None,
     ):
         render = render or RenderSettings()
         solver = solver or SolverSettings()
@@ -227,12 +226,11 @@ class Env:
             )
             num_videos, num_frames = videos.shape[:2]
         # Every device holds all videos: each looks up its own seeds' background frames.
-        if isinstance(sharding, jax.sharding.NamedSharding):
-            self._backgrounds = jax.device_put(
-                videos, jax.sharding.NamedSharding(sharding.mesh, P())
-            )
-        else:
-            self._backgrounds = upload(videos, sharding)
+        self._backgrounds = (
+            jnp.asarray(videos)
+            if sharding is None
+            else jax.device_put(videos, jax.sharding.NamedSharding(sharding.mesh, P()))
+        )
         self._distractor = distractions.Distractor(
             render_model,
             task.camera,

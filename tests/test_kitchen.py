@@ -413,10 +413,10 @@ def test_configs_validate(task):
 
 
 def test_evaluation_counts_each_envs_first_episode():
-    """Kitchen episodes end at different steps; dear_jax.train.evaluate must still stop."""
+    """Kitchen episodes end at different steps; dear_jax.evaluator.evaluate must still stop."""
     import types
 
-    from dear_jax import train
+    from dear_jax import evaluator
 
     ends, wins = np.array([[2, 4, 3]]), np.array([[True, False, True]])
 
@@ -447,6 +447,6 @@ def test_evaluation_counts_each_envs_first_episode():
     def step(params, obs):
         return jnp.zeros((1, 3, 9)), cos, jnp.zeros((4, 4))
 
-    metrics, _ = train.evaluate(FakeEnv(), step, None, None, video=False)
+    metrics, _ = evaluator.evaluate(FakeEnv(), step, None, None, video=False)
     np.testing.assert_allclose(metrics["episode_return"], [2 / 3])
     np.testing.assert_allclose(metrics["success"], [2 / 3])

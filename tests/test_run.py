@@ -203,14 +203,14 @@ def test_evaluating_in_the_foreground_and_tracing_change_nothing_but_timing(run,
 
 
 def test_the_evaluation_runs_on_the_host_cpu_in_float32_unless_told_otherwise():
-    """eval_device "auto" is the host's CPU in one process, where the policy runs in float32
-    whatever agent.compute_dtype says (its actions those of the bf16 program up to bf16's
-    rounding); "train" keeps the training's devices and dtype."""
+    """eval_device "auto" is a process of its own on the host's CPU when the run has one
+    process; its policy runs in float32 whatever agent.compute_dtype says (its actions those of
+    the bf16 program up to bf16's rounding); "train" keeps the training's devices and dtype."""
     config = tiny_config(**{"agent.compute_dtype": "bfloat16"})
     hosts = train.Hosts(None, config.seeds)
-    assert train.eval_device(config, hosts) == jax.devices("cpu")[0]
+    assert train.eval_device(config, hosts) == "cpu"
     config.eval_device = "train"
-    assert train.eval_device(config, hosts) is None
+    assert train.eval_device(config, hosts) == "train"
     acfg = train.agent_config(config, action_dim=6)
     programs = train.build_programs(acfg, train.hparams(config), config)
     params = update.init_seeds(acfg, jax.random.split(jax.random.key(0), config.seeds)).params

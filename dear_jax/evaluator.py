@@ -1,0 +1,224 @@
+"""Evaluation episodes: in the training process, or in a process of their own on the host's CPU.
+
+The loop evaluates through one of two evaluators with the same methods (`config.eval_device`):
+- `LocalEvaluator`: the eval env and the training's `Programs.evaluate_step`, in this process;
+- `EvalProcess` ("cpu", the default in one process): a child process with its own Python
+  interpreter, XLA:CPU and render workers runs the eval env and the float32 policy
+  (`Programs.evaluate_step_host`). The training process only sends the policy's parameters and
+  receives the metrics. On an H100 an evaluation run in the training process slowed its training
+  by a third while it ran, on the GPU and on the CPU alike (benchmarks/RESULTS.md, "Evaluation
+  in a process of its own").
+
+Both evaluate one episode in each of the eval env's E envs per seed (`evaluate`), and keep the
+eval env's host state (episode-start RNG, distractions) for checkpoints: an evaluation run in
+either continues the same sequence of episodes.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import pickle
+import signal
+import time
+import traceback
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dear_jax.video import side_by_side
+
+# The parameters an evaluation reads (the critic's and the TED classifier's are not sent).
+POLICY_PARAMS = ("encoder", "actor", "mask_decoder")
+_START_TIMEOUT_S = 600.0  # the child imports, builds its env and render workers
+
+
+class EvalAborted(Exception):
+    """An evaluation was cut short by a stop request; the run evaluates again after resuming."""
+
+
+def evaluate(env, step, params, key, *, video: bool, stop=lambda: False, hosts=None):
+    """One episode in each of the eval env's E envs per seed, deterministic actions of the
+    policy with `params` (the agent's, [S]-stacked); `step` is `Programs.evaluate_step` or, with
+    params and env on the host's CPU, `Programs.evaluate_step_host`.
+
+    Returns per-seed metrics ([S] arrays) and, if asked, video frames of env 0 per seed.
+    Raises EvalAborted when `stop()` turns true (checked every step). With several processes
+    (`hosts`, dear_jax.train.Hosts), those of this process's lanes, whose envs `env` steps; the
+    episodes end when every process's have.
+    """
+    to_global = hosts.to_global if hosts else lambda x: x
+    to_local = hosts.to_local if hosts else lambda x: x
+    agree = hosts.agree if hosts else lambda values: np.asarray(values)[None]
+    state, ts = env.reset(key)
+    returns = jnp.zeros(env.shape)
+    success = jnp.zeros(env.shape)
+    done = np.zeros(env.shape, bool)  # envs whose first episode has ended (kitchen: at success)
+    cos_sum, steps = None, 0
+    frames = []
+    while True:
+        action, cos, pred = to_local(step(params, to_global(ts.obs)))
+        if video:
+            frames.append((ts.frame[:, 0], ts.true_mask[:, 0], pred))
+        cos_sum = cos if cos_sum is None else jax.tree.map(jnp.add, cos_sum, cos)
+        steps += 1
+        done |= np.asarray(state.last)
+        if agree([done.all()]).all():
+            break
+        if stop():
+            raise EvalAborted
+        live = jnp.asarray(~done)  # an ended env restarts; its next episode does not count
+        state, ts = env.step(state, action)
+        returns = returns + jnp.where(live, ts.reward, 0.0)
+        success = jnp.maximum(success, jnp.where(live, ts.success, 0.0))
+    metrics = {
+        "episode_return": np.asarray(returns.mean(1)),
+        **{name: np.asarray(total / steps) for name, total in cos_sum.items()},
+    }
+    if env.spec.has_success:
+        metrics["success"] = np.asarray(success.mean(1))
+    clips = {}
+    if video:
+        rgb, true_mask, pred = (np.asarray(jnp.stack(x, 1)) for x in zip(*frames))
+        clips = {s: side_by_side(rgb[s], true_mask[s], pred[s]) for s in range(rgb.shape[0])}
+    return metrics, clips
+
+
+class LocalEvaluator:
+    """Evaluations in this process: `env` (on the training's devices) and the training's
+    `Programs.evaluate_step`."""
+
+    def __init__(self, env, step, hosts=None):
+        self.env, self.step, self.hosts = env, step, hosts
+
+    def host_state(self) -> dict:
+        return self.env.host_state()
+
+    def set_host_state(self, state: dict) -> None:
+        self.env.set_host_state(state)
+
+    def evaluate(self, params, key, *, video: bool, stop=lambda: False):
+        return evaluate(self.env, self.step, params, key, video=video, stop=stop, hosts=self.hosts)
+
+    def close(self) -> None:
+        self.env.close()
+
+
+class EvalProcess:
+    """Evaluations in a child process on the host's CPU (one process runs one at a time).
+
+    The child builds the config's eval env and the float32 policy, then serves requests until
+    this side closes the pipe (or exits, even by SIGKILL). It ignores SIGINT and SIGTERM: the
+    training process handles those, and lets an evaluation in flight end before it checkpoints.
+    An evaluation here always runs to its end (`stop` is not read)."""
+
+    def __init__(self, config):
+        ctx = multiprocessing.get_context("spawn")  # never fork a process that holds CUDA
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_serve, args=(child, pickle.dumps(config)), name="eval")
+        self._proc.start()
+        child.close()
+        self._state = None  # the eval env's host state, as of the last answer
+
+    def _call(self, *request, timeout: float | None = None):
+        if request:
+            self._conn.send(request)
+        start = time.monotonic()
+        while not self._conn.poll(1.0):
+            if not self._proc.is_alive():
+                raise RuntimeError(f"the evaluation process died (exit code {self._proc.exitcode})")
+            if timeout is not None and time.monotonic() - start > timeout:
+                raise TimeoutError(f"the evaluation process gave no answer in {timeout:.0f} s")
+        status, payload, state = self._conn.recv()
+        if status != "ok":
+            raise RuntimeError(f"the evaluation process failed:\n{payload}")
+        self._state = state
+        return payload
+
+    def _ready(self) -> None:
+        if self._state is None:  # its first answer: built, with the env's initial host state
+            self._call(timeout=_START_TIMEOUT_S)
+
+    def host_state(self) -> dict:
+        self._ready()
+        return self._state
+
+    def set_host_state(self, state: dict) -> None:
+        self._ready()
+        self._call("set_host_state", state)
+
+    def evaluate(self, params, key, *, video: bool, stop=lambda: False):
+        self._ready()
+        policy = {k: params[k] for k in POLICY_PARAMS if k in params}
+        policy = jax.tree.map(np.asarray, policy)  # waits here for the parameters, not the loop
+        key_data = np.asarray(jax.random.key_data(key))
+        return self._call("evaluate", policy, key_data, str(jax.random.key_impl(key)), video)
+
+    def close(self) -> None:
+        if self._proc.is_alive():
+            try:
+                self._conn.send(("close",))
+            except (BrokenPipeError, OSError):
+                pass
+            self._proc.join(timeout=30)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join()
+        self._conn.close()
+
+    def __enter__(self) -> EvalProcess:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _serve(conn, config_bytes: bytes) -> None:
+    """The child: build the eval env and policy on the host's CPU, then answer requests."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    jax.config.update("jax_platforms", "cpu")  # the accelerator stays the training's
+    cores = sorted(os.sched_getaffinity(0))
+    if len(cores) >= 4:  # its thread pools (XLA:CPU, render workers) on half the cores
+        os.sched_setaffinity(0, cores[len(cores) // 2 :])
+    from dear_jax import lanes, train  # after the platform is set
+
+    env = None
+    try:
+        config = pickle.loads(config_bytes)
+        env = train.make_env(
+            config,
+            envs_per_seed=config.num_eval_episodes,
+            split="val",
+            seed=config.seed + 1,
+            backend="cpu" if config.env.eval_backend == "cpu" else None,
+            hosts=train.Hosts(None, lanes.num_lanes(config)),
+        )
+        acfg = train.agent_config(config, env.spec.action_dim)
+        step = train.build_programs(acfg, train.hparams(config), config).evaluate_step_host
+        conn.send(("ok", None, env.host_state()))
+        while True:
+            try:
+                request = conn.recv()
+            except EOFError:  # the training process has gone
+                break
+            if request[0] == "close":
+                break
+            try:
+                if request[0] == "set_host_state":
+                    env.set_host_state(request[1])
+                    answer = None
+                else:  # evaluate
+                    policy, key_data, impl, video = request[1:]
+                    key = jax.random.wrap_key_data(jnp.asarray(key_data), impl=impl)
+                    answer = evaluate(env, step, jax.device_put(policy), key, video=video)
+                conn.send(("ok", answer, env.host_state()))
+            except Exception:
+                conn.send(("error", traceback.format_exc(), None))
+    except Exception:
+        conn.send(("error", traceback.format_exc(), None))
+    finally:
+        if env is not None:
+            env.close()
+        conn.close()

@@ -1,0 +1,92 @@
+"""Evaluations in a process of their own (dear_jax/evaluator.py) against those in this process."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import numpy as np
+import pytest
+
+from dear_jax import lanes, train, update
+from dear_jax.evaluator import EvalProcess, LocalEvaluator
+from tests.test_run import ROOT, tiny_config
+
+
+def _agent_params(config):
+    acfg = train.agent_config(config, action_dim=6)  # walker
+    keys = jax.random.split(jax.random.key(3), config.seeds)
+    return update.init_seeds(acfg, keys).params, acfg
+
+
+def test_the_eval_process_evaluates_as_this_process_does():
+    """Same parameters, same key: the child's episodes, returns, cosines and video frames are
+    this process's (float32 on the CPU both), and so is the eval env's host state after them;
+    restoring that state replays the same episodes there."""
+    config = tiny_config()
+    params, acfg = _agent_params(config)
+    hosts = train.Hosts(None, lanes.num_lanes(config))
+    env = train.make_env(config, envs_per_seed=config.num_eval_episodes, split="val", seed=1)
+    local = LocalEvaluator(env, train.build_programs(acfg, train.hparams(config), config)
+                           .evaluate_step, hosts)  # fmt: skip
+    key = jax.random.key(7)
+    with EvalProcess(config) as remote:
+        try:
+            start = remote.host_state()
+            local.set_host_state(start)
+            got, clips = remote.evaluate(params, key, video=True)
+            want, want_clips = local.evaluate(params, key, video=True)
+            assert set(got) == set(want) == {"episode_return", "cos_agent_env", "abs_cos_agent_env"}
+            for name in want:
+                np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+            assert clips.keys() == want_clips.keys() == {0, 1}
+            np.testing.assert_array_equal(clips[0], want_clips[0])
+            assert repr(remote.host_state()) == repr(local.host_state()) != repr(start)
+            remote.set_host_state(start)  # as a resumed run, or one whose evaluation was cut
+            again, _ = remote.evaluate(params, key, video=False)
+            np.testing.assert_array_equal(again["episode_return"], got["episode_return"])
+        finally:
+            local.close()
+
+
+def test_a_failure_in_the_eval_process_is_raised_here_with_its_traceback(tmp_path):
+    config = tiny_config(**{"env.distraction": "easy", "env.background_dir": str(tmp_path)})
+    with EvalProcess(config) as remote, pytest.raises(RuntimeError) as failure:
+        remote.host_state()
+    assert "the evaluation process failed" in str(failure.value)
+    assert "Traceback" in str(failure.value) and str(tmp_path) in str(failure.value)
+
+
+def test_the_eval_process_ends_with_the_training_process_even_when_killed():
+    """SIGKILL gives the training process no chance to close it: the child sees its pipe close
+    and exits (with its render workers), leaving no process behind. SIGINT (a Ctrl-C to the
+    terminal's process group) does not stop it: the training process decides."""
+    code = (
+        "import os, sys; from tests.test_run import tiny_config; "
+        "from dear_jax.evaluator import EvalProcess; e = EvalProcess(tiny_config()); "
+        "e.host_state(); print(e._proc.pid, flush=True); sys.stdin.read()"
+    )
+    parent = subprocess.Popen(
+        [sys.executable, "-c", code], cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+    try:
+        child = int(parent.stdout.readline())
+        os.kill(child, signal.SIGINT)
+        time.sleep(1.0)
+        os.kill(child, 0)  # still there
+        parent.kill()
+        parent.wait()
+        for _ in range(60):
+            try:
+                os.kill(child, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.5)
+        else:
+            os.kill(child, signal.SIGKILL)
+            pytest.fail("the evaluation process outlived the killed training process")
+    finally:
+        parent.kill()

@@ -32,7 +32,8 @@
 #             with and without $CONV_FUSION (and all command buffers); the profile of the
 #             hybrid DEAR update (XLA's defaults)
 #   evaldev   benchmarks/train.py: the DrQ-v2 learning check's loop evaluating in the background
-#             on the GPU (eval_device=train), on the host's CPU (cpu), and not at all
+#             in the training process (eval_device=train), in a process of its own on the host's
+#             CPU (cpu), and not at all (none); $EVAL_DEVICES picks (default "train cpu none")
 #   pl C S A F  benchmarks/profile_loop.py of config C with S seeds x 16 envs, bf16,
 #             agent.seed_axis A, with XLA's conv fusion if F is "cf" ("-": without); another
 #             config field from $PL_SET (e.g. PL_SET=agent.filter_gradient=pallas)
@@ -190,11 +191,10 @@ PY
       # background, on the training's GPU and on the host's CPU; and without evaluating.
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       t="python3 -m benchmarks.train --config configs/walker_drqv2_paper.py --seeds 3 --envs 16 --dtype bfloat16 --backend cpu --warmup-frames 2400 --frames 15000 --log-every 2500 --eval-episodes 10 --skip split --set replay.disk=false"
-      for d in train cpu; do
-        timeout 200 $t --eval-every 5000 --set eval_device=$d --out "$out/train_eval_$d.json" \
-          > "$out/train_eval_$d.log" 2>&1
+      for d in ${EVAL_DEVICES:-train cpu none}; do
+        if [ "$d" = none ]; then flags=""; else flags="--eval-every 5000 --set eval_device=$d"; fi
+        timeout 200 $t $flags --out "$out/train_eval_$d.json" > "$out/train_eval_$d.log" 2>&1
       done
-      timeout 200 $t --out "$out/train_eval_none.json" > "$out/train_eval_none.log" 2>&1
       grep -h -B1 -A1 "End to end" "$out"/train_eval_*.log ;;
     pl)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0

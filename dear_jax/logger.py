@@ -6,7 +6,9 @@ Layout under a run's workdir:
 (a sweep's lanes use their names, `dear_jax/lanes.py`, in place of seed_<i>).
 
 Every write is flushed, so a killed run keeps its logs. A resumed run (`resume_frame`) keeps the
-rows up to the checkpoint's frame and drops the later ones, which the resumed run will log again;
+rows up to the checkpoint's frame and drops the later ones, which the resumed run will log again
+(and, for the kinds in `redo`, those at the checkpoint's frame too: an evaluation the checkpoint
+holds as due);
 TensorBoard is told the same by a purge marker (SessionLog START at resume_frame + 1). A fresh run
 (`resume_frame=None`) starts new files in place of any left by an earlier run in that workdir.
 """
@@ -117,6 +119,7 @@ class RunLogger:
         tensorboard: bool = True,
         resume_frame: int | None = None,
         names: Sequence[str] | None = None,
+        redo: Sequence[str] = (),
     ):
         if num_seeds < 1:
             raise ValueError(f"num_seeds must be >= 1, got {num_seeds}")
@@ -139,7 +142,8 @@ class RunLogger:
                     continue
                 columns, rows = _read_rows(path)
                 # NaN frames (damaged rows) are dropped too: `nan <= x` is False.
-                kept = [r for r in rows if _frame_of(r) <= resume_frame]
+                last = resume_frame - 1 if kind in redo else resume_frame
+                kept = [r for r in rows if _frame_of(r) <= last]
                 if len(kept) != len(rows):
                     _replace_csv(path, columns, kept)
                 if columns:

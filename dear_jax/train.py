@@ -683,7 +683,11 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
         if hosts.index == 0:
             (workdir / "config.json").write_text(config.to_json(indent=1))
         names = [lane.name for lane in mine]
-        logger = RunLogger(workdir, len(mine), names=names, resume_frame=run.resumed_from)
+        # An evaluation due at the checkpoint's frame runs again (and logs its row again).
+        redo = ("eval",) if run.resumed_from is not None and run.eval_due() else ()
+        logger = RunLogger(
+            workdir, len(mine), names=names, resume_frame=run.resumed_from, redo=redo
+        )
         if len(runs) > 1 or runs[0].settings:  # each lane's own settings beside its logs
             for i, lane in enumerate(mine):
                 text = lanes.lane_config(config, lane).to_json(indent=1)
@@ -968,7 +972,10 @@ class _Run:
         }
 
     def save(self, wall_s: float) -> None:
-        self._finish_evaluation(wait=True)  # its row and eval-env state belong to this checkpoint
+        # The loop saves before starting an evaluation due at this frame (see `loop`), so an
+        # evaluation in flight here started earlier: its row and eval-env state belong to this
+        # checkpoint.
+        self._finish_evaluation(wait=True)
         self.counters["wall_s"] = wall_s
         if self.store is not None:
             self.store.save_partial(self.buffer, self.counters["rows"])
@@ -1172,14 +1179,19 @@ class _Run:
             parts.append(f"eval return {self.last_eval_return:.1f}")
         return ", ".join(parts)
 
+    def eval_due(self) -> bool:
+        """An evaluation is due at this frame and has not started."""
+        lv, frame = self.lv, self.counters["frame"]
+        due = frame >= lv["next_eval"] or frame >= self.config.total_frames
+        return due and lv["last_eval_frame"] != frame
+
     def _evaluate_if_due(self, wall_s, stop) -> None:
         """Start the evaluation due at this frame, if any: in a background thread on a copy of
         the parameters (`eval_in_background`, the default) while training goes on, or now. Its
         row is logged by `_finish_evaluation`, with the frame and wall time of its start."""
         self._finish_evaluation(wait=False)
         config, lv, frame = self.config, self.lv, self.counters["frame"]
-        due = frame >= lv["next_eval"] or frame >= config.total_frames
-        if not due or lv["last_eval_frame"] == frame or stop:
+        if not self.eval_due() or stop:
             return
         self._finish_evaluation(wait=True)  # one evaluation at a time, in order
         background = self._eval_thread is not None
@@ -1269,14 +1281,18 @@ class _Run:
         try:
             # An evaluation a stop cut short runs first (the resumed run continues from there).
             self._evaluate_if_due(wall(), stop)
+            # A checkpoint at an evaluation's frame is saved before that evaluation starts
+            # (it holds it as due; a resumed run redoes it, with the same parameters): saving
+            # never waits for an evaluation of its own frame, ~20 s on a GPU.
             while counters["frame"] < config.total_frames and not stop:
                 trace.tick(counters["frame"], sync)
                 self._step(pbar)
                 self._log(logger, pbar)
-                self._evaluate_if_due(wall(), stop)
                 if next_ckpt is not None and counters["frame"] >= next_ckpt:
                     self.save(wall())
                     next_ckpt = every(ckpt_every)
+                if counters["frame"] < config.total_frames:
+                    self._evaluate_if_due(wall(), stop)
             if stop:
                 log.warning(
                     "%s received: saving a checkpoint at frame %d per seed, then stopping",
@@ -1286,6 +1302,7 @@ class _Run:
             trace.stop(sync)
             if self.ckpt.latest_step() != counters["frame"]:
                 self.save(wall())
+            self._evaluate_if_due(wall(), stop)  # the closing evaluation (none when stopped)
             self._finish_evaluation(wait=True)
             counters["wall_s"] = wall()
         finally:

@@ -169,6 +169,19 @@ def test_resume_continues_from_saved_step(run):
     )
 
 
+def test_a_checkpoint_does_not_wait_for_the_evaluation_starting_at_its_frame(run):
+    """The first run's last checkpoint (240) falls on an evaluation's frame: saved before that
+    evaluation started, it holds it as due, and the resumed run evaluated there once more,
+    replacing the first run's row (its rows equal the uninterrupted run's:
+    test_resumed_run_equals_the_uninterrupted_one)."""
+    workdir, *_ = run
+    _, _, extra = Checkpointer(workdir / "checkpoints", fingerprint={}).read_meta(240)
+    assert (extra["loop"]["last_eval_frame"], extra["loop"]["next_eval"]) == (120, 240)
+    for seed in (0, 1):
+        frames = read_csv(workdir / f"seed_{seed}" / "eval.csv")["frame"].tolist()
+        assert frames == [0, 120, 240, 280]
+
+
 def test_seeds_differ(run):
     workdir = run[0]
     a = read_csv(workdir / "seed_0" / "train.csv")

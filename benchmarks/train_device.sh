@@ -34,6 +34,8 @@
 #   evaldev   benchmarks/train.py: the DrQ-v2 learning check's loop evaluating in the background
 #             in the training process (eval_device=train), in a process of its own on the host's
 #             CPU (cpu), and not at all (none); $EVAL_DEVICES picks (default "train cpu none")
+#   gpushare  benchmarks/train.py (the learning check's loop, no evaluation) alone and beside
+#             benchmarks/render_load.py (an evaluation's drawing on the GPU, without its physics)
 #   pl C S A F  benchmarks/profile_loop.py of config C with S seeds x 16 envs, bf16,
 #             agent.seed_axis A, with XLA's conv fusion if F is "cf" ("-": without); another
 #             config field from $PL_SET (e.g. PL_SET=agent.filter_gradient=pallas)
@@ -196,6 +198,19 @@ PY
         timeout 200 $t $flags --out "$out/train_eval_$d.json" > "$out/train_eval_$d.log" 2>&1
       done
       grep -h -B1 -A1 "End to end" "$out"/train_eval_*.log ;;
+    gpushare)
+      # Does an evaluation's drawing slow training through the GPU? The learning check's loop
+      # without evaluation, alone and beside benchmarks/render_load.py (30 observations every
+      # 40 ms, 8 workers: an evaluation's drawing, in a process of its own).
+      export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
+      t="python3 -m benchmarks.train --config configs/walker_drqv2_paper.py --seeds 3 --envs 16 --dtype bfloat16 --backend cpu --warmup-frames 2400 --frames 15000 --log-every 2500 --skip split --set replay.disk=false"
+      timeout 200 $t --out "$out/train_alone.json" > "$out/train_alone.log" 2>&1
+      timeout 230 python3 -m benchmarks.render_load --seconds 200 --out "$out/render_load.json" \
+        > "$out/render_load.log" 2>&1 &
+      timeout 200 $t --out "$out/train_beside_render.json" > "$out/train_beside_render.log" 2>&1
+      kill %1 2>/dev/null; wait
+      grep -h "End to end" "$out"/train_alone.log "$out"/train_beside_render.log
+      cat "$out/render_load.log" ;;
     pl)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       c=$1 n=$2 a=$3 f=$4; shift 4

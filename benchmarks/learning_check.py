@@ -36,7 +36,7 @@ def load_reference(path) -> tuple[np.ndarray, np.ndarray]:
     return table[:, 0], table[:, seeds]
 
 
-def compare(run, reference=REFERENCE) -> dict:
+def compare(run, reference=REFERENCE, alone_fps=None) -> dict:
     (curve,) = load_curves(run, "episode_return")
     both = ~np.isnan(curve.y).any(0)  # frames every seed has evaluated
     frames, returns = curve.x[both], curve.y[:, both]
@@ -66,26 +66,37 @@ def compare(run, reference=REFERENCE) -> dict:
         ref_frames=ref_frames.tolist(),
         ref_median=ref_median.tolist(),
         ref_quartiles=np.percentile(ref, [25, 75], axis=1).tolist(),
-        throughput=throughput(run),
+        throughput=throughput(run, alone_fps),
     )
 
 
 _STAMP = r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+) "
 
 
-def throughput(run) -> dict | None:
-    """Frames/s in all of a run, from its log.txt's timestamped rows: over the run, and over the
-    rows in which no background evaluation finished ("training alone"); None without such a log.
+def throughput(run, alone_fps: float | None = None) -> dict | None:
+    """Frames/s in all of a run, from its log.txt's timestamped rows, and how much of its
+    training time had an evaluation running beside it; None without such a log.
 
     A row is the span between two consecutive "frame N per seed" lines of one session (a stop or
     a resume starts a new session, whose first row, with its compilation, is left out like the
-    run's first). An evaluation starts at its frame, a few steps before a row ends, and runs
-    mostly in the next row: the row it finishes in is the one left out of "alone".
+    run's first). An evaluation runs from its "eval @" line's time less its `eval_s` (seed_0's
+    eval.csv) to that line. Rows that no evaluation overlaps are "training alone"; at the paper's
+    rate an evaluation on the H100 runs most of the time, so there may be none, and the ratio then
+    needs `alone_fps`: training alone measured apart (benchmarks/train.py, same loop).
     """
-    log = pathlib.Path(run) / "log.txt"
+    run = pathlib.Path(run)
+    log = run / "log.txt"
     if not log.exists():
         return None
-    lanes = sum(1 for d in pathlib.Path(run).iterdir() if (d / "train.csv").exists())
+    lanes = sum(1 for d in run.iterdir() if (d / "train.csv").exists())
+    lane0 = sorted(d for d in run.iterdir() if (d / "eval.csv").exists())
+    eval_s = {}
+    if lane0:
+        with open(lane0[0] / "eval.csv") as f:
+            header = f.readline().strip().split(",")
+            for line in f:
+                row = dict(zip(header, line.strip().split(",")))
+                eval_s[int(row["frame"])] = float(row.get("eval_s") or "nan")
     spans, evals, last = [], [], None  # spans: (start s, end s, frames per lane)
     for line in log.read_text().splitlines():
         stamp = re.match(_STAMP, line)
@@ -97,8 +108,9 @@ def throughput(run) -> dict | None:
             if last is not None and frame > last[1]:
                 spans.append((last[0], t, frame - last[1]))
             last = (t, frame)
-        elif "eval @" in line:
-            evals.append(t)
+        elif m := re.search(r"eval @ ([\d,]+) frames", line):
+            took = eval_s.get(int(m.group(1).replace(",", "")), math.nan)
+            evals.append((t - (took if math.isfinite(took) else 0.0), t))
         elif "stopped by" in line:
             last = None
     if not spans:
@@ -107,14 +119,21 @@ def throughput(run) -> dict | None:
     def rate(rows):
         return sum(f for _, _, f in rows) * lanes / sum(b - a for a, b, _ in rows)
 
-    alone = [r for r in spans if not any(r[0] < e <= r[1] for e in evals)]
+    def overlap(a, b):
+        return sum(max(0.0, min(b, e1) - max(a, e0)) for e0, e1 in evals)
+
+    alone = [r for r in spans if overlap(r[0], r[1]) == 0.0]
     overall = rate(spans)
+    alone_rows = rate(alone) if alone else math.nan
+    reference = alone_fps if alone_fps else alone_rows
     return dict(
         overall_fps=overall,
-        alone_fps=rate(alone) if alone else math.nan,
+        alone_fps=reference,
+        alone_from="measured apart" if alone_fps else "rows without an evaluation",
         rows_alone=len(alone),
         rows=len(spans),
-        ratio=rate(alone) / overall if alone else math.nan,
+        eval_busy=sum(overlap(a, b) for a, b, _ in spans) / sum(b - a for a, b, _ in spans),
+        ratio=reference / overall,
     )
 
 
@@ -160,17 +179,24 @@ def main(argv=None):
     p.add_argument("--reference", default=REFERENCE)
     p.add_argument("--out-png", default=None)
     p.add_argument("--out", default=None)
+    p.add_argument(
+        "--alone-fps",
+        type=float,
+        default=None,
+        help="frames/s of the same loop without evaluation, measured apart (benchmarks/train.py)",
+    )
     args = p.parse_args(argv)
-    result = compare(args.run, args.reference)
+    result = compare(args.run, args.reference, args.alone_fps)
     print("| frames per seed | return per seed | median | published median |\n|---:|---|---:|---:|")
     for r in result["rows"]:
         seeds = ", ".join(f"{v:.0f}" for v in r["seeds"])
         print(f"| {r['frame']:,} | {seeds} | {r['median']:.0f} | {r['published_median']:.0f} |")
     if tp := result["throughput"]:
         print(
-            f"frames/s in all: {tp['overall_fps']:.0f} over the run, {tp['alone_fps']:.0f} over the "
-            f"{tp['rows_alone']} of {tp['rows']} log rows in which no evaluation ended: "
-            f"the run took {tp['ratio']:.2f}x the time of its training alone"
+            f"frames/s in all: {tp['overall_fps']:.0f} over the run; an evaluation ran during "
+            f"{tp['eval_busy']:.0%} of its training time; {tp['rows_alone']} of {tp['rows']} log "
+            f"rows had none. Training alone ({tp['alone_from']}): {tp['alone_fps']:.0f}, so the "
+            f"run took {tp['ratio']:.2f}x the time of its training alone"
         )
     if args.out_png:
         plot(result, args.out_png)

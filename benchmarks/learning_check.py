@@ -110,7 +110,8 @@ def throughput(run, alone_fps: float | None = None) -> dict | None:
             last = (t, frame)
         elif m := re.search(r"eval @ ([\d,]+) frames", line):
             took = eval_s.get(int(m.group(1).replace(",", "")), math.nan)
-            evals.append((t - (took if math.isfinite(took) else 0.0), t))
+            # Without its eval_s (an older log) the span is unknown: the row it ends in goes.
+            evals.append((t - (took if math.isfinite(took) else 1e-6), t))
         elif "stopped by" in line:
             last = None
     if not spans:

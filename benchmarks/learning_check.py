@@ -13,6 +13,7 @@ published seeds' 25-75% band shaded) and writes JSON.
 from __future__ import annotations
 
 import argparse
+import csv
 import datetime
 import json
 import math
@@ -90,12 +91,10 @@ def throughput(run, alone_fps: float | None = None) -> dict | None:
         return None
     lanes = sum(1 for d in run.iterdir() if (d / "train.csv").exists())
     lane0 = sorted(d for d in run.iterdir() if (d / "eval.csv").exists())
-    eval_s = {}
+    eval_s = {}  # an evaluation's first frame -> its seconds (a redone one: the redo's)
     if lane0:
-        with open(lane0[0] / "eval.csv") as f:
-            header = f.readline().strip().split(",")
-            for line in f:
-                row = dict(zip(header, line.strip().split(",")))
+        with open(lane0[0] / "eval.csv", newline="") as f:
+            for row in csv.DictReader(f):
                 eval_s[int(row["frame"])] = float(row.get("eval_s") or "nan")
     spans, evals, last = [], [], None  # spans: (start s, end s, frames per lane)
     for line in log.read_text().splitlines():

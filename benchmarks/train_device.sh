@@ -52,6 +52,9 @@
 #   scaling   benchmarks/scaling.py: DEAR walker-walk, 5 seeds x 8 envs per GPU on 1 and 2 GPUs
 #             (a machine with 2 GPUs)
 #   wait N    sleep N seconds (keeps the call, and so the machine, alive while runs train)
+#   finish N  wait up to N seconds for the training runs to end by themselves (a run that
+#             reaches total_frames evaluates, saves and writes its summary), then `stop` what
+#             is left and `collect`: the last call of a lease, timed to end before its 30 min
 # Results land in $OUT (or /tmp/out).
 set -u
 out=${OUT:-/tmp/out}
@@ -267,6 +270,10 @@ PY
         --out "$out/scaling.json" > "$out/scaling.log" 2>&1
       grep -v warp "$out/scaling.log" | tail -n 8 ;;
     wait) sleep "$1"; shift ;;
+    finish)
+      end=$((SECONDS + $1)); shift
+      while pgrep -f '^python3 run.py' > /dev/null && [ $SECONDS -lt $end ]; do sleep 2; done
+      set -- stop collect "$@" ;;
   esac
   echo "=== $stage done rc=$? $(date +%T)"
 done

@@ -34,6 +34,8 @@
 #   evaldev   benchmarks/train.py: the DrQ-v2 learning check's loop evaluating in the background
 #             in the training process (eval_device=train), in a process of its own on the host's
 #             CPU (cpu), and not at all (none); $EVAL_DEVICES picks (default "train cpu none")
+#   envsweep  benchmarks/train.py: DEAR walker-walk, 5 seeds, bf16, no evaluation, with each
+#             number of envs per seed in ${ENVS:-4 8 16 32} (the choice of envs_per_seed)
 #   gpushare  benchmarks/train.py (the learning check's loop, no evaluation) alone and beside
 #             benchmarks/render_load.py (an evaluation's drawing on the GPU, without its physics)
 #   pl C S A F  benchmarks/profile_loop.py of config C with S seeds x 16 envs, bf16,
@@ -201,6 +203,15 @@ PY
         timeout 200 $t $flags --out "$out/train_eval_$d.json" > "$out/train_eval_$d.log" 2>&1
       done
       grep -h -B1 -A1 "End to end" "$out"/train_eval_*.log ;;
+    envsweep)
+      export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
+      for e in ${ENVS:-4 8 16 32}; do
+        timeout 200 python3 -m benchmarks.train --config configs/walker_dear.py --seeds 5 \
+          --envs "$e" --dtype bfloat16 --backend cpu --warmup-frames 2400 --frames 6000 \
+          --log-every 1200 --skip split --set replay.disk=false \
+          --out "$out/train_envs_${e}_h100.json" > "$out/train_envs_$e.log" 2>&1
+        echo "$e envs per seed: $(grep -h "End to end" "$out/train_envs_$e.log")"
+      done ;;
     gpushare)
       # Does an evaluation's drawing slow training through the GPU? The learning check's loop
       # without evaluation, alone and beside benchmarks/render_load.py (30 observations every

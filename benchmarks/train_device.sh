@@ -33,7 +33,8 @@
 #             hybrid DEAR update (XLA's defaults)
 #   evaldev   benchmarks/train.py: the DrQ-v2 learning check's loop evaluating in the background
 #             in the training process (eval_device=train), in a process of its own on the host's
-#             CPU (cpu), and not at all (none); $EVAL_DEVICES picks (default "train cpu none")
+#             CPU (cpu) or on the GPU (accelerator), and not at all (none); $EVAL_DEVICES picks
+#             (default "train cpu none")
 #   envsweep  benchmarks/train.py: DEAR walker-walk, 5 seeds, bf16, no evaluation, with each
 #             number of envs per seed in ${ENVS:-4 8 16 32} (the choice of envs_per_seed)
 #   gpushare  benchmarks/train.py (the learning check's loop, no evaluation) alone and beside

@@ -1,4 +1,5 @@
-"""Evaluation episodes: in the training process, or in a process of their own on the host's CPU.
+"""Evaluation episodes: in the training process, or in a process of their own (its policy on
+the host's CPU or on the accelerator).
 
 The loop evaluates through one of two evaluators with the same methods (`config.eval_device`):
 - `LocalEvaluator`: the eval env and the training's `Programs.evaluate_step`, in this process;
@@ -7,7 +8,9 @@ The loop evaluates through one of two evaluators with the same methods (`config.
   (`Programs.evaluate_step_host`). The training process only sends the policy's parameters and
   receives the metrics: an evaluation takes neither its Python thread, which dispatches the
   updates, nor the accelerator's queue. It still shares the CPU cores and, through its render
-  workers' EGL contexts, the GPU. Measured on an H100 (benchmarks/RESULTS.md, "Evaluation in a
+  workers' EGL contexts, the GPU. With "accelerator" the child runs the training's own policy
+  program (`Programs.evaluate_step`, the training's dtype) on the accelerator, in a context of
+  its own that allocates only what it uses: its CPU threads are then nearly idle. Measured on an H100 (benchmarks/RESULTS.md, "Evaluation in a
   process of its own"): the DrQ-v2 learning check trained at 921 frames/s in all over 10k-272k
   frames per seed, against 883 and 902 in two earlier runs that evaluated in the training
   process.
@@ -109,9 +112,10 @@ class LocalEvaluator:
 
 
 class EvalProcess:
-    """Evaluations in a child process on the host's CPU (one process runs one at a time).
+    """Evaluations in a child process (one process runs one at a time), its policy on the host's
+    CPU in float32 or, with `config.eval_device="accelerator"`, on the accelerator.
 
-    The child builds the config's eval env and the float32 policy, then serves requests until
+    The child builds the config's eval env and the policy, then serves requests until
     this side closes the pipe (or exits, even by SIGKILL). It ignores SIGINT and SIGTERM: the
     training process handles those, and lets an evaluation in flight end before it checkpoints.
     An evaluation here always runs to its end (`stop` is not read)."""
@@ -178,10 +182,16 @@ class EvalProcess:
 
 
 def _serve(conn, config_bytes: bytes) -> None:
-    """The child: build the eval env and policy on the host's CPU, then answer requests."""
+    """The child: build the eval env and the policy (on the host's CPU, or on the accelerator),
+    then answer requests."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    jax.config.update("jax_platforms", "cpu")  # the accelerator stays the training's
+    config = pickle.loads(config_bytes)
+    on_accelerator = config.eval_device == "accelerator"
+    if on_accelerator:  # beside the training's preallocated pool: only what it uses
+        os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
+    else:
+        jax.config.update("jax_platforms", "cpu")  # the accelerator stays the training's
     cores = sorted(os.sched_getaffinity(0))
     if len(cores) >= 4:  # its thread pools (XLA:CPU, render workers) on half the cores
         os.sched_setaffinity(0, cores[len(cores) // 2 :])
@@ -189,7 +199,6 @@ def _serve(conn, config_bytes: bytes) -> None:
 
     env = None
     try:
-        config = pickle.loads(config_bytes)
         env = train.make_env(
             config,
             envs_per_seed=config.num_eval_episodes,
@@ -199,7 +208,8 @@ def _serve(conn, config_bytes: bytes) -> None:
             hosts=train.Hosts(None, lanes.num_lanes(config)),
         )
         acfg = train.agent_config(config, env.spec.action_dim)
-        step = train.build_programs(acfg, train.hparams(config), config).evaluate_step_host
+        programs = train.build_programs(acfg, train.hparams(config), config)
+        step = programs.evaluate_step if on_accelerator else programs.evaluate_step_host
         conn.send(("ok", None, env.host_state()))
         while True:
             try:

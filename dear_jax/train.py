@@ -105,7 +105,8 @@ def fingerprint(config: ConfigDict) -> dict:
 # Offset of process p's env seeds (and episode-start keys): p * HOST_SEED_STRIDE.
 HOST_SEED_STRIDE = 1_000_033
 
-EVAL_DEVICES = ("auto", "cpu", "train")
+EVAL_DEVICES = ("auto", "cpu", "accelerator", "train")
+OWN_PROCESS = ("cpu", "accelerator")  # eval_device values that evaluate in a child process
 
 
 def _get(config: ConfigDict, dotted: str):
@@ -350,15 +351,16 @@ def hparams(config: ConfigDict) -> update.HParams:
 
 
 def eval_device(config: ConfigDict, hosts: Hosts) -> str:
-    """Where the evaluations run (config.eval_device, "auto" resolved): "cpu", a process of
-    their own on the host's CPU (dear_jax/evaluator.py), or "train", this process."""
+    """Where the evaluations run (config.eval_device, "auto" resolved): a process of their own
+    on the host's CPU ("cpu") or on the training's accelerator ("accelerator";
+    dear_jax/evaluator.py), or "train", this process."""
     choice = config.eval_device
     if choice == "auto":
         choice = "train" if hosts.multi else "cpu"
-    if choice == "cpu" and hosts.multi:
+    if choice in OWN_PROCESS and hosts.multi:
         raise ValueError(
-            f"eval_device='cpu' evaluates in one process, and this run has {hosts.count}; set "
-            "eval_device='train' or 'auto'"
+            f"eval_device={choice!r} evaluates in one process, and this run has {hosts.count}; "
+            "set eval_device='train' or 'auto'"
         )
     return choice
 
@@ -650,7 +652,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
         store = _replay_store(config, spec, workdir, hosts)
         if store is not None:
             stack.callback(store.close)
-        if eval_device(config, hosts) == "cpu":  # starts now, builds while this one compiles
+        if eval_device(config, hosts) in OWN_PROCESS:  # starts now, builds while this compiles
             evaluator = EvalProcess(config)
         else:
             eval_env = make_env(

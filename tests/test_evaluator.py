@@ -52,6 +52,32 @@ def test_the_eval_process_evaluates_as_this_process_does():
             local.close()
 
 
+def test_on_the_accelerator_the_eval_process_runs_the_trainings_own_program():
+    """eval_device="accelerator": the child evaluates with the training's program (bf16 here,
+    on this machine's only device, the CPU), so its returns are this process's with that
+    program, and differ from the float32 host program's that "cpu" runs."""
+    config = tiny_config(**{"agent.compute_dtype": "bfloat16", "eval_device": "accelerator"})
+    params, acfg = _agent_params(config)
+    hosts = train.Hosts(None, lanes.num_lanes(config))
+    programs = train.build_programs(acfg, train.hparams(config), config)
+    key = jax.random.key(7)
+    want = {}
+    with EvalProcess(config) as remote:
+        start = remote.host_state()
+        got, _ = remote.evaluate(params, key, video=False)
+    for name, step in (("bf16", programs.evaluate_step), ("f32", programs.evaluate_step_host)):
+        env = train.make_env(config, envs_per_seed=config.num_eval_episodes, split="val", seed=1)
+        local = LocalEvaluator(env, step, hosts)
+        try:
+            local.set_host_state(start)
+            want[name] = local.evaluate(params, key, video=False)[0]
+        finally:
+            local.close()
+    for name in want["bf16"]:
+        np.testing.assert_array_equal(got[name], want["bf16"][name], err_msg=name)
+    assert not np.array_equal(got["abs_cos_agent_env"], want["f32"]["abs_cos_agent_env"])
+
+
 def test_a_failure_in_the_eval_process_is_raised_here_with_its_traceback(tmp_path):
     config = tiny_config(**{"env.distraction": "easy", "env.background_dir": str(tmp_path)})
     with EvalProcess(config) as remote, pytest.raises(RuntimeError) as failure:

@@ -8,6 +8,7 @@ import socket
 import subprocess
 import sys
 import time
+import types
 
 import cv2
 import jax
@@ -224,6 +225,15 @@ def test_the_evaluation_runs_on_the_host_cpu_in_float32_unless_told_otherwise():
     assert train.eval_device(config, hosts) == "cpu"
     config.eval_device = "train"
     assert train.eval_device(config, hosts) == "train"
+    # Several processes (jax.distributed) evaluate in the training processes, and only there.
+    two = types.SimpleNamespace(multi=True, count=2)
+    for own in ("cpu", "accelerator"):
+        config.eval_device = own
+        with pytest.raises(ValueError, match=f"eval_device='{own}' evaluates in one process"):
+            train.eval_device(config, two)
+    config.eval_device = "auto"
+    assert train.eval_device(config, two) == "train"
+    config.eval_device = "train"
     acfg = train.agent_config(config, action_dim=6)
     programs = train.build_programs(acfg, train.hparams(config), config)
     params = update.init_seeds(acfg, jax.random.split(jax.random.key(0), config.seeds)).params
@@ -406,7 +416,7 @@ def test_bad_values_fail_with_valid_choices(tmp_path):
         train.train(tiny_config(**{"replay.capacity": 10**9}), tmp_path)
     with pytest.raises(ValueError, match="agent.shift_impl 'roll'; valid: pad_slice, gather"):
         train.train(tiny_config(**{"agent.shift_impl": "roll"}), tmp_path)
-    with pytest.raises(ValueError, match="eval_device 'gpu'; valid: auto, cpu, train"):
+    with pytest.raises(ValueError, match="eval_device 'gpu'; valid: auto, cpu, accelerator, train"):
         train.train(tiny_config(eval_device="gpu"), tmp_path)
 
 

@@ -65,14 +65,14 @@ def test_on_the_accelerator_the_eval_process_runs_the_trainings_own_program():
     with EvalProcess(config) as remote:
         start = remote.host_state()
         got, _ = remote.evaluate(params, key, video=False)
-    for name, step in (("bf16", programs.evaluate_step), ("f32", programs.evaluate_step_host)):
-        env = train.make_env(config, envs_per_seed=config.num_eval_episodes, split="val", seed=1)
-        local = LocalEvaluator(env, step, hosts)
-        try:
+    env = train.make_env(config, envs_per_seed=config.num_eval_episodes, split="val", seed=1)
+    try:
+        for name, step in (("bf16", programs.evaluate_step), ("f32", programs.evaluate_step_host)):
+            local = LocalEvaluator(env, step, hosts)
             local.set_host_state(start)
             want[name] = local.evaluate(params, key, video=False)[0]
-        finally:
-            local.close()
+    finally:
+        env.close()
     for name in want["bf16"]:
         np.testing.assert_array_equal(got[name], want["bf16"][name], err_msg=name)
     assert not np.array_equal(got["abs_cos_agent_env"], want["f32"]["abs_cos_agent_env"])

@@ -10,10 +10,11 @@ The loop evaluates through one of two evaluators with the same methods (`config.
   updates, nor the accelerator's queue. It still shares the CPU cores and, through its render
   workers' EGL contexts, the GPU. With "accelerator" the child runs the training's own policy
   program (`Programs.evaluate_step`, the training's dtype) on the accelerator, in a context of
-  its own that allocates only what it uses: its CPU threads are then nearly idle. Measured on an H100 (benchmarks/RESULTS.md, "Evaluation in a
-  process of its own"): the DrQ-v2 learning check trained at 921 frames/s in all over 10k-272k
-  frames per seed, against 883 and 902 in two earlier runs that evaluated in the training
-  process.
+  its own that allocates only what it uses; its CPU threads are then nearly idle.
+
+Measured on an H100 (benchmarks/RESULTS.md, "DrQ-v2 to 500k frames in one lease"): with "cpu",
+an evaluation at the paper's rate ran during 84% of a 500k-frame DrQ-v2 run, which took 1.22x
+the time of its training alone. "accelerator" is not yet timed.
 
 Both evaluate one episode in each of the eval env's E envs per seed (`evaluate`), and keep the
 eval env's host state (episode-start RNG, distractions) for checkpoints: an evaluation run in

@@ -34,7 +34,7 @@
 #   evaldev   benchmarks/train.py: the DrQ-v2 learning check's loop evaluating in the background
 #             in the training process (eval_device=train), in a process of its own on the host's
 #             CPU (cpu) or on the GPU (accelerator), and not at all (none); $EVAL_DEVICES picks
-#             (default "train cpu none")
+#             (default "cpu accelerator none")
 #   envsweep  benchmarks/train.py: DEAR walker-walk, 5 seeds, bf16, no evaluation, with each
 #             number of envs per seed in ${ENVS:-4 8 16 32} (the choice of envs_per_seed)
 #   gpushare  benchmarks/train.py (the learning check's loop, no evaluation) alone and beside
@@ -199,7 +199,7 @@ PY
       # background, on the training's GPU and on the host's CPU; and without evaluating.
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       t="python3 -m benchmarks.train --config configs/walker_drqv2_paper.py --seeds 3 --envs 16 --dtype bfloat16 --backend cpu --warmup-frames 2400 --frames 15000 --log-every 2500 --eval-episodes 10 --skip split --set replay.disk=false"
-      for d in ${EVAL_DEVICES:-train cpu none}; do
+      for d in ${EVAL_DEVICES:-cpu accelerator none}; do
         if [ "$d" = none ]; then flags=""; else flags="--eval-every 5000 --set eval_device=$d"; fi
         timeout 200 $t $flags --out "$out/train_eval_$d.json" > "$out/train_eval_$d.log" 2>&1
       done

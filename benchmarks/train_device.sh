@@ -196,7 +196,7 @@ PY
     evaldev)
       # The evaluation's device (config eval_device) in the DrQ-v2 learning check's loop:
       # 3 seeds x 16 envs, bf16, 10 episodes per seed every 5,000 frames per seed, in the
-      # background, on the training's GPU and on the host's CPU; and without evaluating.
+      # background, in a process of its own (policy on the CPU, or on the GPU); and without.
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       t="python3 -m benchmarks.train --config configs/walker_drqv2_paper.py --seeds 3 --envs 16 --dtype bfloat16 --backend cpu --warmup-frames 2400 --frames 15000 --log-every 2500 --eval-episodes 10 --skip split --set replay.disk=false"
       for d in ${EVAL_DEVICES:-cpu accelerator none}; do

@@ -30,8 +30,9 @@ def get_config() -> ConfigDict:
     c.eval_in_background = True
     # Where evaluations run: "cpu", a process of their own on the host's CPU (its own Python,
     # XLA:CPU with the policy in float32, render workers), so that evaluating takes neither the
-    # accelerator nor this process's threads from the training; "train", this process on the
-    # training's devices and agent.compute_dtype; "auto": "cpu" for a run of one process,
+    # accelerator's queue nor this process's threads from the training; "accelerator", such a
+    # process with the training's policy program on the accelerator; "train", this process on
+    # the training's devices and agent.compute_dtype; "auto": "cpu" for a run of one process,
     # "train" for one of several (their evaluations are programs over every process's lanes).
     c.eval_device = "auto"
     c.log_every_frames = 5_000  # per seed: train metrics to CSV / TensorBoard

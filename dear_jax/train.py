@@ -1099,7 +1099,7 @@ class _Run:
             # While an evaluation runs in the background on the training's devices, its steps'
             # programs queue behind the updates dispatched before them: each update is
             # dispatched only once the one before it has finished, so they wait for one update,
-            # not for all. (An evaluation in its own process, eval_device="cpu", queues none.)
+            # not for all. (An evaluation in a process of its own queues nothing here.)
             short_queue = (
                 self._pending_eval is not None
                 and self._eval_thread is not None

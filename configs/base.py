@@ -32,8 +32,9 @@ def get_config() -> ConfigDict:
     # XLA:CPU with the policy in float32, render workers), so that evaluating takes neither the
     # accelerator's queue nor this process's threads from the training; "accelerator", such a
     # process with the training's policy program on the accelerator; "train", this process on
-    # the training's devices and agent.compute_dtype; "auto": "cpu" for a run of one process,
-    # "train" for one of several (their evaluations are programs over every process's lanes).
+    # the training's devices and agent.compute_dtype; "auto": "accelerator" for a run of one
+    # process on a GPU (it slowed training least there), "cpu" on a CPU-only machine, "train"
+    # for a run of several processes (their evaluations are programs over every process's lanes).
     c.eval_device = "auto"
     c.log_every_frames = 5_000  # per seed: train metrics to CSV / TensorBoard
     c.checkpoint_every_frames = 100_000  # per seed; 0 disables periodic checkpoints

@@ -353,10 +353,18 @@ def hparams(config: ConfigDict) -> update.HParams:
 def eval_device(config: ConfigDict, hosts: Hosts) -> str:
     """Where the evaluations run (config.eval_device, "auto" resolved): a process of their own
     on the host's CPU ("cpu") or on the training's accelerator ("accelerator";
-    dear_jax/evaluator.py), or "train", this process."""
+    dear_jax/evaluator.py), or "train", this process.
+
+    "auto" is "accelerator" for a run of one process on a GPU: on an H100 its evaluations slowed
+    training less than "cpu" did (benchmarks/RESULTS.md, "Where an evaluation's cost goes");
+    "cpu" elsewhere (a CPU-only machine runs the policy in float32); "train" for several
+    processes."""
     choice = config.eval_device
     if choice == "auto":
-        choice = "train" if hosts.multi else "cpu"
+        if hosts.multi:
+            choice = "train"
+        else:
+            choice = "accelerator" if jax.default_backend() == "gpu" else "cpu"
     if choice in OWN_PROCESS and hosts.multi:
         raise ValueError(
             f"eval_device={choice!r} evaluates in one process, and this run has {hosts.count}; "

@@ -216,13 +216,17 @@ def test_evaluating_in_the_foreground_and_tracing_change_nothing_but_timing(run,
     assert len(list((workdir / "profile").rglob("*.xplane.pb"))) == 1
 
 
-def test_the_evaluation_runs_on_the_host_cpu_in_float32_unless_told_otherwise():
-    """eval_device "auto" is a process of its own on the host's CPU when the run has one
-    process; its policy runs in float32 whatever agent.compute_dtype says (its actions those of
-    the bf16 program up to bf16's rounding); "train" keeps the training's devices and dtype."""
+def test_the_evaluation_runs_on_the_host_cpu_in_float32_unless_told_otherwise(monkeypatch):
+    """eval_device "auto" is a process of its own when the run has one process: on the GPU
+    with a GPU, else on the host's CPU, where its policy runs in float32 whatever
+    agent.compute_dtype says (its actions those of the bf16 program up to bf16's rounding);
+    "train" keeps the training's devices and dtype."""
     config = tiny_config(**{"agent.compute_dtype": "bfloat16"})
     hosts = train.Hosts(None, config.seeds)
     assert train.eval_device(config, hosts) == "cpu"
+    with monkeypatch.context() as m:
+        m.setattr(jax, "default_backend", lambda: "gpu")
+        assert train.eval_device(config, hosts) == "accelerator"
     config.eval_device = "train"
     assert train.eval_device(config, hosts) == "train"
     # Several processes (jax.distributed) evaluate in the training processes, and only there.

@@ -660,7 +660,9 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
         store = _replay_store(config, spec, workdir, hosts)
         if store is not None:
             stack.callback(store.close)
-        if eval_device(config, hosts) in OWN_PROCESS:  # starts now, builds while this compiles
+        where = eval_device(config, hosts)
+        log.info("evaluations: eval_device=%r (config: %r)", where, config.eval_device)
+        if where in OWN_PROCESS:  # starts now, builds while this compiles
             evaluator = EvalProcess(config)
         else:
             eval_env = make_env(
@@ -722,6 +724,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 run.counters,
                 devices=devices,
                 stopped=stop.name if stop else None,
+                evaluated_on=where,
             )
         except Exception as e:  # a stopped run still exits as stopped (and resumable)
             if not stop:
@@ -1329,10 +1332,18 @@ def _best(values: np.ndarray) -> float:
 
 
 def write_summary(
-    workdir, config, spec, counters, *, devices: int = 1, stopped: str | None = None
+    workdir,
+    config,
+    spec,
+    counters,
+    *,
+    devices: int = 1,
+    stopped: str | None = None,
+    evaluated_on: str | None = None,
 ) -> dict:
     """Summary per seed from the eval logs, saved as summary.md / summary.json and printed
-    unless the run was `stopped` (by that signal's name) before its end."""
+    unless the run was `stopped` (by that signal's name) before its end. `evaluated_on`: the
+    resolved eval_device."""
     wall = counters["wall_s"]
     runs = lanes.lanes(config)
     fps = counters["frame"] * len(runs) / max(wall, 1e-9)
@@ -1385,6 +1396,7 @@ def write_summary(
         "device": jax.devices()[0].device_kind,
         "render": config.env.render.to_dict(),
         "render_quality": config.env.render.quality,
+        "eval_device": evaluated_on or config.eval_device,
         "distraction": config.env.distraction,
         "stopped": stopped,
         "per_seed": per_seed,
@@ -1398,7 +1410,8 @@ def write_summary(
         f"# {config.agent.method} on {config.env.task}\n\n"
         f"{until}{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, "
         f"{wall:.0f} s of training ({fps:.0f} frames/s in all) on {summary['device']} "
-        f"({spec.backend} physics); render settings {summary['render']}\n\n{table}\n"
+        f"({spec.backend} physics, evaluations on {summary['eval_device']}); render "
+        f"settings {summary['render']}\n\n{table}\n"
     )
     write_text_atomic(workdir / "summary.md", text)
     write_text_atomic(workdir / "summary.json", json.dumps(summary, indent=1))

@@ -135,6 +135,7 @@ def test_every_lane_is_written_by_its_process(runs):
     assert summaries[1]["whole"] == summaries[1]["resumed"] == {}  # process 0 sums up
     summary = summaries[0]["whole"]
     assert summary["processes"] == 2 and summary["devices"] == 2
+    assert summary["eval_device"] == "train"  # "auto" with several processes
     assert summary["frames_per_seed"] == END and len(summary["per_seed"]) == 2
     assert summary["updates_per_seed"] >= 5
     for seed in (0, 1):

@@ -137,6 +137,7 @@ def test_outputs_exist_and_parse(run):
     summary = json.loads((workdir / "summary.json").read_text())  # rewritten by the resume
     assert summary["frames_per_seed"] == 280 and len(summary["per_seed"]) == 2
     assert summary["stopped"] is None
+    assert summary["eval_device"] == "cpu"  # "auto", resolved on this CPU-only machine
     assert first["frames_per_seed"] == 240
 
 

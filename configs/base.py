@@ -20,7 +20,9 @@ def get_config() -> ConfigDict:
     # With several processes (run.py --multihost), the devices of each process, and the seeds
     # are first split evenly over the processes.
     c.devices = config_dict.FieldReference(1, field_type=object)  # int or "all"
-    c.envs_per_seed = 8  # parallel environments per seed; E / update_every_steps updates per step
+    # Parallel environments per seed; E / update_every_steps updates per step. DEAR walker-walk,
+    # 5 seeds, H100: 704 / 731 / 732 / 736 frames/s at 4 / 8 / 16 / 32 (benchmarks/RESULTS.md).
+    c.envs_per_seed = 8
     # Frames count per seed, summed over its envs: frames = agent steps (all E envs) x action repeat.
     c.total_frames = 1_000_000  # environment frames per seed
     c.eval_every_frames = 10_000  # per seed

@@ -118,7 +118,8 @@ while [ $# -gt 0 ]; do
         lc=${r%:*}; d=${r##*:}; name=$(basename "${lc%%:*}" .py)
         [[ $lc == *:* ]] && name=${name}_$(echo "${lc#*:}" | tr , _)
         name=$name${d:+_$d}
-        (cd /tmp/paper_tree && XLA_PYTHON_CLIENT_MEM_FRACTION=$share setsid nohup python3 run.py \
+        # exec: no shell waits on the run, so a pipe this stage prints into closes when it ends.
+        (cd /tmp/paper_tree && XLA_PYTHON_CLIENT_MEM_FRACTION=$share exec setsid nohup python3 run.py \
           --config "$lc" --workdir "$runs/$name" --config.seeds=3 --config.progress=False \
           ${BACKEND:+--config.env.backend=$BACKEND} ${LEARN_ARGS:-} \
           ${d:+--config.agent.compute_dtype=$d} > "$runs/$name.log" 2>&1 < /dev/null &)
@@ -126,7 +127,7 @@ while [ $# -gt 0 ]; do
       sleep 5; nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv ;;
     kitchen)
       rm -rf /tmp/kitchen_tree; cp -r "$PWD" /tmp/kitchen_tree
-      (cd /tmp/kitchen_tree && setsid nohup python3 run.py --config configs/kitchen_light_dear.py \
+      (cd /tmp/kitchen_tree && exec setsid nohup python3 run.py --config configs/kitchen_light_dear.py \
         --workdir "$runs/kitchen_light_dear" --config.seeds=3 --config.total_frames=300000 \
         --config.agent.compute_dtype=bfloat16 --config.progress=False \
         > "$runs/kitchen_light_dear.log" 2>&1 < /dev/null &)

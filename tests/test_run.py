@@ -217,7 +217,7 @@ def test_evaluating_in_the_foreground_and_tracing_change_nothing_but_timing(run,
     assert len(list((workdir / "profile").rglob("*.xplane.pb"))) == 1
 
 
-def test_the_evaluation_runs_on_the_host_cpu_in_float32_unless_told_otherwise(monkeypatch):
+def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
     """eval_device "auto" is a process of its own when the run has one process: on the GPU
     with a GPU, else on the host's CPU, where its policy runs in float32 whatever
     agent.compute_dtype says (its actions those of the bf16 program up to bf16's rounding);

@@ -3,7 +3,8 @@ the host's CPU or on the accelerator).
 
 The loop evaluates through one of two evaluators with the same methods (`config.eval_device`):
 - `LocalEvaluator`: the eval env and the training's `Programs.evaluate_step`, in this process;
-- `EvalProcess` ("cpu", the default in one process): a child process with its own Python
+- `EvalProcess` ("cpu" or "accelerator"; "auto" in one process picks one of them, by
+  whether there is a GPU): a child process with its own Python
   interpreter, XLA:CPU and render workers runs the eval env and the float32 policy
   (`Programs.evaluate_step_host`). The training process only sends the policy's parameters and
   receives the metrics: an evaluation takes neither its Python thread, which dispatches the
@@ -12,9 +13,10 @@ The loop evaluates through one of two evaluators with the same methods (`config.
   program (`Programs.evaluate_step`, the training's dtype) on the accelerator, in a context of
   its own that allocates only what it uses; its CPU threads are then nearly idle.
 
-Measured on an H100 (benchmarks/RESULTS.md, "DrQ-v2 to 500k frames in one lease"): with "cpu",
-an evaluation at the paper's rate ran during 84% of a 500k-frame DrQ-v2 run, which took 1.22x
-the time of its training alone. "accelerator" is not yet timed.
+Measured on an H100 (benchmarks/RESULTS.md, "Where an evaluation's cost goes"): evaluating at
+twice the paper's rate, the DrQ-v2 learning check's loop trained at 786 frames/s with
+"accelerator" and 703 with "cpu" (1,135 without evaluating). With "cpu", at the paper's rate, a
+500k-frame DrQ-v2 run took 1.22x the time of its training alone ("DrQ-v2 to 500k frames").
 
 Both evaluate one episode in each of the eval env's E envs per seed (`evaluate`), and keep the
 eval env's host state (episode-start RNG, distractions) for checkpoints: an evaluation run in

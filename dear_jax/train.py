@@ -1339,7 +1339,7 @@ def write_summary(
     *,
     devices: int = 1,
     stopped: str | None = None,
-    evaluated_on: str | None = None,
+    evaluated_on: str,
 ) -> dict:
     """Summary per seed from the eval logs, saved as summary.md / summary.json and printed
     unless the run was `stopped` (by that signal's name) before its end. `evaluated_on`: the
@@ -1396,7 +1396,7 @@ def write_summary(
         "device": jax.devices()[0].device_kind,
         "render": config.env.render.to_dict(),
         "render_quality": config.env.render.quality,
-        "eval_device": evaluated_on or config.eval_device,
+        "eval_device": evaluated_on,
         "distraction": config.env.distraction,
         "stopped": stopped,
         "per_seed": per_seed,

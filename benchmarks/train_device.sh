@@ -68,6 +68,15 @@ ALL_CB="--xla_gpu_enable_command_buffer=FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN
 CONV_FUSION="--xla_gpu_experimental_enable_conv_fusion=true"
 NO_AUTOTUNE="--xla_gpu_autotune_level=0"
 mkdir -p "$out" "$runs"
+# A machine is not always bare: /tmp/runs has held an earlier lease's run (seventh session).
+# Before a run starts in $runs/NAME, an earlier folder of that name moves to $runs/earlier, so
+# the new run starts from frame 0 instead of resuming it, and `collect` leaves it out.
+set_aside() {
+  [ -e "$runs/$1" ] || [ -e "$runs/$1.log" ] || return 0
+  mkdir -p "$runs/earlier"; local dest="$runs/earlier/$1-$(date +%s)"
+  mkdir -p "$dest"; mv "$runs/$1" "$runs/$1.log" "$dest"/ 2>/dev/null
+  echo "earlier run $runs/$1 moved to $dest (not resumed, not collected)"
+}
 while [ $# -gt 0 ]; do
   stage=$1; shift
   echo "=== $stage $(date +%T)"
@@ -118,6 +127,7 @@ while [ $# -gt 0 ]; do
         lc=${r%:*}; d=${r##*:}; name=$(basename "${lc%%:*}" .py)
         [[ $lc == *:* ]] && name=${name}_$(echo "${lc#*:}" | tr , _)
         name=$name${d:+_$d}
+        set_aside "$name"
         # exec: no shell waits on the run, so a pipe this stage prints into closes when it ends.
         (cd /tmp/paper_tree && XLA_PYTHON_CLIENT_MEM_FRACTION=$share exec setsid nohup python3 run.py \
           --config "$lc" --workdir "$runs/$name" --config.seeds=3 --config.progress=False \
@@ -126,7 +136,7 @@ while [ $# -gt 0 ]; do
       done
       sleep 5; nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv ;;
     kitchen)
-      rm -rf /tmp/kitchen_tree; cp -r "$PWD" /tmp/kitchen_tree
+      rm -rf /tmp/kitchen_tree; cp -r "$PWD" /tmp/kitchen_tree; set_aside kitchen_light_dear
       (cd /tmp/kitchen_tree && exec setsid nohup python3 run.py --config configs/kitchen_light_dear.py \
         --workdir "$runs/kitchen_light_dear" --config.seeds=3 --config.total_frames=300000 \
         --config.agent.compute_dtype=bfloat16 --config.progress=False \
@@ -140,7 +150,7 @@ while [ $# -gt 0 ]; do
     collect)
       for f in "$runs"/*.log; do echo "--- $f"; tail -n 4 "$f"; done
       nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv
-      tar -C "$runs" --exclude=checkpoints --exclude=videos --exclude=replay -czf "$out/runs.tar.gz" . ;;
+      tar -C "$runs" --exclude=checkpoints --exclude=videos --exclude=replay --exclude=./earlier -czf "$out/runs.tar.gz" . ;;
     speed)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       u="timeout 240 python3 -m benchmarks.update --methods dear --seeds 5 --batch 512 --iters 20"

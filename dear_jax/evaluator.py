@@ -15,8 +15,9 @@ The loop evaluates through one of two evaluators with the same methods (`config.
 
 Measured on an H100 (benchmarks/RESULTS.md, "Where an evaluation's cost goes"): evaluating at
 twice the paper's rate, the DrQ-v2 learning check's loop trained at 786 frames/s with
-"accelerator" and 703 with "cpu" (1,135 without evaluating). With "cpu", at the paper's rate, a
-500k-frame DrQ-v2 run took 1.22x the time of its training alone ("DrQ-v2 to 500k frames").
+"accelerator" and 703 with "cpu" (1,135 without evaluating). At the paper's rate, a 500k-frame
+DrQ-v2 run took 1.19x the time of its training alone with "accelerator" and 1.22x with "cpu"
+(two runs on two machines: "DrQ-v2 to 500k frames", both sections).
 
 Both evaluate one episode in each of the eval env's E envs per seed (`evaluate`), and keep the
 eval env's host state (episode-start RNG, distractions) for checkpoints: an evaluation run in

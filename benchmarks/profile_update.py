@@ -20,7 +20,7 @@ import jax
 
 from benchmarks.common import save_json
 from benchmarks.update import update_setup
-from dear_jax import update
+from dear_jax import networks, update
 
 PARTS = (  # first match wins; matched against the op's Flax/JAX name path
     ("mask decoder", r"PoolDecoder|mask_decoder"),
@@ -73,6 +73,7 @@ def main():
     parser.add_argument("--seed-axis", default="loop", choices=update.SEED_AXES)
     parser.add_argument("--dtype", default="float32", choices=["float32", "bfloat16"])
     parser.add_argument("--iters", type=int, default=10)
+    parser.add_argument("--conv-stack", default="xla", choices=networks.STACKS)
     parser.add_argument("--top", type=int, default=25)
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
@@ -80,7 +81,7 @@ def main():
         parser.error("it reads the GPU's kernel events from a profile: run it on a GPU machine")
 
     step, states, batches, hp = update_setup(
-        args.method, args.seeds, args.batch, args.dtype, args.seed_axis
+        args.method, args.seeds, args.batch, args.dtype, args.seed_axis, conv_stack=args.conv_stack
     )
     keys = jax.random.split(jax.random.key(0), args.seeds)
     compiled_text = step.lower(states, batches, keys, hp).compile().as_text()

@@ -46,6 +46,11 @@
 #             cuDNN; its images-per-program x warps choices), the fastest choice made wgrad's
 #             default in this tree, then benchmarks/update.py (DEAR bf16, DrQ-v2 bf16 plain
 #             encoder; 5 seeds, batch 512, hybrid) with cuDNN's and the kernel's filter gradients
+#   wideconv  the stride-1 conv stacks as Pallas kernels (dear_jax/wideconv.py):
+#             benchmarks/wideconv.py (against cuDNN; rows per block x warps), the fastest
+#             choice made wideconv's default in this tree, then benchmarks/update.py (DEAR bf16,
+#             DrQ-v2 bf16 plain encoder; 5 seeds, batch 512, hybrid) with agent.conv_stack xla
+#             and pallas, and the profile of the DEAR update with pallas
 #   dispatch  benchmarks/dispatch.py: the host's cost per launched op, per kind, with XLA's
 #             defaults, its conv fusion, and no autotuning; the DEAR update without autotuning
 #   loop      benchmarks/profile_loop.py: where a training iteration's time goes, per program, for
@@ -275,6 +280,29 @@ PY
       timeout 300 python3 -m benchmarks.update --methods dear drqv2 --drqv2-encoder plain \
         --seeds 5 --batch 512 --iters 20 --dtypes bfloat16 --seed-axis hybrid \
         --filter-gradients cudnn pallas --out "$out/update_pallas.json" ;;
+    wideconv)
+      export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
+      timeout 300 python3 -m benchmarks.wideconv ${WC_ARGS:-} --out "$out/wideconv.json"
+      python3 - "$out/wideconv.json" <<'PY'
+import collections, json, pathlib, re, sys
+rows = [r for r in json.load(open(sys.argv[1]))["rows"] if "ms_per_call" in r]
+total = collections.defaultdict(float)  # both stacks, forward + backward
+for r in rows:
+    if r["variant"].startswith("pallas") and r["pass_"] == "forward_backward":
+        total[r["variant"]] += r["ms_per_call"]
+best = min(total, key=total.get)
+block, warps = map(int, re.findall(r"\d+", best)[:2])
+p = pathlib.Path("dear_jax/wideconv.py")
+text = re.sub(r"(?m)^BLOCK = \d+", f"BLOCK = {block}", p.read_text())
+p.write_text(re.sub(r"(?m)^NUM_WARPS = \d+", f"NUM_WARPS = {warps}", text))
+print(f"wideconv defaults in this tree: BLOCK={block} NUM_WARPS={warps}")
+PY
+      timeout 300 python3 -m benchmarks.update --methods dear drqv2 --drqv2-encoder plain \
+        --seeds 5 --batch 512 --iters 20 --dtypes bfloat16 --seed-axis hybrid \
+        --conv-stacks xla pallas --out "$out/update_wideconv.json"
+      timeout 150 python3 -m benchmarks.profile_update --method dear --batch 512 --seeds 5 \
+        --seed-axis hybrid --dtype bfloat16 --conv-stack pallas \
+        --out "$out/profile_dear_wideconv.json" > "$out/profile_dear_wideconv.log" 2>&1 ;;
     loop)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       b=${BACKEND:-config}

@@ -49,6 +49,7 @@ def update_setup(
     shift_impl="gather",
     encoder="pool",
     filter_gradient="cudnn",
+    conv_stack="xla",
 ):
     """(jitted update over all seeds, fresh agent states, random batches, hparams)."""
     cfg = update.AgentConfig(
@@ -58,6 +59,7 @@ def update_setup(
         shift_impl=shift_impl,
         encoder=encoder,
         filter_gradient=filter_gradient,
+        conv_stack=conv_stack,
     )
     states = jax.jit(functools.partial(update.init_seeds, cfg))(
         jax.random.split(jax.random.key(0), seeds)
@@ -83,10 +85,20 @@ def time_update(
     shift_impl: str = "gather",
     encoder: str = "pool",
     filter_gradient: str = "cudnn",
+    conv_stack: str = "xla",
 ) -> dict:
     """Milliseconds per call, and the host's dispatch per call (`common.timed_calls`)."""
     step, states, batches, hp = update_setup(
-        method, seeds, batch, dtype, seed_axis, action_dim, shift_impl, encoder, filter_gradient
+        method,
+        seeds,
+        batch,
+        dtype,
+        seed_axis,
+        action_dim,
+        shift_impl,
+        encoder,
+        filter_gradient,
+        conv_stack,
     )
     keys = jax.random.split(jax.random.key(2), (iters + 1, seeds))
     t0 = time.perf_counter()
@@ -106,6 +118,7 @@ def time_update(
         method=method,
         encoder=encoder,
         filter_gradient=filter_gradient,
+        conv_stack=conv_stack,
         # the Pallas kernel's choices, where it ran
         wgrad=dict(images=wgrad.IMAGES, num_warps=wgrad.NUM_WARPS)
         if filter_gradient == "pallas"
@@ -138,6 +151,13 @@ def main():
     parser.add_argument(
         "--filter-gradients", nargs="+", default=["cudnn"], choices=networks.FILTER_GRADIENTS
     )
+    parser.add_argument(
+        "--conv-stacks",
+        nargs="+",
+        default=["xla"],
+        choices=networks.STACKS,
+        help="how the stride-1 conv layers run (agent.conv_stack)",
+    )
     parser.add_argument("--shift-impls", nargs="+", default=["gather"], choices=augment.SHIFT_IMPLS)
     parser.add_argument(
         "--precision",
@@ -154,28 +174,31 @@ def main():
     for d in args.dtypes:
         for m in args.methods:
             for s in args.seeds:
-                for how, impl, fg in itertools.product(
-                    args.seed_axis if s > 1 else ["vmap"], args.shift_impls, args.filter_gradients
+                for how, impl, fg, cs in itertools.product(
+                    args.seed_axis if s > 1 else ["vmap"],
+                    args.shift_impls,
+                    args.filter_gradients,
+                    args.conv_stacks,
                 ):
                     encoder = args.drqv2_encoder if m == "drqv2" else "pool"
                     rows.append(
-                        time_update(m, s, args.batch, args.iters, d, 6, how, impl, encoder, fg)
+                        time_update(m, s, args.batch, args.iters, d, 6, how, impl, encoder, fg, cs)
                     )
                     r = rows[-1]
                     print(
-                        f"{m} {d} {how} {impl} {fg} seeds={s}: "
+                        f"{m} {d} {how} {impl} {fg} {cs} seeds={s}: "
                         f"{r['ms_per_seed_update']:.2f} ms/seed"
                     )
     print(f"device: {device.device_kind} ({device.platform}), jax {jax.__version__}")
     print(
-        "| method | encoder | dtype | precision | seed axis | shift | filter gradient | seeds | batch | ms per call "
+        "| method | encoder | dtype | precision | seed axis | shift | filter gradient | conv stack | seeds | batch | ms per call "
         "| host dispatch ms per call | ms per seed-update | vs PyTorch 12.1 ms | compile s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
             f"| {r['method']} | {r['encoder']} | {r['dtype']} | {r['precision']} | {r['seed_axis']} "
-            f"| {r['shift_impl']} | {r['filter_gradient']} | {r['seeds']} | {r['batch']} | "
+            f"| {r['shift_impl']} | {r['filter_gradient']} | {r['conv_stack']} | {r['seeds']} | {r['batch']} | "
             f"{r['ms_per_call']:.2f} | {r['dispatch_ms_per_call']:.2f} | "
             f"{r['ms_per_seed_update']:.2f} | {PYTORCH_ANCHOR_MS / r['ms_per_seed_update']:.2f}x "
             f"| {r['compile_s']:.1f} |"

@@ -104,6 +104,10 @@ def get_config() -> ConfigDict:
     # "pallas" launches cheaply, but the update ran 2-3% slower with it
     # (benchmarks/results/update_pallas_h100.json).
     c.agent.filter_gradient = "cudnn"
+    # The stride-1 conv layers of the encoder and decoders: "xla" (cuDNN, layer by layer) or
+    # "pallas" (dear_jax/wideconv.py: Pallas kernels on one flat layout, bias/ReLU fused, one
+    # launch per layer for all seeds). Same function.
+    c.agent.conv_stack = "xla"
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
     c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)
     c.agent.beta = 100.0  # orthogonality loss weight (DEAR)

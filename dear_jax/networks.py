@@ -20,7 +20,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from dear_jax import wgrad
+from dear_jax import wgrad, wideconv
 
 LINEAR_INIT = nn.initializers.orthogonal(1.0)
 # A conv kernel [kh, kw, in, out] flattened to [kh*kw*in, out] is the transpose of PyTorch's
@@ -106,13 +106,19 @@ class ConvSettings:
     filter_gradient: "cudnn" (XLA's convolution) or "pallas" (`dear_jax.wgrad`, one kernel,
         also for all vmapped seeds at once) where it takes the shape; meant for GPUs: elsewhere
         it runs in Pallas' interpreter.
+    stack: how the stride-1 3x3 layers of the encoder and the decoders run: "xla" (one
+        convolution each, as above) or "pallas" (`dear_jax.wideconv`: each stack of them as
+        Pallas kernels on one flat layout, one launch per layer for all vmapped seeds, bias,
+        ReLU and its gradient fused); meant for GPUs: elsewhere it runs in Pallas' interpreter.
     """
 
     loop_seeds: bool = False
     filter_gradient: str = "cudnn"
+    stack: str = "xla"
 
 
 FILTER_GRADIENTS = ("cudnn", "pallas")
+STACKS = ("xla", "pallas")
 # Read at trace time by every convolution of the networks; set by `conv_settings`.
 _CONV = contextvars.ContextVar("conv_settings", default=ConvSettings())  # noqa: B039 (frozen)
 
@@ -126,6 +132,8 @@ def conv_settings(**changes):
         raise ValueError(
             f"unknown filter_gradient {settings.filter_gradient!r}; valid: {FILTER_GRADIENTS}"
         )
+    if settings.stack not in STACKS:
+        raise ValueError(f"unknown conv stack {settings.stack!r}; valid: {STACKS}")
     token = _CONV.set(settings)
     try:
         yield
@@ -200,9 +208,12 @@ class Conv(nn.Module):
     channels: int | None = None  # channel multiple; None: tensor_core_channels(dtype)
 
     @nn.compact
-    def __call__(self, x: jax.Array) -> jax.Array:
+    def __call__(self, x: jax.Array, weights_only: bool = False):
+        """The layer of x; with `weights_only`, its (kernel, bias) for an input shaped like x."""
         kernel = self.param("kernel", CONV_INIT, (3, 3, x.shape[-1], self.features))
         bias = self.param("bias", ZEROS, (self.features,))
+        if weights_only:
+            return kernel, bias
         channels = self.channels or tensor_core_channels(self.dtype)
         return _conv2d(x, kernel, self.stride, self.dtype, channels) + bias.astype(self.dtype)
 
@@ -228,11 +239,14 @@ class ConvTranspose(nn.Module):
     channels: int | None = None  # see Conv
 
     @nn.compact
-    def __call__(self, x: jax.Array) -> jax.Array:
+    def __call__(self, x: jax.Array, weights_only: bool = False):
+        """The layer of x; with `weights_only`, its (kernel, bias) for an input shaped like x."""
         k, s, op = self.kernel, self.stride, self.output_padding
         n = x.shape[-2]
         kernel = self.param("kernel", conv_transpose_init, (k, k, x.shape[-1], self.features))
         bias = self.param("bias", ZEROS, (self.features,))
+        if weights_only:
+            return kernel, bias
         taps = (k - 1) // s + 1  # kernel taps of one phase along one axis
         size = (n - 1) * s + k + op  # output size
         phases = -(-size // s)  # output pixels per phase along one axis
@@ -264,6 +278,24 @@ class ConvTranspose(nn.Module):
         return y + bias.astype(self.dtype)
 
 
+def _relu_stack(x: jax.Array, layers: list, pad: int) -> jax.Array:
+    """x through each stride-1 3x3 layer (`Conv`, pad 0, or `ConvTranspose`, pad 2) and a ReLU:
+    layer by layer, or as one `wideconv.conv_stack` where the settings ask for it and it takes
+    the shapes (the same parameters and function either way)."""
+    if _CONV.get().stack == "pallas":
+        weights, shape = [], x.shape
+        for layer in layers:
+            weights.append(layer(jax.ShapeDtypeStruct(shape, x.dtype), weights_only=True))
+            shape = (*shape[:-1], weights[-1][0].shape[-1])
+        flat = x.reshape(-1, *x.shape[-3:])
+        if wideconv.supported(flat.shape, weights, pad):
+            y = wideconv.conv_stack(flat, tuple(weights), pad)
+            return y.reshape(*x.shape[:-3], *y.shape[1:])
+    for layer in layers:
+        x = nn.relu(layer(x))
+    return x
+
+
 def preprocess(obs: jax.Array) -> jax.Array:
     """uint8 pixels [..., H, W, C] -> float32 in [-0.5, 0.5]."""
     return obs.astype(jnp.float32) / 255.0 - 0.5
@@ -284,9 +316,8 @@ class ConvTrunk(nn.Module):
             obs = jax.lax.optimization_barrier(obs)
         x = preprocess(obs).astype(self.dtype)
         x = nn.relu(Conv(32, 2, self.dtype, self.channels)(x))
-        for _ in range(3):
-            x = nn.relu(Conv(32, 1, self.dtype, self.channels)(x))
-        return x
+        layers = [Conv(32, 1, self.dtype, self.channels) for _ in range(3)]
+        return _relu_stack(x, layers, pad=0)
 
 
 class PoolEncoder(nn.Module):
@@ -389,8 +420,8 @@ class PoolDecoder(nn.Module):
         x = nn.relu(_dense(16 * 8 * 8, dtype=dt)(z))
         x = x.reshape(*x.shape[:-1], 8, 8, 16)
         x = nn.relu(ConvTranspose(16, 4, stride=4, output_padding=3, dtype=dt)(x))
-        for features in (32, 32, 32):
-            x = nn.relu(ConvTranspose(features, 3, dtype=dt)(x))
+        layers = [ConvTranspose(features, 3, dtype=dt) for features in (32, 32, 32)]
+        x = _relu_stack(x, layers, pad=2)
         out = ConvTranspose(self.out_channels, 3, stride=2, output_padding=1, dtype=dt)(x)
         return out.astype(jnp.float32)
 

@@ -82,6 +82,7 @@ RESUMABLE_CHANGES = (
     "agent.seed_axis",
     "agent.shift_impl",
     "agent.filter_gradient",
+    "agent.conv_stack",
     "replay.disk",
     "devices",
 )
@@ -274,6 +275,7 @@ def validate(config: ConfigDict) -> None:
         "agent.seed_axis": update.SEED_AXES,
         "agent.shift_impl": augment.SHIFT_IMPLS,
         "agent.filter_gradient": networks.FILTER_GRADIENTS,
+        "agent.conv_stack": networks.STACKS,
         "env.backend": ("auto", "mjx", "cpu"),
         "env.eval_backend": ("cpu", "train"),
         "eval_device": EVAL_DEVICES,
@@ -337,6 +339,7 @@ def agent_config(config: ConfigDict, action_dim: int) -> update.AgentConfig:
         compute_dtype=a.compute_dtype,
         shift_impl=a.shift_impl,
         filter_gradient=a.filter_gradient,
+        conv_stack=a.conv_stack,
     )
 
 

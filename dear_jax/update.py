@@ -47,6 +47,7 @@ class AgentConfig:
     compute_dtype: str = "float32"  # "bfloat16": convolutions of encoder and decoders in bf16
     shift_impl: str = "gather"  # how the random shift is computed (augment.SHIFT_IMPLS)
     filter_gradient: str = "cudnn"  # convolutions' filter gradients (networks.FILTER_GRADIENTS)
+    conv_stack: str = "xla"  # how the stride-1 conv layers run (networks.STACKS)
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -68,6 +69,8 @@ class AgentConfig:
                 f"unknown filter_gradient {self.filter_gradient!r}; valid: "
                 f"{networks.FILTER_GRADIENTS}"
             )
+        if self.conv_stack not in networks.STACKS:
+            raise ValueError(f"unknown conv_stack {self.conv_stack!r}; valid: {networks.STACKS}")
         if self.method != "drqv2" and self.encoder != "pool":
             raise ValueError(
                 f"method {self.method!r} needs encoder='pool' (its heads read the latent)"
@@ -389,7 +392,7 @@ def update(
     state: AgentState, batch: Batch, key: jax.Array, hp: HParams, *, cfg: AgentConfig
 ) -> tuple[AgentState, dict]:
     """One DrQ-v2 update for one seed; bind `cfg` (functools.partial) before jit/vmap."""
-    with networks.conv_settings(filter_gradient=cfg.filter_gradient):
+    with networks.conv_settings(filter_gradient=cfg.filter_gradient, stack=cfg.conv_stack):
         return _update(state, batch, key, hp, cfg)
 
 

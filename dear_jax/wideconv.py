@@ -1,0 +1,258 @@
+"""Stacks of stride-1 3x3 convolutions with ReLU as Pallas (Triton) kernels on one flat layout.
+
+Why: the stride-1 layers of the encoder (41 -> 39 -> 37 -> 35) and of the mask decoder
+(35 -> 37 -> 39 -> 41, transposed) are most of a DEAR update, and on an H100 cuDNN runs them well
+above the memory floor: a bf16 forward convolution at [512, 41, 41, 32] takes ~94 µs and a filter
+gradient ~165 µs, where reading and writing the activations takes ~35 µs
+(benchmarks/results/dispatch_h100.json). With seeds in the hybrid update, cutting each seed's
+operands out of the stacked batch and stacking the results back cost another 4.1 ms of a 24.8 ms
+5-seed call (benchmarks/results/profile_dear_hybrid_h100.json). Here each layer is one kernel for
+all seeds (Pallas batches the grid under `jax.vmap`), with bias, ReLU and the ReLU gradient fused.
+
+The layout. Every activation of a stack is one flat array [rows, C]: a front margin of zeros
+(`margin` rows), then each image as `size` x `size` pixels in row-major order (`size` is the
+largest side in the stack), a pixel of a smaller activation sitting at the top left with zeros
+around it. A 3x3 tap (i, j) is then a fixed shift of the rows, `offset = i * size + j`, so a
+convolution is nine shifted [bm, C] x [C, F] products per block of bm rows (implicit GEMM without
+the im2col copy), and its input gradient the same with the shifts negated and the kernel
+transposed. A pixel outside a layer's valid region is zero, so the shifts that leave a region,
+wrap into the next row or cross into the next image read zeros, exactly the VALID/FULL
+convolution's padding; the margin keeps the negative shifts of the first image inside the array.
+
+`conv_stack(x, layers, pad)` is the function of
+`for (k, b) in layers: x = relu(VALID conv of x zero-padded by `pad` with k, + b)`:
+pad 0 for the encoder's convolutions, pad 2 for stride-1 transposed convolutions (PyTorch's
+ConvTranspose2d(k=3, stride=1) is a VALID convolution of the input padded by 2 with the same
+kernel, as `networks.ConvTranspose` computes it). Off GPUs the kernels run in Pallas' interpreter
+(slow; for tests). tests/test_wideconv.py checks values and gradients against lax.conv.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plt
+
+BLOCK = 128  # rows per program of a convolution, and per step of a filter gradient
+WGRAD_STEPS = 32  # blocks summed by one program of a filter gradient
+NUM_WARPS = 4
+INTERPRET: bool | None = None  # Pallas' interpreter; None: off GPUs
+
+
+def _interpret() -> bool:
+    return jax.default_backend() != "gpu" if INTERPRET is None else INTERPRET
+
+
+def supported(x_shape, layers, pad: int) -> bool:
+    """Whether `conv_stack` takes this stack: square NHWC images, 3x3 kernels, channel counts
+    that are powers of two >= 16 (Triton's dot), and room for the zeros that the shifts need."""
+    if len(x_shape) != 4 or x_shape[1] != x_shape[2] or pad not in (0, 2) or not layers:
+        return False
+    sizes = _sizes(x_shape[1], len(layers), pad)
+    channels = [x_shape[-1]] + [k.shape[-1] for k, _ in layers]
+    return (
+        all(k.shape[:2] == (3, 3) for k, _ in layers)
+        and all(c >= 16 and c & (c - 1) == 0 for c in channels)
+        and [k.shape[2] for k, _ in layers] == channels[:-1]
+        and min(sizes) > 0
+        # a FULL convolution reads two pixels beyond its input: they must be zeros of the layout
+        and (pad == 0 or max(sizes[:-1]) <= max(sizes) - 2)
+    )
+
+
+def _sizes(size: int, n: int, pad: int) -> list[int]:
+    return [size + i * (2 * pad - 2) for i in range(n + 1)]
+
+
+@dataclasses.dataclass(frozen=True)
+class _Layout:
+    images: int
+    size: int  # side of every image in the flat array
+    margin: int  # zero rows before the first image (a multiple of BLOCK, >= the largest shift)
+
+    @property
+    def rows(self) -> int:
+        return self.margin + self.images * self.size * self.size
+
+    def offsets(self, pad: int) -> tuple[int, ...]:
+        return tuple((i - pad) * self.size + (j - pad) for i in range(3) for j in range(3))
+
+    def flatten(self, x: jax.Array) -> jax.Array:
+        """[N, h, h, C] -> [rows, C]: zeros right of and below each image, the margin before."""
+        h, s = x.shape[1], self.size
+        x = jnp.pad(x, ((0, 0), (0, s - h), (0, s - h), (0, 0)))
+        return jnp.pad(x.reshape(-1, x.shape[-1]), ((self.margin, 0), (0, 0)))
+
+    def unflatten(self, flat: jax.Array, h: int) -> jax.Array:
+        """[rows, C] -> [N, h, h, C], the top-left h x h of each image."""
+        x = flat[self.margin :].reshape(self.images, self.size, self.size, flat.shape[-1])
+        return x[:, :h, :h]
+
+
+def _row_mask(rows, total, width):
+    return jnp.broadcast_to(((rows >= 0) & (rows < total))[:, None], (rows.shape[0], width))
+
+
+def _shifted_kernel(*refs, offsets, layout, valid, relu, has_bias, has_mask):
+    x_ref, w_ref = refs[:2]
+    b_ref = refs[2] if has_bias else None
+    m_ref = refs[2 + has_bias] if has_mask else None
+    o_ref = refs[-1]
+    total, c, f = layout.rows, x_ref.shape[-1], o_ref.shape[-1]
+    start = pl.program_id(0) * BLOCK
+    rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
+    acc = jnp.zeros((BLOCK, f), jnp.float32)
+    for t, off in enumerate(offsets):
+        x = plt.load(
+            x_ref.at[pl.ds(start + off, BLOCK), :], mask=_row_mask(rows + off, total, c), other=0
+        )
+        acc += plt.dot(x, w_ref[t])
+    if has_bias:
+        acc += b_ref[...][None, :]
+    if relu:
+        acc = jnp.maximum(acc, 0.0)
+    body = rows - layout.margin
+    keep = (body >= 0) & (rows < total)
+    if valid is not None:
+        pos = jax.lax.rem(jnp.maximum(body, 0), layout.size * layout.size)
+        keep &= (jax.lax.div(pos, layout.size) < valid) & (jax.lax.rem(pos, layout.size) < valid)
+    if has_mask:
+        m = plt.load(m_ref.at[pl.ds(start, BLOCK), :], mask=_row_mask(rows, total, f), other=0)
+        acc = jnp.where(m > 0, acc, 0.0)
+    acc = jnp.where(keep[:, None], acc, 0.0)
+    plt.store(
+        o_ref.at[pl.ds(start, BLOCK), :], acc.astype(o_ref.dtype), mask=_row_mask(rows, total, f)
+    )
+
+
+def _shifted(x, w, offsets, layout, *, bias=None, relu=False, valid=None, mask=None):
+    """out[p] = sum_t x[p + offsets[t]] @ w[t] (+ bias, ReLU), zero outside `valid` x `valid`
+    (if given) and in the margin, and zero where `mask` is not positive (if given)."""
+    f = w.shape[-1]
+    args = [x, w.astype(x.dtype)]
+    if bias is not None:
+        args.append(bias.astype(jnp.float32))
+    if mask is not None:
+        args.append(mask)
+    return pl.pallas_call(
+        functools.partial(
+            _shifted_kernel,
+            offsets=offsets,
+            layout=layout,
+            valid=valid,
+            relu=relu,
+            has_bias=bias is not None,
+            has_mask=mask is not None,
+        ),
+        out_shape=jax.ShapeDtypeStruct((layout.rows, f), x.dtype),
+        grid=(pl.cdiv(layout.rows, BLOCK),),
+        interpret=_interpret(),
+        # Triton's parameters also pick Pallas' Triton backend (not Mosaic GPU).
+        compiler_params=plt.CompilerParams(num_warps=NUM_WARPS, num_stages=2),
+    )(*args)
+
+
+def _wgrad_kernel(x_ref, g_ref, w_ref, b_ref, *, offsets, layout):
+    total, c, f = layout.rows, x_ref.shape[-1], g_ref.shape[-1]
+    p = pl.program_id(0)
+
+    def step(s, carry):
+        accs, bacc = carry
+        start = layout.margin + (p * WGRAD_STEPS + s) * BLOCK
+        rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
+        g = plt.load(g_ref.at[pl.ds(start, BLOCK), :], mask=_row_mask(rows, total, f), other=0)
+        out = []
+        for t, off in enumerate(offsets):
+            x = plt.load(
+                x_ref.at[pl.ds(start + off, BLOCK), :],
+                mask=_row_mask(rows + off, total, c),
+                other=0,
+            )
+            out.append(accs[t] + plt.dot(x, g, trans_a=True))
+        return tuple(out), bacc + jnp.sum(g.astype(jnp.float32), axis=0)
+
+    zeros = tuple(jnp.zeros((c, f), jnp.float32) for _ in offsets)
+    accs, bacc = jax.lax.fori_loop(0, WGRAD_STEPS, step, (zeros, jnp.zeros((f,), jnp.float32)))
+    for t in range(len(offsets)):
+        w_ref[p, t] = accs[t]
+    b_ref[p] = bacc
+
+
+def _wgrad(x, g, offsets, layout):
+    """(sum_p x[p + offsets[t]]^T g[p] for each t, sum_p g[p]), in float32, over the images."""
+    c, f = x.shape[-1], g.shape[-1]
+    programs = pl.cdiv(layout.rows - layout.margin, BLOCK * WGRAD_STEPS)
+    w, b = pl.pallas_call(
+        functools.partial(_wgrad_kernel, offsets=offsets, layout=layout),
+        out_shape=(
+            jax.ShapeDtypeStruct((programs, len(offsets), c, f), jnp.float32),
+            jax.ShapeDtypeStruct((programs, f), jnp.float32),
+        ),
+        grid=(programs,),
+        interpret=_interpret(),
+        compiler_params=plt.CompilerParams(num_warps=NUM_WARPS, num_stages=2),
+    )(x, g)
+    return w.sum(0), b.sum(0)
+
+
+def _plan(x_shape, pad, n):
+    sizes = _sizes(x_shape[1], n, pad)
+    size = max(sizes)
+    margin = -(-(2 * size + 2) // BLOCK) * BLOCK
+    return _Layout(x_shape[0], size, margin), sizes
+
+
+def _taps(kernel):
+    return kernel.reshape(9, *kernel.shape[2:])  # [3, 3, C, F] -> [9, C, F], tap i*3 + j
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
+def conv_stack(x: jax.Array, layers: tuple, pad: int) -> jax.Array:
+    """relu(VALID conv(zero-pad(x, pad), k) + b) for each (k, b) of `layers`, in x's dtype.
+
+    x: [N, H, H, C]; each k: [3, 3, C_in, C_out]; each b: [C_out]. Returns [N, H', H', C_out]
+    with H' = H + len(layers) * (2 * pad - 2). See `supported` for the shapes it takes.
+    """
+    return _forward(x, layers, pad)[0]
+
+
+def _forward(x, layers, pad):
+    layout, sizes = _plan(x.shape, pad, len(layers))
+    offsets = layout.offsets(pad)
+    acts = [layout.flatten(x)]
+    for (k, b), size in zip(layers, sizes[1:]):
+        acts.append(_shifted(acts[-1], _taps(k), offsets, layout, bias=b, relu=True, valid=size))
+    return layout.unflatten(acts[-1], sizes[-1]), acts
+
+
+def _conv_stack_fwd(x, layers, pad):
+    y, acts = _forward(x, layers, pad)
+    return y, (acts, layers)
+
+
+def _conv_stack_bwd(pad, residuals, g):
+    acts, layers = residuals
+    n = len(layers)
+    layout, sizes = _plan((g.shape[0], g.shape[1] - n * (2 * pad - 2)), pad, n)
+    offsets = layout.offsets(pad)
+    back = tuple(-o for o in offsets)
+    # The gradient at the last layer's pre-activations, in the layout.
+    g = jnp.where(acts[-1] > 0, layout.flatten(g.astype(acts[-1].dtype)), 0)
+    grads = []
+    for i in reversed(range(n)):
+        k = layers[i][0]
+        dk, db = _wgrad(acts[i], g, offsets, layout)
+        grads.append((dk.reshape(k.shape).astype(k.dtype), db.astype(layers[i][1].dtype)))
+        # Input gradient: taps shifted back, kernel transposed, and the ReLU gradient of the layer
+        # below applied (the stack's input has none).
+        w = jnp.swapaxes(_taps(k), 1, 2)
+        g = _shifted(g, w, back, layout, mask=acts[i] if i else None)
+    dx = layout.unflatten(g, sizes[0])
+    return dx, tuple(reversed(grads))
+
+
+conv_stack.defvjp(_conv_stack_fwd, _conv_stack_bwd)

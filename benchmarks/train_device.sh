@@ -47,7 +47,8 @@
 #             default in this tree, then benchmarks/update.py (DEAR bf16, DrQ-v2 bf16 plain
 #             encoder; 5 seeds, batch 512, hybrid) with cuDNN's and the kernel's filter gradients
 #   wideconv  the stride-1 conv stacks as Pallas kernels (dear_jax/wideconv.py):
-#             benchmarks/wideconv.py (against cuDNN; rows per block x warps), the fastest
+#             benchmarks/wideconv.py (against cuDNN; pixels per load x rows per block x
+#             warps, $WC_ARGS), the fastest
 #             choice made wideconv's default in this tree, then benchmarks/update.py (DEAR bf16,
 #             DrQ-v2 bf16 plain encoder; 5 seeds, batch 512, hybrid) with agent.conv_stack xla
 #             and pallas, and the profile of the DEAR update with pallas
@@ -291,11 +292,12 @@ for r in rows:
     if r["variant"].startswith("pallas") and r["pass_"] == "forward_backward":
         total[r["variant"]] += r["ms_per_call"]
 best = min(total, key=total.get)
-block, warps = map(int, re.findall(r"\d+", best)[:2])
 p = pathlib.Path("dear_jax/wideconv.py")
-text = re.sub(r"(?m)^BLOCK = \d+", f"BLOCK = {block}", p.read_text())
-p.write_text(re.sub(r"(?m)^NUM_WARPS = \d+", f"NUM_WARPS = {warps}", text))
-print(f"wideconv defaults in this tree: BLOCK={block} NUM_WARPS={warps}")
+text = p.read_text()
+for name, value in zip(("WIDTH", "BLOCK", "NUM_WARPS"), re.findall(r"\d+", best)):
+    text = re.sub(rf"(?m)^{name} = \d+", f"{name} = {value}", text)
+    print(f"wideconv default in this tree: {name} = {value}")
+p.write_text(text)
 PY
       timeout 300 python3 -m benchmarks.update --methods dear drqv2 --drqv2-encoder plain \
         --seeds 5 --batch 512 --iters 20 --dtypes bfloat16 --seed-axis hybrid \

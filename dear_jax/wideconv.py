@@ -40,6 +40,9 @@ from jax.experimental.pallas import triton as plt
 BLOCK = 128  # rows per program of a convolution, and per step of a filter gradient
 WGRAD_STEPS = 32  # blocks summed by one program of a filter gradient
 NUM_WARPS = 4
+# Pixels per load: 4 reads a row's three taps (and one pixel more, whose weights are zero) as one
+# overlapping window; 1 reads each tap on its own (9 loads per block).
+WIDTH = 4
 INTERPRET: bool | None = None  # Pallas' interpreter; None: off GPUs
 
 
@@ -78,9 +81,6 @@ class _Layout:
     def rows(self) -> int:
         return self.margin + self.images * self.size * self.size
 
-    def offsets(self, pad: int) -> tuple[int, ...]:
-        return tuple((i - pad) * self.size + (j - pad) for i in range(3) for j in range(3))
-
     def flatten(self, x: jax.Array) -> jax.Array:
         """[N, h, h, C] -> [rows, C]: zeros right of and below each image, the margin before."""
         h, s = x.shape[1], self.size
@@ -97,20 +97,25 @@ def _row_mask(rows, total, width):
     return jnp.broadcast_to(((rows >= 0) & (rows < total))[:, None], (rows.shape[0], width))
 
 
-def _shifted_kernel(*refs, offsets, layout, valid, relu, has_bias, has_mask):
+def _windows(x_ref, rows, total: int, c: int):
+    """x's pixels rows[k] .. rows[k] + WIDTH - 1 side by side: [BLOCK, WIDTH * c], zeros off the
+    array. x_ref is the flat array as one dimension, so one load reads overlapping windows."""
+    idx = rows[:, None] * c + jnp.arange(WIDTH * c, dtype=jnp.int32)[None, :]
+    return plt.load(x_ref.at[idx], mask=(idx >= 0) & (idx < total * c), other=0)
+
+
+def _conv_kernel(*refs, bases, layout, valid, relu, has_bias, has_mask):
     x_ref, w_ref = refs[:2]
     b_ref = refs[2] if has_bias else None
     m_ref = refs[2 + has_bias] if has_mask else None
     o_ref = refs[-1]
-    total, c, f = layout.rows, x_ref.shape[-1], o_ref.shape[-1]
+    total, f = layout.rows, o_ref.shape[-1]
+    c = w_ref.shape[1] // WIDTH
     start = pl.program_id(0) * BLOCK
     rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
     acc = jnp.zeros((BLOCK, f), jnp.float32)
-    for t, off in enumerate(offsets):
-        x = plt.load(
-            x_ref.at[pl.ds(start + off, BLOCK), :], mask=_row_mask(rows + off, total, c), other=0
-        )
-        acc += plt.dot(x, w_ref[t])
+    for t, base in enumerate(bases):
+        acc += plt.dot(_windows(x_ref, rows + base, total, c), w_ref[t])
     if has_bias:
         acc += b_ref[...][None, :]
     if relu:
@@ -129,19 +134,19 @@ def _shifted_kernel(*refs, offsets, layout, valid, relu, has_bias, has_mask):
     )
 
 
-def _shifted(x, w, offsets, layout, *, bias=None, relu=False, valid=None, mask=None):
-    """out[p] = sum_t x[p + offsets[t]] @ w[t] (+ bias, ReLU), zero outside `valid` x `valid`
-    (if given) and in the margin, and zero where `mask` is not positive (if given)."""
+def _conv(x, w, bases, layout, *, bias=None, relu=False, valid=None, mask=None):
+    """out[p] = sum_t window(x, p + bases[t]) @ w[t] (+ bias, ReLU), zero outside `valid` x
+    `valid` (if given) and in the margin, and zero where `mask` is not positive (if given)."""
     f = w.shape[-1]
-    args = [x, w.astype(x.dtype)]
+    args = [x.reshape(-1), w.astype(x.dtype)]
     if bias is not None:
         args.append(bias.astype(jnp.float32))
     if mask is not None:
         args.append(mask)
     return pl.pallas_call(
         functools.partial(
-            _shifted_kernel,
-            offsets=offsets,
+            _conv_kernel,
+            bases=bases,
             layout=layout,
             valid=valid,
             relu=relu,
@@ -156,8 +161,9 @@ def _shifted(x, w, offsets, layout, *, bias=None, relu=False, valid=None, mask=N
     )(*args)
 
 
-def _wgrad_kernel(x_ref, g_ref, w_ref, b_ref, *, offsets, layout):
-    total, c, f = layout.rows, x_ref.shape[-1], g_ref.shape[-1]
+def _wgrad_kernel(x_ref, g_ref, w_ref, b_ref, *, bases, layout):
+    total, f = layout.rows, g_ref.shape[-1]
+    c = w_ref.shape[2] // WIDTH
     p = pl.program_id(0)
 
     def step(s, carry):
@@ -165,49 +171,66 @@ def _wgrad_kernel(x_ref, g_ref, w_ref, b_ref, *, offsets, layout):
         start = layout.margin + (p * WGRAD_STEPS + s) * BLOCK
         rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
         g = plt.load(g_ref.at[pl.ds(start, BLOCK), :], mask=_row_mask(rows, total, f), other=0)
-        out = []
-        for t, off in enumerate(offsets):
-            x = plt.load(
-                x_ref.at[pl.ds(start + off, BLOCK), :],
-                mask=_row_mask(rows + off, total, c),
-                other=0,
-            )
-            out.append(accs[t] + plt.dot(x, g, trans_a=True))
-        return tuple(out), bacc + jnp.sum(g.astype(jnp.float32), axis=0)
+        out = tuple(
+            acc + plt.dot(_windows(x_ref, rows + base, total, c), g, trans_a=True)
+            for acc, base in zip(accs, bases)
+        )
+        return out, bacc + jnp.sum(g.astype(jnp.float32), axis=0)
 
-    zeros = tuple(jnp.zeros((c, f), jnp.float32) for _ in offsets)
+    zeros = tuple(jnp.zeros((WIDTH * c, f), jnp.float32) for _ in bases)
     accs, bacc = jax.lax.fori_loop(0, WGRAD_STEPS, step, (zeros, jnp.zeros((f,), jnp.float32)))
-    for t in range(len(offsets)):
+    for t in range(len(bases)):
         w_ref[p, t] = accs[t]
     b_ref[p] = bacc
 
 
-def _wgrad(x, g, offsets, layout):
-    """(sum_p x[p + offsets[t]]^T g[p] for each t, sum_p g[p]), in float32, over the images."""
+def _wgrad(x, g, bases, layout):
+    """(sum_p window(x, p + bases[t])^T g[p] for each t, sum_p g[p]), in float32."""
     c, f = x.shape[-1], g.shape[-1]
     programs = pl.cdiv(layout.rows - layout.margin, BLOCK * WGRAD_STEPS)
     w, b = pl.pallas_call(
-        functools.partial(_wgrad_kernel, offsets=offsets, layout=layout),
+        functools.partial(_wgrad_kernel, bases=bases, layout=layout),
         out_shape=(
-            jax.ShapeDtypeStruct((programs, len(offsets), c, f), jnp.float32),
+            jax.ShapeDtypeStruct((programs, len(bases), WIDTH * c, f), jnp.float32),
             jax.ShapeDtypeStruct((programs, f), jnp.float32),
         ),
         grid=(programs,),
         interpret=_interpret(),
         compiler_params=plt.CompilerParams(num_warps=NUM_WARPS, num_stages=2),
-    )(x, g)
+    )(x.reshape(-1), g)
     return w.sum(0), b.sum(0)
 
 
 def _plan(x_shape, pad, n):
     sizes = _sizes(x_shape[1], n, pad)
     size = max(sizes)
-    margin = -(-(2 * size + 2) // BLOCK) * BLOCK
+    margin = -(-(2 * size + 4) // BLOCK) * BLOCK
     return _Layout(x_shape[0], size, margin), sizes
 
 
-def _taps(kernel):
-    return kernel.reshape(9, *kernel.shape[2:])  # [3, 3, C, F] -> [9, C, F], tap i*3 + j
+def _bases(pad: int, size: int, backward: bool) -> tuple[int, ...]:
+    """Where each window of a layer starts, relative to the output pixel. Forward, tap (i, j)
+    reads pixel (i - pad, j - pad) from it; backward (the input gradient), tap (i, j') reads
+    pixel (pad - i, pad - 2 + j') with kernel tap (i, 2 - j')."""
+    rows, cols = range(3), range(0, 3, WIDTH)
+    if backward:
+        return tuple((pad - i) * size + pad - 2 + j for i in rows for j in cols)
+    return tuple((i - pad) * size + j - pad for i in rows for j in cols)
+
+
+def _pack(kernel: jax.Array, backward: bool) -> jax.Array:
+    """[3, 3, C, F] -> one [WIDTH * C, F] matrix per window (the kernel transposed and its
+    columns reversed for the input gradient; rows of a 4th pixel zero)."""
+    if backward:
+        kernel = jnp.swapaxes(kernel, 2, 3)[:, ::-1]
+    if WIDTH == 4:
+        kernel = jnp.pad(kernel, ((0, 0), (0, 1), (0, 0), (0, 0)))
+    return kernel.reshape(-1, WIDTH * kernel.shape[2], kernel.shape[3])
+
+
+def _unpack(w: jax.Array, c: int) -> jax.Array:
+    """The filter gradient's windows [groups, WIDTH * C, F] -> [3, 3, C, F]."""
+    return w.reshape(3, -1, c, w.shape[-1])[:, :3]
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
@@ -222,10 +245,11 @@ def conv_stack(x: jax.Array, layers: tuple, pad: int) -> jax.Array:
 
 def _forward(x, layers, pad):
     layout, sizes = _plan(x.shape, pad, len(layers))
-    offsets = layout.offsets(pad)
+    bases = _bases(pad, layout.size, backward=False)
     acts = [layout.flatten(x)]
     for (k, b), size in zip(layers, sizes[1:]):
-        acts.append(_shifted(acts[-1], _taps(k), offsets, layout, bias=b, relu=True, valid=size))
+        w = _pack(k, backward=False)
+        acts.append(_conv(acts[-1], w, bases, layout, bias=b, relu=True, valid=size))
     return layout.unflatten(acts[-1], sizes[-1]), acts
 
 
@@ -238,19 +262,18 @@ def _conv_stack_bwd(pad, residuals, g):
     acts, layers = residuals
     n = len(layers)
     layout, sizes = _plan((g.shape[0], g.shape[1] - n * (2 * pad - 2)), pad, n)
-    offsets = layout.offsets(pad)
-    back = tuple(-o for o in offsets)
+    bases = _bases(pad, layout.size, backward=False)
+    back = _bases(pad, layout.size, backward=True)
     # The gradient at the last layer's pre-activations, in the layout.
     g = jnp.where(acts[-1] > 0, layout.flatten(g.astype(acts[-1].dtype)), 0)
     grads = []
     for i in reversed(range(n)):
         k = layers[i][0]
-        dk, db = _wgrad(acts[i], g, offsets, layout)
-        grads.append((dk.reshape(k.shape).astype(k.dtype), db.astype(layers[i][1].dtype)))
-        # Input gradient: taps shifted back, kernel transposed, and the ReLU gradient of the layer
-        # below applied (the stack's input has none).
-        w = jnp.swapaxes(_taps(k), 1, 2)
-        g = _shifted(g, w, back, layout, mask=acts[i] if i else None)
+        dk, db = _wgrad(acts[i], g, bases, layout)
+        grads.append((_unpack(dk, k.shape[2]).astype(k.dtype), db.astype(layers[i][1].dtype)))
+        # Input gradient, with the ReLU gradient of the layer below (the stack's input has none).
+        w = _pack(k, backward=True)
+        g = _conv(g, w, back, layout, mask=acts[i] if i else None)
     dx = layout.unflatten(g, sizes[0])
     return dx, tuple(reversed(grads))
 

@@ -48,10 +48,11 @@
 #             encoder; 5 seeds, batch 512, hybrid) with cuDNN's and the kernel's filter gradients
 #   wideconv  the stride-1 conv stacks as Pallas kernels (dear_jax/wideconv.py):
 #             benchmarks/wideconv.py (against cuDNN; pixels per load x rows per block x
-#             warps, $WC_ARGS), the fastest
+#             warps x blocks per program, $WC_ARGS), the fastest
 #             choice made wideconv's default in this tree, then benchmarks/update.py (DEAR bf16,
 #             DrQ-v2 bf16 plain encoder; 5 seeds, batch 512, hybrid) with agent.conv_stack xla
-#             and pallas, and the profile of the DEAR update with pallas
+#             and pallas, benchmarks/train.py (DEAR walker-walk, 5 seeds x 16 envs, bf16, no
+#             evaluation) with pallas, and the profile of the DEAR update with pallas
 #   dispatch  benchmarks/dispatch.py: the host's cost per launched op, per kind, with XLA's
 #             defaults, its conv fusion, and no autotuning; the DEAR update without autotuning
 #   loop      benchmarks/profile_loop.py: where a training iteration's time goes, per program, for
@@ -294,7 +295,7 @@ for r in rows:
 best = min(total, key=total.get)
 p = pathlib.Path("dear_jax/wideconv.py")
 text = p.read_text()
-for name, value in zip(("WIDTH", "BLOCK", "NUM_WARPS"), re.findall(r"\d+", best)):
+for name, value in zip(("WIDTH", "BLOCK", "NUM_WARPS", "CONV_STEPS"), re.findall(r"\d+", best)):
     text = re.sub(rf"(?m)^{name} = \d+", f"{name} = {value}", text)
     print(f"wideconv default in this tree: {name} = {value}")
 p.write_text(text)
@@ -302,6 +303,11 @@ PY
       timeout 300 python3 -m benchmarks.update --methods dear drqv2 --drqv2-encoder plain \
         --seeds 5 --batch 512 --iters 20 --dtypes bfloat16 --seed-axis hybrid \
         --conv-stacks xla pallas --out "$out/update_wideconv.json"
+      timeout 200 python3 -m benchmarks.train --config configs/walker_dear.py --seeds 5 \
+        --envs 16 --dtype bfloat16 --backend cpu --warmup-frames 2400 --frames 6000 \
+        --log-every 1200 --skip split --set replay.disk=false --set agent.conv_stack=pallas \
+        --out "$out/train_dear_wideconv.json" > "$out/train_dear_wideconv.log" 2>&1
+      grep -h "End to end" "$out/train_dear_wideconv.log"
       timeout 150 python3 -m benchmarks.profile_update --method dear --batch 512 --seeds 5 \
         --seed-axis hybrid --dtype bfloat16 --conv-stack pallas \
         --out "$out/profile_dear_wideconv.json" > "$out/profile_dear_wideconv.log" 2>&1 ;;

@@ -1,7 +1,7 @@
 """The stride-1 conv stacks of a DEAR update: cuDNN layer by layer against dear_jax.wideconv.
 
     python -m benchmarks.wideconv [--seeds 5] [--batch 512] [--iters 20]
-        [--widths 4 1] [--blocks 64 128 256] [--warps 2 4 8] [--wgrad-steps 32]
+        [--widths 4 1] [--blocks 64 128] [--warps 4] [--conv-steps 1 4]
 
 For every seed (vmapped, as the update does), bf16:
 - encoder: relu(conv 3x3) x 3 on [batch, 41, 41, 32] -> [batch, 35, 35, 32];
@@ -9,7 +9,8 @@ For every seed (vmapped, as the update does), bf16:
 Each as a forward pass alone (as for next_obs) and as forward + backward (input and parameter
 gradients of a sum of the outputs), by:
 - xla_loop: each convolution once per seed on cuDNN (agent.seed_axis="hybrid", the default);
-- pallas: `wideconv.conv_stack`, for each pixels-per-load x rows-per-block x warps choice.
+- pallas: `wideconv.conv_stack`, for each pixels-per-load x rows-per-block x warps x
+  blocks-per-program choice.
 Prints ms per call, the host's dispatch per call, and the largest difference from the same pass
 in float32 (cuDNN, all seeds at once; per output, relative to its largest magnitude); writes JSON. Sets wideconv's defaults to nothing: the
 fastest choice is for the reader to write into dear_jax/wideconv.py.
@@ -59,9 +60,9 @@ def main():
     p.add_argument("--batch", type=int, default=512)
     p.add_argument("--iters", type=int, default=20)
     p.add_argument("--widths", type=int, nargs="+", default=[4, 1], choices=[1, 4])
-    p.add_argument("--blocks", type=int, nargs="+", default=[64, 128, 256])
-    p.add_argument("--warps", type=int, nargs="+", default=[2, 4, 8])
-    p.add_argument("--wgrad-steps", type=int, nargs="+", default=[32])
+    p.add_argument("--blocks", type=int, nargs="+", default=[64, 128])
+    p.add_argument("--warps", type=int, nargs="+", default=[4])
+    p.add_argument("--conv-steps", type=int, nargs="+", default=[1, 4])
     p.add_argument("--out", default=None)
     args = p.parse_args()
     rows = []
@@ -78,7 +79,7 @@ def main():
         )
         choices = [("xla_loop", None)] + [
             ("pallas", c)
-            for c in itertools.product(args.widths, args.blocks, args.warps, args.wgrad_steps)
+            for c in itertools.product(args.widths, args.blocks, args.warps, args.conv_steps)
         ]
         reference = {
             k: [a.astype(jnp.float32) for a in jax.tree.leaves(fn(x, layers))]
@@ -87,9 +88,8 @@ def main():
         for impl, choice in choices:
             variant = impl
             if choice:
-                wideconv.WIDTH, wideconv.BLOCK, wideconv.NUM_WARPS, wideconv.WGRAD_STEPS = choice
-                variant = f"pallas_width{choice[0]}_block{choice[1]}_warps{choice[2]}"
-                variant += f"_steps{choice[3]}" if len(args.wgrad_steps) > 1 else ""
+                wideconv.WIDTH, wideconv.BLOCK, wideconv.NUM_WARPS, wideconv.CONV_STEPS = choice
+                variant = "pallas_width{}_block{}_warps{}_steps{}".format(*choice)
             for pass_name, fn in _programs(impl, pad).items():
                 try:
                     out = jax.block_until_ready(fn(x, layers))

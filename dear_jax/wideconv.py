@@ -37,9 +37,11 @@ import jax.numpy as jnp
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
-BLOCK = 128  # rows per program of a convolution, and per step of a filter gradient
-WGRAD_STEPS = 32  # blocks summed by one program of a filter gradient
+BLOCK = 64  # rows per step of a convolution or a filter gradient
+CONV_STEPS = 1  # steps of one program of a convolution
+WGRAD_STEPS = 32  # steps of one program of a filter gradient (a multiple of CONV_STEPS)
 NUM_WARPS = 4
+STAGES = 2  # Triton's software pipelining of the steps
 # Pixels per load: 4 reads a row's three taps (and one pixel more, whose weights are zero) as one
 # overlapping window; 1 reads each tap on its own (9 loads per block).
 WIDTH = 4
@@ -73,35 +75,45 @@ def _sizes(size: int, n: int, pad: int) -> list[int]:
 
 @dataclasses.dataclass(frozen=True)
 class _Layout:
+    """Where the images sit in a flat array: `margin` zero rows, the images, zero rows to the
+    end. The margins are as long as the farthest read of a window (2 * size + 4 rows) rounded to
+    whole programs, so no load leaves the array and none needs a mask."""
+
     images: int
     size: int  # side of every image in the flat array
-    margin: int  # zero rows before the first image (a multiple of BLOCK, >= the largest shift)
+
+    @property
+    def body(self) -> int:
+        return self.images * self.size * self.size
+
+    @property
+    def margin(self) -> int:  # zero rows before the images, and at least as many after them
+        return _round_up(2 * self.size + 4, BLOCK * CONV_STEPS)
 
     @property
     def rows(self) -> int:
-        return self.margin + self.images * self.size * self.size
+        return 2 * self.margin + _round_up(self.body, BLOCK * WGRAD_STEPS)
 
     def flatten(self, x: jax.Array) -> jax.Array:
-        """[N, h, h, C] -> [rows, C]: zeros right of and below each image, the margin before."""
+        """[N, h, h, C] -> [rows, C]: zeros right of and below each image, and the margins."""
         h, s = x.shape[1], self.size
-        x = jnp.pad(x, ((0, 0), (0, s - h), (0, s - h), (0, 0)))
-        return jnp.pad(x.reshape(-1, x.shape[-1]), ((self.margin, 0), (0, 0)))
+        x = jnp.pad(x, ((0, 0), (0, s - h), (0, s - h), (0, 0))).reshape(-1, x.shape[-1])
+        return jnp.pad(x, ((self.margin, self.rows - self.margin - self.body), (0, 0)))
 
     def unflatten(self, flat: jax.Array, h: int) -> jax.Array:
         """[rows, C] -> [N, h, h, C], the top-left h x h of each image."""
-        x = flat[self.margin :].reshape(self.images, self.size, self.size, flat.shape[-1])
-        return x[:, :h, :h]
+        x = flat[self.margin : self.margin + self.body]
+        return x.reshape(self.images, self.size, self.size, flat.shape[-1])[:, :h, :h]
 
 
-def _row_mask(rows, total, width):
-    return jnp.broadcast_to(((rows >= 0) & (rows < total))[:, None], (rows.shape[0], width))
+def _round_up(n: int, multiple: int) -> int:
+    return -(-n // multiple) * multiple
 
 
-def _windows(x_ref, rows, total: int, c: int):
-    """x's pixels rows[k] .. rows[k] + WIDTH - 1 side by side: [BLOCK, WIDTH * c], zeros off the
-    array. x_ref is the flat array as one dimension, so one load reads overlapping windows."""
-    idx = rows[:, None] * c + jnp.arange(WIDTH * c, dtype=jnp.int32)[None, :]
-    return plt.load(x_ref.at[idx], mask=(idx >= 0) & (idx < total * c), other=0)
+def _windows(x_ref, rows, c: int):
+    """x's pixels rows[k] .. rows[k] + WIDTH - 1 side by side: [BLOCK, WIDTH * c]. x_ref is the
+    flat array as one dimension, so one load reads overlapping windows."""
+    return x_ref[rows[:, None] * c + jnp.arange(WIDTH * c, dtype=jnp.int32)[None, :]]
 
 
 def _conv_kernel(*refs, bases, layout, valid, relu, has_bias, has_mask):
@@ -109,34 +121,46 @@ def _conv_kernel(*refs, bases, layout, valid, relu, has_bias, has_mask):
     b_ref = refs[2] if has_bias else None
     m_ref = refs[2 + has_bias] if has_mask else None
     o_ref = refs[-1]
-    total, f = layout.rows, o_ref.shape[-1]
-    c = w_ref.shape[1] // WIDTH
-    start = pl.program_id(0) * BLOCK
-    rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
-    acc = jnp.zeros((BLOCK, f), jnp.float32)
-    for t, base in enumerate(bases):
-        acc += plt.dot(_windows(x_ref, rows + base, total, c), w_ref[t])
-    if has_bias:
-        acc += b_ref[...][None, :]
-    if relu:
-        acc = jnp.maximum(acc, 0.0)
-    body = rows - layout.margin
-    keep = (body >= 0) & (rows < total)
-    if valid is not None:
-        pos = jax.lax.rem(jnp.maximum(body, 0), layout.size * layout.size)
-        keep &= (jax.lax.div(pos, layout.size) < valid) & (jax.lax.rem(pos, layout.size) < valid)
-    if has_mask:
-        m = plt.load(m_ref.at[pl.ds(start, BLOCK), :], mask=_row_mask(rows, total, f), other=0)
-        acc = jnp.where(m > 0, acc, 0.0)
-    acc = jnp.where(keep[:, None], acc, 0.0)
-    plt.store(
-        o_ref.at[pl.ds(start, BLOCK), :], acc.astype(o_ref.dtype), mask=_row_mask(rows, total, f)
-    )
+    f, c = o_ref.shape[-1], w_ref.shape[1] // WIDTH
+    first = pl.program_id(0) * (BLOCK * CONV_STEPS)
+    inside = (first >= layout.margin) & (first < layout.rows - layout.margin)
+
+    @pl.when(inside)
+    def _():
+        def step(s, carry):
+            start = first + s * BLOCK
+            rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
+            acc = jnp.zeros((BLOCK, f), jnp.float32)
+            for t, base in enumerate(bases):
+                acc += plt.dot(_windows(x_ref, rows + base, c), w_ref[t])
+            if has_bias:
+                acc += b_ref[...][None, :]
+            if relu:
+                acc = jnp.maximum(acc, 0.0)
+            pos = rows - layout.margin
+            keep = pos < layout.body
+            if valid is not None:
+                pos = jax.lax.rem(pos, layout.size * layout.size)
+                keep &= (jax.lax.div(pos, layout.size) < valid) & (
+                    jax.lax.rem(pos, layout.size) < valid
+                )
+            if has_mask:
+                keep = keep[:, None] & (m_ref[pl.ds(start, BLOCK), :] > 0)
+            else:
+                keep = keep[:, None]
+            o_ref[pl.ds(start, BLOCK), :] = jnp.where(keep, acc, 0.0).astype(o_ref.dtype)
+            return carry
+
+        jax.lax.fori_loop(0, CONV_STEPS, step, 0)
+
+    @pl.when(jnp.logical_not(inside))
+    def _():
+        o_ref[pl.ds(first, BLOCK * CONV_STEPS), :] = jnp.zeros((BLOCK * CONV_STEPS, f), o_ref.dtype)
 
 
 def _conv(x, w, bases, layout, *, bias=None, relu=False, valid=None, mask=None):
     """out[p] = sum_t window(x, p + bases[t]) @ w[t] (+ bias, ReLU), zero outside `valid` x
-    `valid` (if given) and in the margin, and zero where `mask` is not positive (if given)."""
+    `valid` (if given) and in the margins, and zero where `mask` is not positive (if given)."""
     f = w.shape[-1]
     args = [x.reshape(-1), w.astype(x.dtype)]
     if bias is not None:
@@ -154,25 +178,24 @@ def _conv(x, w, bases, layout, *, bias=None, relu=False, valid=None, mask=None):
             has_mask=mask is not None,
         ),
         out_shape=jax.ShapeDtypeStruct((layout.rows, f), x.dtype),
-        grid=(pl.cdiv(layout.rows, BLOCK),),
+        grid=(layout.rows // (BLOCK * CONV_STEPS),),
         interpret=_interpret(),
         # Triton's parameters also pick Pallas' Triton backend (not Mosaic GPU).
-        compiler_params=plt.CompilerParams(num_warps=NUM_WARPS, num_stages=2),
+        compiler_params=plt.CompilerParams(num_warps=NUM_WARPS, num_stages=STAGES),
     )(*args)
 
 
 def _wgrad_kernel(x_ref, g_ref, w_ref, b_ref, *, bases, layout):
-    total, f = layout.rows, g_ref.shape[-1]
-    c = w_ref.shape[2] // WIDTH
+    f, c = g_ref.shape[-1], w_ref.shape[2] // WIDTH
     p = pl.program_id(0)
 
     def step(s, carry):
         accs, bacc = carry
         start = layout.margin + (p * WGRAD_STEPS + s) * BLOCK
         rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
-        g = plt.load(g_ref.at[pl.ds(start, BLOCK), :], mask=_row_mask(rows, total, f), other=0)
+        g = g_ref[pl.ds(start, BLOCK), :]
         out = tuple(
-            acc + plt.dot(_windows(x_ref, rows + base, total, c), g, trans_a=True)
+            acc + plt.dot(_windows(x_ref, rows + base, c), g, trans_a=True)
             for acc, base in zip(accs, bases)
         )
         return out, bacc + jnp.sum(g.astype(jnp.float32), axis=0)
@@ -187,7 +210,7 @@ def _wgrad_kernel(x_ref, g_ref, w_ref, b_ref, *, bases, layout):
 def _wgrad(x, g, bases, layout):
     """(sum_p window(x, p + bases[t])^T g[p] for each t, sum_p g[p]), in float32."""
     c, f = x.shape[-1], g.shape[-1]
-    programs = pl.cdiv(layout.rows - layout.margin, BLOCK * WGRAD_STEPS)
+    programs = (layout.rows - 2 * layout.margin) // (BLOCK * WGRAD_STEPS)
     w, b = pl.pallas_call(
         functools.partial(_wgrad_kernel, bases=bases, layout=layout),
         out_shape=(
@@ -196,16 +219,14 @@ def _wgrad(x, g, bases, layout):
         ),
         grid=(programs,),
         interpret=_interpret(),
-        compiler_params=plt.CompilerParams(num_warps=NUM_WARPS, num_stages=2),
+        compiler_params=plt.CompilerParams(num_warps=NUM_WARPS, num_stages=STAGES),
     )(x.reshape(-1), g)
     return w.sum(0), b.sum(0)
 
 
 def _plan(x_shape, pad, n):
     sizes = _sizes(x_shape[1], n, pad)
-    size = max(sizes)
-    margin = -(-(2 * size + 4) // BLOCK) * BLOCK
-    return _Layout(x_shape[0], size, margin), sizes
+    return _Layout(x_shape[0], max(sizes)), sizes
 
 
 def _bases(pad: int, size: int, backward: bool) -> tuple[int, ...]:

@@ -1,7 +1,7 @@
 """The stride-1 conv stacks of a DEAR update: cuDNN layer by layer against dear_jax.wideconv.
 
     python -m benchmarks.wideconv [--seeds 5] [--batch 512] [--iters 20]
-        [--widths 4 1] [--blocks 64 128] [--warps 4] [--conv-steps 1 4]
+        [--widths 4 1] [--blocks 64 128] [--warps 4] [--conv-steps 4 8 16]
 
 For every seed (vmapped, as the update does), bf16:
 - encoder: relu(conv 3x3) x 3 on [batch, 41, 41, 32] -> [batch, 35, 35, 32];
@@ -62,7 +62,7 @@ def main():
     p.add_argument("--widths", type=int, nargs="+", default=[4, 1], choices=[1, 4])
     p.add_argument("--blocks", type=int, nargs="+", default=[64, 128])
     p.add_argument("--warps", type=int, nargs="+", default=[4])
-    p.add_argument("--conv-steps", type=int, nargs="+", default=[1, 4])
+    p.add_argument("--conv-steps", type=int, nargs="+", default=[4, 8, 16])
     p.add_argument("--out", default=None)
     args = p.parse_args()
     rows = []

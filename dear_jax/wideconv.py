@@ -38,7 +38,7 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
 BLOCK = 64  # rows per step of a convolution or a filter gradient
-CONV_STEPS = 1  # steps of one program of a convolution
+CONV_STEPS = 8  # steps of one program of a convolution
 WGRAD_STEPS = 32  # steps of one program of a filter gradient (a multiple of CONV_STEPS)
 NUM_WARPS = 4
 STAGES = 2  # Triton's software pipelining of the steps
@@ -127,14 +127,19 @@ def _conv_kernel(*refs, bases, layout, valid, relu, has_bias, has_mask):
 
     @pl.when(inside)
     def _():
+        # Loaded once per program: reloading the weights for every block of rows moved as many
+        # bytes as the activations themselves.
+        weights = [w_ref[t] for t in range(len(bases))]
+        bias = b_ref[...][None, :] if has_bias else None
+
         def step(s, carry):
             start = first + s * BLOCK
             rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
             acc = jnp.zeros((BLOCK, f), jnp.float32)
-            for t, base in enumerate(bases):
-                acc += plt.dot(_windows(x_ref, rows + base, c), w_ref[t])
+            for w, base in zip(weights, bases):
+                acc += plt.dot(_windows(x_ref, rows + base, c), w)
             if has_bias:
-                acc += b_ref[...][None, :]
+                acc += bias
             if relu:
                 acc = jnp.maximum(acc, 0.0)
             pos = rows - layout.margin

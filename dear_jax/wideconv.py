@@ -38,7 +38,7 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
 BLOCK = 64  # rows per step of a convolution or a filter gradient
-CONV_STEPS = 8  # steps of one program of a convolution
+CONV_STEPS = 1  # blocks per program of a convolution (2-16 measured slower: see benchmarks/RESULTS.md)
 WGRAD_STEPS = 32  # steps of one program of a filter gradient (a multiple of CONV_STEPS)
 NUM_WARPS = 4
 STAGES = 2  # Triton's software pipelining of the steps

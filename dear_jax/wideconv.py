@@ -21,7 +21,7 @@ convolution's padding; the margins keep every shifted load inside the array, so 
 
 Measured on an H100 (benchmarks/RESULTS.md, "The stride-1 conv stacks as Pallas kernels"): the
 bf16 DEAR update of 5 seeds at batch 512 takes 4.46-4.54 ms per seed with these kernels against
-5.01-5.03 with cuDNN, the filter gradients ~107 µs per layer and seed against cuDNN's ~165, but
+5.01-5.03 with cuDNN; its filter gradients take ~98 µs per layer and seed (cuDNN: 163-166), but
 the forward and input-gradient kernels ~115 µs, no faster than cuDNN's. The defaults below are
 the fastest of the sweeps (`python -m benchmarks.wideconv`).
 

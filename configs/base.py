@@ -106,7 +106,9 @@ def get_config() -> ConfigDict:
     c.agent.filter_gradient = "cudnn"
     # The stride-1 conv layers of the encoder and decoders: "xla" (cuDNN, layer by layer) or
     # "pallas" (dear_jax/wideconv.py: Pallas kernels on one flat layout, bias/ReLU fused, one
-    # launch per layer for all seeds). Same function.
+    # launch per layer for all seeds). Same function. On an H100 "pallas" made the bf16 DEAR
+    # update 10% faster (benchmarks/results/update_wideconv_h100.json); it stays opt-in until
+    # its end-to-end gain with evaluation is measured. Off GPUs it runs in Pallas' interpreter.
     c.agent.conv_stack = "xla"
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
     c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)

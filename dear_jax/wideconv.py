@@ -9,15 +9,17 @@ operands out of the stacked batch and stacking the results back cost another 4.1
 5-seed call (benchmarks/results/profile_dear_hybrid_h100.json). Here each layer is one kernel for
 all seeds (Pallas batches the grid under `jax.vmap`), with bias, ReLU and the ReLU gradient fused.
 
-The layout. Every activation of a stack is one flat array [rows, C]: a front margin of zeros
-(`margin` rows), then each image as `size` x `size` pixels in row-major order (`size` is the
-largest side in the stack), a pixel of a smaller activation sitting at the top left with zeros
-around it. A 3x3 tap (i, j) is then a fixed shift of the rows, `offset = i * size + j`, so a
-convolution is nine shifted [bm, C] x [C, F] products per block of bm rows (implicit GEMM without
-the im2col copy), and its input gradient the same with the shifts negated and the kernel
-transposed. A pixel outside a layer's valid region is zero, so the shifts that leave a region,
-wrap into the next row or cross into the next image read zeros, exactly the VALID/FULL
-convolution's padding; the margins keep every shifted load inside the array, so none is masked.
+The layout. Every activation of a stack is one flat array [rows, C]: zero rows (the margin),
+then each image as `size` x `size` pixels in row-major order (`size` is the largest side in the
+stack), a pixel of a smaller activation sitting at the top left with zeros around it, then zero
+rows again. A 3x3 tap (i, j) is then a fixed shift of the rows, `offset = i * size + j`, and the
+three taps of a kernel row are 3 consecutive pixels: one load of a 4-pixel window per kernel row
+([BLOCK, 4C], overlapping from row to row; the 4th pixel's weights are zero) makes a convolution
+three [BLOCK, 4C] x [4C, F] products per block of rows (implicit GEMM without the im2col copy).
+Its input gradient is the same with the shifts negated and the kernel transposed. A pixel outside
+a layer's valid region is zero, so the shifts that leave a region, wrap into the next row or
+cross into the next image read zeros, exactly the VALID/FULL convolution's padding; the margins
+keep every load inside the array, so none is masked.
 
 Measured on an H100 (benchmarks/RESULTS.md, "The stride-1 conv stacks as Pallas kernels"): the
 bf16 DEAR update of 5 seeds at batch 512 takes 4.46-4.54 ms per seed with these kernels against

@@ -13,6 +13,11 @@ closed. Stated tolerances (measured values in the test bodies' comments):
   along the counter under the arm's full torque, and the sliding differs between MJX's and
   MuJoCo's contact sets (the hands end ~7 cm apart); it checks penetration on each backend;
 - counter: no robot-scene contact deeper than 5 mm over the push-down on either backend.
+
+The envs draw "fast" pictures (no shadows, reflections or multisampling): the tests read the
+masks, which MuJoCo's flat-colour segmentation pass draws the same under every quality
+(envs/render.py; tests/test_render.py checks it), and not the RGB frames, whose default effects
+cost ~7x on llvmpipe (~45 s of this file's rollouts).
 """
 
 import os
@@ -74,7 +79,7 @@ def _make(name, backend):
         num_seeds=S,
         envs_per_seed=E,
         backend=backend,
-        render=envs.RenderSettings(num_workers=1),
+        render=envs.RenderSettings(num_workers=1, quality="fast"),
     )
 
 

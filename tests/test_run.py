@@ -294,30 +294,6 @@ def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):
         report.run_rows(tmp_path, threshold)
 
 
-def test_a_sweep_trains_each_lane_with_its_own_settings(tmp_path):
-    """`sweep.beta = "0,100"` with one seed: two lanes in one program, each logging under its
-    settings' name with its own config.json; every logged loss is L_critic + alpha L_mask +
-    beta L_dis with its lane's beta; the summary and Table II have a row per setting."""
-    c = tiny_config(seeds=1, total_frames=160)
-    c.sweep.beta = "0,100"
-    summary = train.train(c, tmp_path)
-    assert [p["lane"] for p in summary["per_seed"]] == ["beta=0_seed_0", "beta=100_seed_0"]
-    assert summary["lanes"] == 2 and summary["sweep"] == {"beta": [0.0, 100.0]}
-    for beta in (0, 100):
-        lane = tmp_path / f"beta={beta}_seed_0"
-        config = json.loads((lane / "config.json").read_text())
-        assert config["agent"]["beta"] == beta and config["lane"]["settings"] == {"beta": beta}
-        log = read_csv(lane / "train.csv")
-        rows = np.isfinite(log["loss"])
-        assert rows.sum() >= 1 and np.all(log["ortho_loss"][rows] > 0)
-        want = log["critic_loss"] + c.agent.alpha * log["mask_loss"] + beta * log["ortho_loss"]
-        np.testing.assert_allclose(log["loss"][rows], want[rows], rtol=1e-4)
-        assert (lane / "eval.csv").is_file() and (lane / "tb").is_dir()
-    assert sorted(p.name for p in (tmp_path / "videos").iterdir())[0].endswith("_seed_0.mp4")
-    rows, _ = report.runs_table([tmp_path], threshold=1.0)
-    assert [r["run"] for r in rows] == [f"{tmp_path.name} beta=0", f"{tmp_path.name} beta=100"]
-
-
 def test_changed_learning_fields_are_refused_naming_them(run):
     workdir = run[0]
     changed = {"agent.batch_size": 4, "agent.alpha": 0.5, "total_frames": 400}
@@ -552,3 +528,30 @@ def test_stale_lock_is_taken_over(tmp_path, caplog):
     (tmp_path / "run.lock").write_text(json.dumps({"pid": 1, "host": "elsewhere"}))
     with pytest.raises(WorkdirLocked, match="delete .*run.lock"):
         WorkdirLock(tmp_path).acquire()
+
+
+# Last in this file: its two-lane programs replace the fixture's in the trainer's program cache
+# (one experiment per process, train.cached_programs), which the tests above reuse (the resume of
+# test_sigterm_checkpoints_exits_cleanly_and_resumes_exactly would compile them again).
+def test_a_sweep_trains_each_lane_with_its_own_settings(tmp_path):
+    """`sweep.beta = "0,100"` with one seed: two lanes in one program, each logging under its
+    settings' name with its own config.json; every logged loss is L_critic + alpha L_mask +
+    beta L_dis with its lane's beta; the summary and Table II have a row per setting."""
+    c = tiny_config(seeds=1, total_frames=160)
+    c.sweep.beta = "0,100"
+    summary = train.train(c, tmp_path)
+    assert [p["lane"] for p in summary["per_seed"]] == ["beta=0_seed_0", "beta=100_seed_0"]
+    assert summary["lanes"] == 2 and summary["sweep"] == {"beta": [0.0, 100.0]}
+    for beta in (0, 100):
+        lane = tmp_path / f"beta={beta}_seed_0"
+        config = json.loads((lane / "config.json").read_text())
+        assert config["agent"]["beta"] == beta and config["lane"]["settings"] == {"beta": beta}
+        log = read_csv(lane / "train.csv")
+        rows = np.isfinite(log["loss"])
+        assert rows.sum() >= 1 and np.all(log["ortho_loss"][rows] > 0)
+        want = log["critic_loss"] + c.agent.alpha * log["mask_loss"] + beta * log["ortho_loss"]
+        np.testing.assert_allclose(log["loss"][rows], want[rows], rtol=1e-4)
+        assert (lane / "eval.csv").is_file() and (lane / "tb").is_dir()
+    assert sorted(p.name for p in (tmp_path / "videos").iterdir())[0].endswith("_seed_0.mp4")
+    rows, _ = report.runs_table([tmp_path], threshold=1.0)
+    assert [r["run"] for r in rows] == [f"{tmp_path.name} beta=0", f"{tmp_path.name} beta=100"]

@@ -42,6 +42,9 @@ def tiny_config(**overrides):
     c.replay.seed_frames = 120
     c.replay.capacity = 1000
     c.replay.chunk_entries = 40  # 20 rows: the runs write full chunks, not only partial ones
+    # One render worker per env (smoke: 2): each costs a process start (~2.5 s of CPU) per env of
+    # every run. test_sigterm_checkpoints_exits_cleanly_and_resumes_exactly runs with 2.
+    c.env.render.num_workers = 1
     for key, value in overrides.items():
         node = c
         *parents, leaf = key.split(".")
@@ -324,7 +327,7 @@ def test_fingerprint_is_every_field_but_the_resumable_ones():
         checkpoint_every_frames=0,
         save_video=False,
         progress=True,
-        **{"env.render.num_workers": 1},
+        **{"env.render.num_workers": 2},
     )
     assert train.fingerprint(relaxed) == train.fingerprint(tiny_config())
 
@@ -469,9 +472,10 @@ def _children(pid: int) -> list[int]:
 def test_sigterm_checkpoints_exits_cleanly_and_resumes_exactly(run, tmp_path):
     """run.py sent SIGTERM mid-run saves a checkpoint and exits with 143, leaving no shared
     memory and no render worker behind; meanwhile a second run on its workdir is refused; resumed,
-    the run ends exactly as the uninterrupted one (the fixture's)."""
+    the run ends exactly as the uninterrupted one (the fixture's, drawn by 1 render worker per
+    env where this run has 2)."""
     workdir = tmp_path / "w"
-    config = tiny_config(total_frames=280)
+    config = tiny_config(total_frames=280, **{"env.render.num_workers": 2})
     cmd = [sys.executable, "run.py", "--config", "smoke", f"--workdir={workdir}"]
     cmd += _overrides(config)
     env = dict(os.environ, MUJOCO_GL="egl", JAX_PLATFORMS="cpu")

@@ -11,6 +11,7 @@ SLOWEST_FIRST = (
     "test_networks.py",
     "test_evaluator.py",
     "test_kitchen.py",
+    "test_wideconv.py",
     "test_physics.py",
     "test_envs.py",
     "test_render.py",

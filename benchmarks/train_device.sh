@@ -48,7 +48,7 @@
 #             encoder; 5 seeds, batch 512, hybrid) with cuDNN's and the kernel's filter gradients
 #   wideconv  the stride-1 conv stacks as Pallas kernels (dear_jax/wideconv.py):
 #             benchmarks/wideconv.py (against cuDNN; pixels per load x rows per block x
-#             warps x blocks per program, $WC_ARGS), the fastest
+#             warps, $WC_ARGS), the fastest
 #             choice made wideconv's default in this tree, then benchmarks/update.py (DEAR bf16,
 #             DrQ-v2 bf16 plain encoder; 5 seeds, batch 512, hybrid) with agent.conv_stack xla
 #             and pallas, benchmarks/train.py (DEAR walker-walk, 5 seeds x 16 envs, bf16, no
@@ -295,7 +295,7 @@ for r in rows:
 best = min(total, key=total.get)
 p = pathlib.Path("dear_jax/wideconv.py")
 text = p.read_text()
-for name, value in zip(("WIDTH", "BLOCK", "NUM_WARPS", "CONV_STEPS"), re.findall(r"\d+", best)):
+for name, value in zip(("WIDTH", "BLOCK", "NUM_WARPS"), re.findall(r"\d+", best)):
     text = re.sub(rf"(?m)^{name} = \d+", f"{name} = {value}", text)
     print(f"wideconv default in this tree: {name} = {value}")
 p.write_text(text)

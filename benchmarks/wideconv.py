@@ -1,7 +1,7 @@
 """The stride-1 conv stacks of a DEAR update: cuDNN layer by layer against dear_jax.wideconv.
 
     python -m benchmarks.wideconv [--seeds 5] [--batch 512] [--iters 20]
-        [--widths 4 1] [--blocks 64 128] [--warps 4] [--conv-steps 4 8 16]
+        [--widths 4 1] [--blocks 64 128] [--warps 4 8]
 
 For every seed (vmapped, as the update does), bf16:
 - encoder: relu(conv 3x3) x 3 on [batch, 41, 41, 32] -> [batch, 35, 35, 32];
@@ -9,8 +9,7 @@ For every seed (vmapped, as the update does), bf16:
 Each as a forward pass alone (as for next_obs) and as forward + backward (input and parameter
 gradients of a sum of the outputs), by:
 - xla_loop: each convolution once per seed on cuDNN (agent.seed_axis="hybrid", the default);
-- pallas: `wideconv.conv_stack`, for each pixels-per-load x rows-per-block x warps x
-  blocks-per-program choice.
+- pallas: `wideconv.conv_stack`, for each pixels-per-load x rows-per-block x warps choice.
 Prints ms per call, the host's dispatch per call, and the largest difference from the same pass
 in float32 (cuDNN, all seeds at once; per output, relative to its largest magnitude); writes JSON. Sets wideconv's defaults to nothing: the
 fastest choice is for the reader to write into dear_jax/wideconv.py.
@@ -61,8 +60,7 @@ def main():
     p.add_argument("--iters", type=int, default=20)
     p.add_argument("--widths", type=int, nargs="+", default=[4, 1], choices=[1, 4])
     p.add_argument("--blocks", type=int, nargs="+", default=[64, 128])
-    p.add_argument("--warps", type=int, nargs="+", default=[4])
-    p.add_argument("--conv-steps", type=int, nargs="+", default=[4, 8, 16])
+    p.add_argument("--warps", type=int, nargs="+", default=[4, 8])
     p.add_argument("--out", default=None)
     args = p.parse_args()
     rows = []
@@ -78,8 +76,7 @@ def main():
             for c, f in zip(channels, channels[1:])
         )
         choices = [("xla_loop", None)] + [
-            ("pallas", c)
-            for c in itertools.product(args.widths, args.blocks, args.warps, args.conv_steps)
+            ("pallas", c) for c in itertools.product(args.widths, args.blocks, args.warps)
         ]
         reference = {
             k: [a.astype(jnp.float32) for a in jax.tree.leaves(fn(x, layers))]
@@ -88,8 +85,8 @@ def main():
         for impl, choice in choices:
             variant = impl
             if choice:
-                wideconv.WIDTH, wideconv.BLOCK, wideconv.NUM_WARPS, wideconv.CONV_STEPS = choice
-                variant = "pallas_width{}_block{}_warps{}_steps{}".format(*choice)
+                wideconv.WIDTH, wideconv.BLOCK, wideconv.NUM_WARPS = choice
+                variant = "pallas_width{}_block{}_warps{}".format(*choice)
             for pass_name, fn in _programs(impl, pad).items():
                 try:
                     out = jax.block_until_ready(fn(x, layers))

@@ -24,8 +24,9 @@ keep every load inside the array, so none is masked.
 Measured on an H100 (benchmarks/RESULTS.md, "The stride-1 conv stacks as Pallas kernels"): the
 bf16 DEAR update of 5 seeds at batch 512 takes 4.46-4.54 ms per seed with these kernels against
 5.01-5.03 with cuDNN; its filter gradients take ~98 µs per layer and seed (cuDNN: 163-166), but
-the forward and input-gradient kernels ~115 µs, no faster than cuDNN's. The defaults below are
-the fastest of the sweeps (`python -m benchmarks.wideconv`).
+the forward and input-gradient kernels ~116 µs, no faster than cuDNN's. The defaults below are
+the fastest of the sweeps (`python -m benchmarks.wideconv`); programs of several blocks, with the
+weights loaded once per program, were slower (commit 6d204e7).
 
 `conv_stack(x, layers, pad)` is the function of
 `for (k, b) in layers: x = relu(VALID conv of x zero-padded by `pad` with k, + b)`:
@@ -46,10 +47,9 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
 BLOCK = 64  # rows per step of a convolution or a filter gradient
-CONV_STEPS = 1  # blocks per program of a convolution (4-16 measured slower on an H100)
-WGRAD_STEPS = 32  # steps of one program of a filter gradient (a multiple of CONV_STEPS)
+WGRAD_STEPS = 32  # steps of one program of a filter gradient
 NUM_WARPS = 4
-STAGES = 2  # Triton's software pipelining of the steps
+STAGES = 2  # Triton's software pipelining of a filter gradient's steps
 # Pixels per load: 4 reads a row's three taps (and one pixel more, whose weights are zero) as one
 # overlapping window; 1 reads each tap on its own (9 loads per block).
 WIDTH = 4
@@ -96,7 +96,7 @@ class _Layout:
 
     @property
     def margin(self) -> int:  # zero rows before the images, and at least as many after them
-        return _round_up(2 * self.size + 4, BLOCK * CONV_STEPS)
+        return _round_up(2 * self.size + 4, BLOCK)
 
     @property
     def rows(self) -> int:
@@ -130,45 +130,34 @@ def _conv_kernel(*refs, bases, layout, valid, relu, has_bias, has_mask):
     m_ref = refs[2 + has_bias] if has_mask else None
     o_ref = refs[-1]
     f, c = o_ref.shape[-1], w_ref.shape[1] // WIDTH
-    first = pl.program_id(0) * (BLOCK * CONV_STEPS)
-    inside = (first >= layout.margin) & (first < layout.rows - layout.margin)
+    start = pl.program_id(0) * BLOCK
+    inside = (start >= layout.margin) & (start < layout.rows - layout.margin)
 
     @pl.when(inside)
     def _():
-        # Loaded once per program: reloading the weights for every block of rows moved as many
-        # bytes as the activations themselves.
-        weights = [w_ref[t] for t in range(len(bases))]
-        bias = b_ref[...][None, :] if has_bias else None
-
-        def step(s, carry):
-            start = first + s * BLOCK
-            rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
-            acc = jnp.zeros((BLOCK, f), jnp.float32)
-            for w, base in zip(weights, bases):
-                acc += plt.dot(_windows(x_ref, rows + base, c), w)
-            if has_bias:
-                acc += bias
-            if relu:
-                acc = jnp.maximum(acc, 0.0)
-            pos = rows - layout.margin
-            keep = pos < layout.body
-            if valid is not None:
-                pos = jax.lax.rem(pos, layout.size * layout.size)
-                keep &= (jax.lax.div(pos, layout.size) < valid) & (
-                    jax.lax.rem(pos, layout.size) < valid
-                )
-            if has_mask:
-                keep = keep[:, None] & (m_ref[pl.ds(start, BLOCK), :] > 0)
-            else:
-                keep = keep[:, None]
-            o_ref[pl.ds(start, BLOCK), :] = jnp.where(keep, acc, 0.0).astype(o_ref.dtype)
-            return carry
-
-        jax.lax.fori_loop(0, CONV_STEPS, step, 0)
+        rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
+        acc = jnp.zeros((BLOCK, f), jnp.float32)
+        for t, base in enumerate(bases):
+            acc += plt.dot(_windows(x_ref, rows + base, c), w_ref[t])
+        if has_bias:
+            acc += b_ref[...][None, :]
+        if relu:
+            acc = jnp.maximum(acc, 0.0)
+        pos = rows - layout.margin
+        keep = pos < layout.body
+        if valid is not None:
+            pos = jax.lax.rem(pos, layout.size * layout.size)
+            keep &= (jax.lax.div(pos, layout.size) < valid) & (
+                jax.lax.rem(pos, layout.size) < valid
+            )
+        keep = keep[:, None]
+        if has_mask:
+            keep &= m_ref[pl.ds(start, BLOCK), :] > 0
+        o_ref[pl.ds(start, BLOCK), :] = jnp.where(keep, acc, 0.0).astype(o_ref.dtype)
 
     @pl.when(jnp.logical_not(inside))
     def _():
-        o_ref[pl.ds(first, BLOCK * CONV_STEPS), :] = jnp.zeros((BLOCK * CONV_STEPS, f), o_ref.dtype)
+        o_ref[pl.ds(start, BLOCK), :] = jnp.zeros((BLOCK, f), o_ref.dtype)
 
 
 def _conv(x, w, bases, layout, *, bias=None, relu=False, valid=None, mask=None):
@@ -191,7 +180,7 @@ def _conv(x, w, bases, layout, *, bias=None, relu=False, valid=None, mask=None):
             has_mask=mask is not None,
         ),
         out_shape=jax.ShapeDtypeStruct((layout.rows, f), x.dtype),
-        grid=(layout.rows // (BLOCK * CONV_STEPS),),
+        grid=(layout.rows // BLOCK,),
         interpret=_interpret(),
         # Triton's parameters also pick Pallas' Triton backend (not Mosaic GPU).
         compiler_params=plt.CompilerParams(num_warps=NUM_WARPS, num_stages=STAGES),

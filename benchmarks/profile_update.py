@@ -48,6 +48,15 @@ def hlo_op_names(compiled_text: str) -> dict[str, str]:
     return names
 
 
+def op_of(hlo_op: str, kernel: str) -> str:
+    """The HLO instruction a kernel ran for. Inside a command buffer the event names the buffer,
+    and the kernel is named after the fusion ("loop_select_fusion_2" for
+    "loop_select_fusion.2")."""
+    if hlo_op.startswith("command_buffer"):
+        return re.sub(r"_(\d+)$", r".\1", kernel)
+    return hlo_op
+
+
 def device_events(trace_dir: str):
     """(kernel name, hlo op, duration ns) of every kernel the GPU ran during the trace."""
     from jax.profiler import ProfileData
@@ -76,6 +85,7 @@ def main():
     parser.add_argument("--conv-stack", default="xla", choices=networks.STACKS)
     parser.add_argument("--top", type=int, default=25)
     parser.add_argument("--out", default=None)
+    parser.add_argument("--hlo-out", default=None, help="write the compiled HLO text here")
     args = parser.parse_args()
     if jax.default_backend() != "gpu":
         parser.error("it reads the GPU's kernel events from a profile: run it on a GPU machine")
@@ -85,6 +95,8 @@ def main():
     )
     keys = jax.random.split(jax.random.key(0), args.seeds)
     compiled_text = step.lower(states, batches, keys, hp).compile().as_text()
+    if args.hlo_out:  # the optimised HLO, to read the fusions the kernels are named after
+        pathlib.Path(args.hlo_out).write_text(compiled_text)
     names = hlo_op_names(compiled_text)
     states, metrics = step(states, batches, keys, hp)
     jax.block_until_ready(metrics)
@@ -102,12 +114,15 @@ def main():
     kind_ns, kind_count = collections.Counter(), collections.Counter()
     kernel_part, kernel_op = {}, {}
     for kernel, hlo_op, ns in device_events(trace_dir):
-        part = part_of(names.get(hlo_op, hlo_op))
+        op = op_of(hlo_op, kernel)
+        # dear_jax.wideconv's Triton kernels (named after their Python functions)
+        part = "conv stacks" if kernel.startswith(("_conv_kernel", "_wgrad_kernel")) else None
+        part = part or part_of(names.get(op, op))
         per_part[part] += ns
         key = f"{hlo_op or '?'} | {kernel[:60]}"
         per_kernel[key] += ns
         kernel_part[key] = part
-        kernel_op[key] = names.get(hlo_op, "")
+        kernel_op[key] = names.get(op, "")
         kind = re.sub(r"\.\d+$", "", hlo_op or "?")
         kind_ns[kind] += ns
         kind_count[kind] += 1

@@ -46,13 +46,15 @@
 #             cuDNN; its images-per-program x warps choices), the fastest choice made wgrad's
 #             default in this tree, then benchmarks/update.py (DEAR bf16, DrQ-v2 bf16 plain
 #             encoder; 5 seeds, batch 512, hybrid) with cuDNN's and the kernel's filter gradients
-#   wideconv  the stride-1 conv stacks as Pallas kernels (dear_jax/wideconv.py):
-#             benchmarks/wideconv.py (against cuDNN; pixels per load x rows per block x
-#             warps, $WC_ARGS), the fastest
-#             choice made wideconv's default in this tree, then benchmarks/update.py (DEAR bf16,
-#             DrQ-v2 bf16 plain encoder; 5 seeds, batch 512, hybrid) with agent.conv_stack xla
-#             and pallas, benchmarks/train.py (DEAR walker-walk, 5 seeds x 16 envs, bf16, no
-#             evaluation) with pallas, and the profile of the DEAR update with pallas
+#   wideconv  the stride-1 conv stacks as Pallas kernels (dear_jax/wideconv.py): wcsweep, then
+#             wcupdate
+#   wcsweep   benchmarks/wideconv.py (against cuDNN), one sweep of wideconv's settings per
+#             ';'-separated "PASS:NAME=v1,v2 ..." in $WC_SWEEPS, each one's fastest made
+#             wideconv's default in this tree (and copied to $OUT/wideconv_chosen.py)
+#   wcupdate  benchmarks/update.py (DEAR bf16, DrQ-v2 bf16 plain encoder; 5 seeds, batch 512,
+#             hybrid) with agent.conv_stack xla and pallas, benchmarks/train.py (DEAR
+#             walker-walk, 5 seeds x 16 envs, bf16, no evaluation) with pallas, and the profile
+#             of the DEAR update with pallas (its compiled HLO too)
 #   dispatch  benchmarks/dispatch.py: the host's cost per launched op, per kind, with XLA's
 #             defaults, its conv fusion, and no autotuning; the DEAR update without autotuning
 #   loop      benchmarks/profile_loop.py: where a training iteration's time goes, per program, for
@@ -282,24 +284,27 @@ PY
       timeout 300 python3 -m benchmarks.update --methods dear drqv2 --drqv2-encoder plain \
         --seeds 5 --batch 512 --iters 20 --dtypes bfloat16 --seed-axis hybrid \
         --filter-gradients cudnn pallas --out "$out/update_pallas.json" ;;
-    wideconv)
+    wideconv) set -- wcsweep wcupdate "$@" ;;
+    wcsweep)
+      # One or more sweeps of dear_jax/wideconv.py's settings, ';'-separated in $WC_SWEEPS, each
+      # "PASS:NAME=v1,v2 NAME=..." (PASS forward or forward_backward: what picks the fastest).
+      # Each sweep times the tree's current settings too, and writes its fastest into the tree,
+      # so a later sweep starts from an earlier one's choice.
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
-      timeout 300 python3 -m benchmarks.wideconv ${WC_ARGS:-} --out "$out/wideconv.json"
-      python3 - "$out/wideconv.json" <<'PY'
-import collections, json, pathlib, re, sys
-rows = [r for r in json.load(open(sys.argv[1]))["rows"] if "ms_per_call" in r]
-total = collections.defaultdict(float)  # both stacks, forward + backward
-for r in rows:
-    if r["variant"].startswith("pallas") and r["pass_"] == "forward_backward":
-        total[r["variant"]] += r["ms_per_call"]
-best = min(total, key=total.get)
-p = pathlib.Path("dear_jax/wideconv.py")
-text = p.read_text()
-for name, value in zip(("WIDTH", "BLOCK", "NUM_WARPS"), re.findall(r"\d+", best)):
-    text = re.sub(rf"(?m)^{name} = \d+", f"{name} = {value}", text)
-    print(f"wideconv default in this tree: {name} = {value}")
-p.write_text(text)
-PY
+      IFS=';' read -ra sweeps <<< "${WC_SWEEPS:-forward_backward:WIDTH=4,1 BLOCK=64,128 NUM_WARPS=4,8}"
+      n=0
+      for sweep in "${sweeps[@]}"; do
+        pass_=${sweep%%:*}; n=$((n + 1))
+        # shellcheck disable=SC2086  # the grid's words
+        timeout 400 python3 -m benchmarks.wideconv --passes "$pass_" --grid ${sweep#*:} \
+          --out "$out/wideconv_sweep$n.json" > "$out/wideconv_sweep$n.log" 2>&1
+        grep "^|" "$out/wideconv_sweep$n.log"
+        python3 -m benchmarks.wideconv --pick "$out/wideconv_sweep$n.json" --by "$pass_"
+      done
+      cp dear_jax/wideconv.py "$out/wideconv_chosen.py" ;;
+    wcupdate)
+      # The update, the loop and the profile with the tree's wideconv settings.
+      export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       timeout 300 python3 -m benchmarks.update --methods dear drqv2 --drqv2-encoder plain \
         --seeds 5 --batch 512 --iters 20 --dtypes bfloat16 --seed-axis hybrid \
         --conv-stacks xla pallas --out "$out/update_wideconv.json"
@@ -309,8 +314,9 @@ PY
         --out "$out/train_dear_wideconv.json" > "$out/train_dear_wideconv.log" 2>&1
       grep -h "End to end" "$out/train_dear_wideconv.log"
       timeout 150 python3 -m benchmarks.profile_update --method dear --batch 512 --seeds 5 \
-        --seed-axis hybrid --dtype bfloat16 --conv-stack pallas \
-        --out "$out/profile_dear_wideconv.json" > "$out/profile_dear_wideconv.log" 2>&1 ;;
+        --seed-axis hybrid --dtype bfloat16 --conv-stack pallas --hlo-out "$out/profile_dear_wideconv.hlo" \
+        --out "$out/profile_dear_wideconv.json" > "$out/profile_dear_wideconv.log" 2>&1
+      head -n 40 "$out/profile_dear_wideconv.log" ;;
     loop)
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
       b=${BACKEND:-config}

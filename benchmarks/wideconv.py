@@ -1,7 +1,8 @@
 """The stride-1 conv stacks of a DEAR update: cuDNN layer by layer against dear_jax.wideconv.
 
     python -m benchmarks.wideconv [--seeds 5] [--batch 512] [--iters 20]
-        [--widths 4 1] [--blocks 64 128] [--warps 4 8]
+        [--grid WIDTH=4,1 BLOCK=64,128 NUM_WARPS=4,8] [--passes forward forward_backward]
+    python -m benchmarks.wideconv --pick RESULTS.json [--by forward_backward]
 
 For every seed (vmapped, as the update does), bf16:
 - encoder: relu(conv 3x3) x 3 on [batch, 41, 41, 32] -> [batch, 35, 35, 32];
@@ -9,16 +10,22 @@ For every seed (vmapped, as the update does), bf16:
 Each as a forward pass alone (as for next_obs) and as forward + backward (input and parameter
 gradients of a sum of the outputs), by:
 - xla_loop: each convolution once per seed on cuDNN (agent.seed_axis="hybrid", the default);
-- pallas: `wideconv.conv_stack`, for each pixels-per-load x rows-per-block x warps choice.
+- pallas: `wideconv.conv_stack`, for each combination of the settings in --grid (names of
+  dear_jax/wideconv.py's module settings; a value "None" is None, digits are ints).
 Prints ms per call, the host's dispatch per call, and the largest difference from the same pass
-in float32 (cuDNN, all seeds at once; per output, relative to its largest magnitude); writes JSON. Sets wideconv's defaults to nothing: the
-fastest choice is for the reader to write into dear_jax/wideconv.py.
+in float32 (cuDNN, all seeds at once; per output, relative to its largest magnitude); writes
+JSON. With --pick, writes the settings of a results file's fastest variant (both stacks' times
+of the pass --by, summed) into dear_jax/wideconv.py as its defaults.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import itertools
+import json
+import pathlib
+import re
 
 import jax
 import jax.numpy as jnp
@@ -53,16 +60,62 @@ def _programs(impl, pad):
     return dict(forward=forward, forward_backward=both)
 
 
+def parse_grid(items: list[str]) -> list[dict]:
+    """["WIDTH=4,1", "BLOCK=64"] -> [{"WIDTH": 4, "BLOCK": 64}, {"WIDTH": 1, "BLOCK": 64}]."""
+    axes = {}
+    for item in items:
+        name, _, values = item.partition("=")
+        if not hasattr(wideconv, name) or name != name.upper() or not values:
+            settings = sorted(k for k in vars(wideconv) if k.isupper() and k != "INTERPRET")
+            raise SystemExit(f"--grid {item!r}: expected NAME=v1,v2 with NAME one of {settings}")
+        axes[name] = [
+            None if v == "None" else int(v) if v.isdigit() else v for v in values.split(",")
+        ]
+    return [dict(zip(axes, combo)) for combo in itertools.product(*axes.values())]
+
+
+def variant_name(settings: dict) -> str:
+    return "pallas_" + ("_".join(f"{k.lower()}{v}" for k, v in settings.items()) or "current")
+
+
+def pick(results: str, by: str, module=pathlib.Path(wideconv.__file__)) -> dict:
+    """Write the fastest variant's settings in `results` into `module`'s defaults."""
+    total, settings = collections.defaultdict(float), {}
+    for r in json.loads(pathlib.Path(results).read_text())["rows"]:
+        if r["variant"].startswith("pallas") and r["pass_"] == by and "ms_per_call" in r:
+            total[r["variant"]] += r["ms_per_call"]
+            settings[r["variant"]] = r["settings"]
+    best = min(total, key=total.get)
+    text = module.read_text()
+    for name, value in settings[best].items():
+        text, n = re.subn(rf"(?m)^({name}(?:: [^=]+)?) = .*$", rf"\1 = {value!r}", text)
+        assert n == 1, f"{name} is not a setting of {module}"
+    module.write_text(text)
+    print(f"{best}: {total[best]:.3f} ms ({by}, both stacks); written into {module}")
+    return settings[best]
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--seeds", type=int, default=5)
     p.add_argument("--batch", type=int, default=512)
     p.add_argument("--iters", type=int, default=20)
-    p.add_argument("--widths", type=int, nargs="+", default=[4, 1], choices=[1, 4])
-    p.add_argument("--blocks", type=int, nargs="+", default=[64, 128])
-    p.add_argument("--warps", type=int, nargs="+", default=[4, 8])
+    p.add_argument("--grid", nargs="+", default=["WIDTH=4,1", "BLOCK=64,128", "NUM_WARPS=4,8"])
+    p.add_argument(
+        "--passes",
+        nargs="+",
+        default=["forward", "forward_backward"],
+        choices=["forward", "forward_backward"],
+    )
     p.add_argument("--out", default=None)
+    p.add_argument("--pick", metavar="RESULTS_JSON", help="write its fastest settings, and stop")
+    p.add_argument("--by", default="forward_backward", choices=["forward", "forward_backward"])
     args = p.parse_args()
+    if args.pick:
+        pick(args.pick, args.by)
+        return
+    grid = parse_grid(args.grid)
+    defaults = {k: getattr(wideconv, k) for k in grid[0]}
     rows = []
     for name, (size, channels, pad) in STACKS.items():
         keys = iter(jax.random.split(jax.random.key(0), 8))
@@ -75,25 +128,36 @@ def main():
             )
             for c, f in zip(channels, channels[1:])
         )
-        choices = [("xla_loop", None)] + [
-            ("pallas", c) for c in itertools.product(args.widths, args.blocks, args.warps)
-        ]
+        # the module's current settings too, so that a sweep can only keep or better them
+        choices = [("xla_loop", {}), ("pallas", {})] + [("pallas", g) for g in grid]
         reference = {
             k: [a.astype(jnp.float32) for a in jax.tree.leaves(fn(x, layers))]
             for k, fn in _programs("float32", pad).items()
+            if k in args.passes
         }
-        for impl, choice in choices:
-            variant = impl
-            if choice:
-                wideconv.WIDTH, wideconv.BLOCK, wideconv.NUM_WARPS = choice
-                variant = "pallas_width{}_block{}_warps{}".format(*choice)
+        one_seed = jax.tree.map(lambda a: a[0], layers)
+        for impl, settings in choices:
+            variant = variant_name(settings) if impl == "pallas" else impl
+            for k, v in {**defaults, **settings}.items():
+                setattr(wideconv, k, v)
             for pass_name, fn in _programs(impl, pad).items():
+                if pass_name not in args.passes:
+                    continue
+                if impl == "pallas" and not wideconv.supported(x.shape[1:], one_seed, pad):
+                    print(f"{name} {variant}: not supported")
+                    continue
                 try:
                     out = jax.block_until_ready(fn(x, layers))
                 except Exception as e:  # a choice Triton cannot compile is reported, not fatal
                     print(f"{name} {variant} {pass_name}: {type(e).__name__}: {str(e)[:300]}")
                     rows.append(
-                        dict(stack=name, variant=variant, pass_=pass_name, error=str(e)[:500])
+                        dict(
+                            stack=name,
+                            variant=variant,
+                            settings=settings,
+                            pass_=pass_name,
+                            error=str(e)[:500],
+                        )
                     )
                     continue
                 flat = [a.astype(jnp.float32) for a in jax.tree.leaves(out)]
@@ -107,6 +171,7 @@ def main():
                     dict(
                         stack=name,
                         variant=variant,
+                        settings=settings,
                         pass_=pass_name,
                         ms_per_call=ms,
                         ms_per_seed=ms / args.seeds,

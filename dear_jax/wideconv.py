@@ -46,9 +46,19 @@ import jax.numpy as jnp
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
-BLOCK = 64  # rows per step of a convolution or a filter gradient
-WGRAD_STEPS = 32  # steps of one program of a filter gradient
+BLOCK = 64  # rows of one output tile of a convolution (one group)
+# Groups per program. 1: a program is one tile of BLOCK consecutive rows. R >= 2: a program is
+# R image rows, one tile per image row (BLOCK >= the image's side; rows past the side are not
+# stored), and a window that two tiles read is loaded once: a 3-row kernel needs R + 2 loads
+# per kernel column instead of 3R.
+ROWS = 1
 NUM_WARPS = 4
+# The eviction policy of a convolution's window loads ("evict_last", "evict_first"; None: the
+# default). (jax's Pallas lowering refuses every cache modifier: it looks ".ca" up as "ca".)
+EVICT: str | None = None
+WGRAD_BLOCK = 64  # rows per step of a filter gradient
+WGRAD_STEPS = 32  # steps of one program of a filter gradient
+WGRAD_WARPS = 4
 STAGES = 2  # Triton's software pipelining of a filter gradient's steps
 # Pixels per load: 4 reads a row's three taps (and one pixel more, whose weights are zero) as one
 # overlapping window; 1 reads each tap on its own (9 loads per block).
@@ -74,6 +84,7 @@ def supported(x_shape, layers, pad: int) -> bool:
         and min(sizes) > 0
         # a FULL convolution reads two pixels beyond its input: they must be zeros of the layout
         and (pad == 0 or max(sizes[:-1]) <= max(sizes) - 2)
+        and (ROWS == 1 or BLOCK >= max(sizes))  # a tile covers an image row
     )
 
 
@@ -84,8 +95,9 @@ def _sizes(size: int, n: int, pad: int) -> list[int]:
 @dataclasses.dataclass(frozen=True)
 class _Layout:
     """Where the images sit in a flat array: `margin` zero rows, the images, zero rows to the
-    end. The margins are as long as the farthest read of a window (2 * size + 4 rows) rounded to
-    whole programs, so no load leaves the array and none needs a mask."""
+    end. The margins are as long as the farthest read of a window, so no load leaves the array
+    and none needs a mask. A convolution's programs cover `conv_cover` rows from the margin on,
+    a filter gradient's `wgrad_cover`; the rows past the images read and write zeros."""
 
     images: int
     size: int  # side of every image in the flat array
@@ -95,12 +107,31 @@ class _Layout:
         return self.images * self.size * self.size
 
     @property
-    def margin(self) -> int:  # zero rows before the images, and at least as many after them
+    def margin(self) -> int:  # a window reads at most 2 * size + 2 rows before its tile
         return _round_up(2 * self.size + 4, BLOCK)
 
     @property
+    def step(self) -> int:  # rows from one tile of a program to the next
+        return self.size if ROWS > 1 else BLOCK
+
+    @property
+    def conv_programs(self) -> int:
+        return -(-self.body // (ROWS * self.step))
+
+    @property
+    def conv_cover(self) -> int:
+        return self.conv_programs * ROWS * self.step
+
+    @property
+    def wgrad_programs(self) -> int:
+        return -(-self.body // (WGRAD_BLOCK * WGRAD_STEPS))
+
+    @property
     def rows(self) -> int:
-        return 2 * self.margin + _round_up(self.body, BLOCK * WGRAD_STEPS)
+        wgrad_cover = self.wgrad_programs * WGRAD_BLOCK * WGRAD_STEPS
+        # past the last tile, a window reads at most 2 * size + BLOCK + 8 rows (WIDTH included)
+        reach = max(wgrad_cover - self.conv_cover, 0) + 2 * self.size + max(BLOCK, WGRAD_BLOCK) + 8
+        return self.margin + self.conv_cover + _round_up(reach, BLOCK)
 
     def flatten(self, x: jax.Array) -> jax.Array:
         """[N, h, h, C] -> [rows, C]: zeros right of and below each image, and the margins."""
@@ -118,10 +149,11 @@ def _round_up(n: int, multiple: int) -> int:
     return -(-n // multiple) * multiple
 
 
-def _windows(x_ref, rows, c: int):
-    """x's pixels rows[k] .. rows[k] + WIDTH - 1 side by side: [BLOCK, WIDTH * c]. x_ref is the
-    flat array as one dimension, so one load reads overlapping windows."""
-    return x_ref[rows[:, None] * c + jnp.arange(WIDTH * c, dtype=jnp.int32)[None, :]]
+def _windows(x_ref, rows, c: int, evict=None):
+    """x's pixels rows[k] .. rows[k] + WIDTH - 1 side by side: [len(rows), WIDTH * c]. x_ref is
+    the flat array as one dimension, so one load reads overlapping windows."""
+    idx = rows[:, None] * c + jnp.arange(WIDTH * c, dtype=jnp.int32)[None, :]
+    return plt.load(x_ref.at[idx], eviction_policy=evict)
 
 
 def _conv_kernel(*refs, bases, layout, valid, relu, has_bias, has_mask):
@@ -130,34 +162,48 @@ def _conv_kernel(*refs, bases, layout, valid, relu, has_bias, has_mask):
     m_ref = refs[2 + has_bias] if has_mask else None
     o_ref = refs[-1]
     f, c = o_ref.shape[-1], w_ref.shape[1] // WIDTH
-    start = pl.program_id(0) * BLOCK
-    inside = (start >= layout.margin) & (start < layout.rows - layout.margin)
+    p, step = pl.program_id(0), layout.step
+    r = jnp.arange(BLOCK, dtype=jnp.int32)
 
-    @pl.when(inside)
+    @pl.when(p < layout.conv_programs)
     def _():
-        rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
-        acc = jnp.zeros((BLOCK, f), jnp.float32)
-        for t, base in enumerate(bases):
-            acc += plt.dot(_windows(x_ref, rows + base, c), w_ref[t])
-        if has_bias:
-            acc += b_ref[...][None, :]
-        if relu:
-            acc = jnp.maximum(acc, 0.0)
-        pos = rows - layout.margin
-        keep = pos < layout.body
-        if valid is not None:
-            pos = jax.lax.rem(pos, layout.size * layout.size)
-            keep &= (jax.lax.div(pos, layout.size) < valid) & (
-                jax.lax.rem(pos, layout.size) < valid
-            )
-        keep = keep[:, None]
-        if has_mask:
-            keep &= m_ref[pl.ds(start, BLOCK), :] > 0
-        o_ref[pl.ds(start, BLOCK), :] = jnp.where(keep, acc, 0.0).astype(o_ref.dtype)
+        start = layout.margin + p * (ROWS * step)
+        windows = {}  # offset from the program's first row -> its window, loaded once
+        for k in range(ROWS):
+            acc = jnp.zeros((BLOCK, f), jnp.float32)
+            for t, base in enumerate(bases):
+                at = k * step + base
+                if at not in windows:
+                    windows[at] = _windows(x_ref, start + at + r, c, EVICT)
+                acc += plt.dot(windows[at], w_ref[t])
+            if has_bias:
+                acc += b_ref[...][None, :]
+            if relu:
+                acc = jnp.maximum(acc, 0.0)
+            first = start + k * step
+            pos = first + r - layout.margin
+            keep = pos < layout.body
+            if valid is not None:
+                pos = jax.lax.rem(pos, layout.size * layout.size)
+                keep &= (jax.lax.div(pos, layout.size) < valid) & (
+                    jax.lax.rem(pos, layout.size) < valid
+                )
+            keep = keep[:, None]
+            if has_mask:
+                keep &= m_ref[pl.ds(first, BLOCK), :] > 0
+            out = jnp.where(keep, acc, 0.0).astype(o_ref.dtype)
+            if step < BLOCK:  # the tile's rows past the image row are the next tile's
+                plt.store(o_ref.at[pl.ds(first, BLOCK), :], out, mask=(r < step)[:, None])
+            else:
+                o_ref[pl.ds(first, BLOCK), :] = out
 
-    @pl.when(jnp.logical_not(inside))
-    def _():
-        o_ref[pl.ds(start, BLOCK), :] = jnp.zeros((BLOCK, f), o_ref.dtype)
+    @pl.when(p >= layout.conv_programs)
+    def _():  # the margins: zeros
+        z = p - layout.conv_programs
+        head = layout.margin // BLOCK
+        end = layout.margin + layout.conv_cover
+        first = jnp.where(z < head, z * BLOCK, end + (z - head) * BLOCK)
+        o_ref[pl.ds(first, BLOCK), :] = jnp.zeros((BLOCK, f), o_ref.dtype)
 
 
 def _conv(x, w, bases, layout, *, bias=None, relu=False, valid=None, mask=None):
@@ -169,6 +215,7 @@ def _conv(x, w, bases, layout, *, bias=None, relu=False, valid=None, mask=None):
         args.append(bias.astype(jnp.float32))
     if mask is not None:
         args.append(mask)
+    zero_blocks = (layout.rows - layout.conv_cover) // BLOCK
     return pl.pallas_call(
         functools.partial(
             _conv_kernel,
@@ -180,7 +227,7 @@ def _conv(x, w, bases, layout, *, bias=None, relu=False, valid=None, mask=None):
             has_mask=mask is not None,
         ),
         out_shape=jax.ShapeDtypeStruct((layout.rows, f), x.dtype),
-        grid=(layout.rows // BLOCK,),
+        grid=(layout.conv_programs + zero_blocks,),
         interpret=_interpret(),
         # Triton's parameters also pick Pallas' Triton backend (not Mosaic GPU).
         compiler_params=plt.CompilerParams(num_warps=NUM_WARPS, num_stages=STAGES),
@@ -193,9 +240,9 @@ def _wgrad_kernel(x_ref, g_ref, w_ref, b_ref, *, bases, layout):
 
     def step(s, carry):
         accs, bacc = carry
-        start = layout.margin + (p * WGRAD_STEPS + s) * BLOCK
-        rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
-        g = g_ref[pl.ds(start, BLOCK), :]
+        start = layout.margin + (p * WGRAD_STEPS + s) * WGRAD_BLOCK
+        rows = start + jnp.arange(WGRAD_BLOCK, dtype=jnp.int32)
+        g = g_ref[pl.ds(start, WGRAD_BLOCK), :]
         out = tuple(
             acc + plt.dot(_windows(x_ref, rows + base, c), g, trans_a=True)
             for acc, base in zip(accs, bases)
@@ -212,7 +259,7 @@ def _wgrad_kernel(x_ref, g_ref, w_ref, b_ref, *, bases, layout):
 def _wgrad(x, g, bases, layout):
     """(sum_p window(x, p + bases[t])^T g[p] for each t, sum_p g[p]), in float32."""
     c, f = x.shape[-1], g.shape[-1]
-    programs = (layout.rows - 2 * layout.margin) // (BLOCK * WGRAD_STEPS)
+    programs = layout.wgrad_programs
     w, b = pl.pallas_call(
         functools.partial(_wgrad_kernel, bases=bases, layout=layout),
         out_shape=(
@@ -221,7 +268,7 @@ def _wgrad(x, g, bases, layout):
         ),
         grid=(programs,),
         interpret=_interpret(),
-        compiler_params=plt.CompilerParams(num_warps=NUM_WARPS, num_stages=STAGES),
+        compiler_params=plt.CompilerParams(num_warps=WGRAD_WARPS, num_stages=STAGES),
     )(x.reshape(-1), g)
     return w.sum(0), b.sum(0)
 

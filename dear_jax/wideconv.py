@@ -21,12 +21,13 @@ a layer's valid region is zero, so the shifts that leave a region, wrap into the
 cross into the next image read zeros, exactly the VALID/FULL convolution's padding; the margins
 keep every load inside the array, so none is masked.
 
-Measured on an H100 (benchmarks/RESULTS.md, "The stride-1 conv stacks as Pallas kernels"): the
-bf16 DEAR update of 5 seeds at batch 512 takes 4.46-4.54 ms per seed with these kernels against
-5.01-5.03 with cuDNN; its filter gradients take ~98 µs per layer and seed (cuDNN: 163-166), but
-the forward and input-gradient kernels ~116 µs, no faster than cuDNN's. The defaults below are
-the fastest of the sweeps (`python -m benchmarks.wideconv`); programs of several blocks, with the
-weights loaded once per program, were slower (commit 6d204e7).
+The settings below are the fastest of staged sweeps on an H100 (`bash
+benchmarks/train_device.sh wcsweep`; benchmarks/RESULTS.md, "The conv stacks' settings swept"):
+single-tap loads (WIDTH 1) in programs of 128 rows with 2 warps, and filter gradients with 2
+warps and 3 pipeline stages. There, the bf16 DEAR update of 5 seeds at batch 512 took 4.14 ms per
+seed against 5.02 with cuDNN. Slower in those sweeps: programs of several image rows that share
+their windows, several blocks per program with the weights loaded once (commit 6d204e7), and
+eviction policies on the loads (no gain).
 
 `conv_stack(x, layers, pad)` is the function of
 `for (k, b) in layers: x = relu(VALID conv of x zero-padded by `pad` with k, + b)`:
@@ -46,23 +47,15 @@ import jax.numpy as jnp
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
-BLOCK = 64  # rows of one output tile of a convolution (one group)
-# Groups per program. 1: a program is one tile of BLOCK consecutive rows. R >= 2: a program is
-# R image rows, one tile per image row (BLOCK >= the image's side; rows past the side are not
-# stored), and a window that two tiles read is loaded once: a 3-row kernel needs R + 2 loads
-# per kernel column instead of 3R.
-ROWS = 1
-NUM_WARPS = 4
-# The eviction policy of a convolution's window loads ("evict_last", "evict_first"; None: the
-# default). (jax's Pallas lowering refuses every cache modifier: it looks ".ca" up as "ca".)
-EVICT: str | None = None
+BLOCK = 128  # rows of one program of a convolution
+NUM_WARPS = 2
 WGRAD_BLOCK = 64  # rows per step of a filter gradient
 WGRAD_STEPS = 32  # steps of one program of a filter gradient
-WGRAD_WARPS = 4
-STAGES = 2  # Triton's software pipelining of a filter gradient's steps
+WGRAD_WARPS = 2
+STAGES = 3  # Triton's software pipelining of a filter gradient's steps
 # Pixels per load: 4 reads a row's three taps (and one pixel more, whose weights are zero) as one
 # overlapping window; 1 reads each tap on its own (9 loads per block).
-WIDTH = 4
+WIDTH = 1
 INTERPRET: bool | None = None  # Pallas' interpreter; None: off GPUs
 
 
@@ -84,7 +77,6 @@ def supported(x_shape, layers, pad: int) -> bool:
         and min(sizes) > 0
         # a FULL convolution reads two pixels beyond its input: they must be zeros of the layout
         and (pad == 0 or max(sizes[:-1]) <= max(sizes) - 2)
-        and (ROWS == 1 or BLOCK >= max(sizes))  # a tile covers an image row
     )
 
 
@@ -111,16 +103,12 @@ class _Layout:
         return _round_up(2 * self.size + 4, BLOCK)
 
     @property
-    def step(self) -> int:  # rows from one tile of a program to the next
-        return self.size if ROWS > 1 else BLOCK
-
-    @property
     def conv_programs(self) -> int:
-        return -(-self.body // (ROWS * self.step))
+        return -(-self.body // BLOCK)
 
     @property
     def conv_cover(self) -> int:
-        return self.conv_programs * ROWS * self.step
+        return self.conv_programs * BLOCK
 
     @property
     def wgrad_programs(self) -> int:
@@ -129,8 +117,8 @@ class _Layout:
     @property
     def rows(self) -> int:
         wgrad_cover = self.wgrad_programs * WGRAD_BLOCK * WGRAD_STEPS
-        # past the last tile, a window reads at most 2 * size + BLOCK + 8 rows (WIDTH included)
-        reach = max(wgrad_cover - self.conv_cover, 0) + 2 * self.size + max(BLOCK, WGRAD_BLOCK) + 8
+        # past the last program's rows, a window reads at most 2 * size + 6 rows
+        reach = max(wgrad_cover - self.conv_cover, 0) + 2 * self.size + 6
         return self.margin + self.conv_cover + _round_up(reach, BLOCK)
 
     def flatten(self, x: jax.Array) -> jax.Array:
@@ -149,11 +137,10 @@ def _round_up(n: int, multiple: int) -> int:
     return -(-n // multiple) * multiple
 
 
-def _windows(x_ref, rows, c: int, evict=None):
+def _windows(x_ref, rows, c: int):
     """x's pixels rows[k] .. rows[k] + WIDTH - 1 side by side: [len(rows), WIDTH * c]. x_ref is
     the flat array as one dimension, so one load reads overlapping windows."""
-    idx = rows[:, None] * c + jnp.arange(WIDTH * c, dtype=jnp.int32)[None, :]
-    return plt.load(x_ref.at[idx], eviction_policy=evict)
+    return x_ref[rows[:, None] * c + jnp.arange(WIDTH * c, dtype=jnp.int32)[None, :]]
 
 
 def _conv_kernel(*refs, bases, layout, valid, relu, has_bias, has_mask):
@@ -162,40 +149,30 @@ def _conv_kernel(*refs, bases, layout, valid, relu, has_bias, has_mask):
     m_ref = refs[2 + has_bias] if has_mask else None
     o_ref = refs[-1]
     f, c = o_ref.shape[-1], w_ref.shape[1] // WIDTH
-    p, step = pl.program_id(0), layout.step
-    r = jnp.arange(BLOCK, dtype=jnp.int32)
+    p = pl.program_id(0)
 
     @pl.when(p < layout.conv_programs)
     def _():
-        start = layout.margin + p * (ROWS * step)
-        windows = {}  # offset from the program's first row -> its window, loaded once
-        for k in range(ROWS):
-            acc = jnp.zeros((BLOCK, f), jnp.float32)
-            for t, base in enumerate(bases):
-                at = k * step + base
-                if at not in windows:
-                    windows[at] = _windows(x_ref, start + at + r, c, EVICT)
-                acc += plt.dot(windows[at], w_ref[t])
-            if has_bias:
-                acc += b_ref[...][None, :]
-            if relu:
-                acc = jnp.maximum(acc, 0.0)
-            first = start + k * step
-            pos = first + r - layout.margin
-            keep = pos < layout.body
-            if valid is not None:
-                pos = jax.lax.rem(pos, layout.size * layout.size)
-                keep &= (jax.lax.div(pos, layout.size) < valid) & (
-                    jax.lax.rem(pos, layout.size) < valid
-                )
-            keep = keep[:, None]
-            if has_mask:
-                keep &= m_ref[pl.ds(first, BLOCK), :] > 0
-            out = jnp.where(keep, acc, 0.0).astype(o_ref.dtype)
-            if step < BLOCK:  # the tile's rows past the image row are the next tile's
-                plt.store(o_ref.at[pl.ds(first, BLOCK), :], out, mask=(r < step)[:, None])
-            else:
-                o_ref[pl.ds(first, BLOCK), :] = out
+        start = layout.margin + p * BLOCK
+        rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
+        acc = jnp.zeros((BLOCK, f), jnp.float32)
+        for t, base in enumerate(bases):
+            acc += plt.dot(_windows(x_ref, rows + base, c), w_ref[t])
+        if has_bias:
+            acc += b_ref[...][None, :]
+        if relu:
+            acc = jnp.maximum(acc, 0.0)
+        pos = rows - layout.margin
+        keep = pos < layout.body
+        if valid is not None:
+            pos = jax.lax.rem(pos, layout.size * layout.size)
+            keep &= (jax.lax.div(pos, layout.size) < valid) & (
+                jax.lax.rem(pos, layout.size) < valid
+            )
+        keep = keep[:, None]
+        if has_mask:
+            keep &= m_ref[pl.ds(start, BLOCK), :] > 0
+        o_ref[pl.ds(start, BLOCK), :] = jnp.where(keep, acc, 0.0).astype(o_ref.dtype)
 
     @pl.when(p >= layout.conv_programs)
     def _():  # the margins: zeros

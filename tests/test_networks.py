@@ -177,6 +177,24 @@ def test_initialisation_is_pytorchs_orthogonal_on_its_layouts(method):
     assert checked >= 20
 
 
+@pytest.mark.parametrize("shape, k", [((2, 35, 35, 8), 4), ((3, 9, 10, 4), 3)])
+def test_avg_pool_is_flax_avg_pool_in_values_and_gradients(shape, k):
+    """The reshape-and-mean pool is flax's VALID average pool (windows past the edge dropped),
+    and its gradient too: 1/k^2 on every pixel of a whole window, 0 on the dropped ones."""
+    x = jax.random.normal(jax.random.key(0), shape)
+    ct = jax.random.normal(jax.random.key(1), (shape[0], shape[1] // k, shape[2] // k, shape[3]))
+
+    def flax_pool(x):
+        return nn.avg_pool(x, (k, k), strides=(k, k), padding="VALID")
+
+    np.testing.assert_allclose(networks.avg_pool(x, k), flax_pool(x), rtol=1e-6, atol=1e-6)
+    got = jax.vjp(lambda x: networks.avg_pool(x, k), x)[1](ct)[0]
+    want = jax.vjp(flax_pool, x)[1](ct)[0]
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
+    assert float(jnp.abs(got[:, :, shape[2] // k * k :]).max()) == 0.0
+    np.testing.assert_allclose(got[0, :k, :k, 0], ct[0, 0, 0, 0] / k**2, rtol=1e-6)
+
+
 def test_pixels_are_centred():
     x = networks.preprocess(jnp.array([0, 255], jnp.uint8))
     np.testing.assert_allclose(x, [-0.5, 0.5])

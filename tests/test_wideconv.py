@@ -32,17 +32,15 @@ def _stack_inputs(key, size, channels, seeds=None):
     return x, layers
 
 
-@pytest.mark.parametrize("width, rows", [(4, 1), (1, 1), (4, 3)])
+@pytest.mark.parametrize("width, block", [(4, 64), (1, 16)])
 @pytest.mark.parametrize("pad, size", [(0, 11), (2, 5)])
 def test_conv_stack_is_relu_convolutions_in_values_and_gradients(
-    monkeypatch, width, rows, pad, size
+    monkeypatch, width, block, pad, size
 ):
-    """Encoder-like (VALID, pad 0) and transposed-like (pad 2) stacks, with 4-pixel windows,
-    single taps, and programs of 3 image rows that share windows: the values and every gradient
-    (input, kernels, biases) of lax's convolutions."""
+    """Encoder-like (VALID, pad 0) and transposed-like (pad 2) stacks, with 4-pixel windows and
+    single taps: the values and every gradient (input, kernels, biases) of lax's convolutions."""
     monkeypatch.setattr(wideconv, "WIDTH", width)
-    monkeypatch.setattr(wideconv, "ROWS", rows)
-    monkeypatch.setattr(wideconv, "BLOCK", 16)  # >= the largest side (11 + 2 * 2 = 15)
+    monkeypatch.setattr(wideconv, "BLOCK", block)
     x, layers = _stack_inputs(jax.random.key(0), size, (16, 32, 16))
     assert wideconv.supported(x.shape, layers, pad)
     got = wideconv.conv_stack(x, layers, pad)
@@ -89,21 +87,14 @@ def test_supported_shapes():
     assert not wideconv.supported((2, 41, 41, 32), (k(32, 32),), 1)  # only pad 0 or 2
     assert not wideconv.supported((2, 41, 41, 32), (k(16, 32),), 0)  # kernel's channels differ
     assert not wideconv.supported((2, 5, 5, 32), (k(32, 32),) * 3, 0)  # nothing left: 5 -> -1
-    with pytest.MonkeyPatch.context() as m:  # programs of image rows: a tile spans a row
-        m.setattr(wideconv, "ROWS", 2)
-        assert wideconv.supported((2, 41, 41, 32), (k(32, 32),), 0)
-        m.setattr(wideconv, "BLOCK", 32)
-        assert not wideconv.supported((2, 41, 41, 32), (k(32, 32),), 0)
 
 
-@pytest.mark.parametrize("rows, evict", [(1, None), (4, "evict_last")])
-def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypatch, rows, evict):
+@pytest.mark.parametrize("width", [1, 4])
+def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypatch, width):
     """Compiled (not interpreted) on any machine: forward, input gradient and filter gradient
-    of each layer are one Triton kernel each, for all vmapped seeds; also with programs of
-    several image rows and an eviction policy on the loads."""
+    of each layer are one Triton kernel each, for all vmapped seeds."""
     monkeypatch.setattr(wideconv, "INTERPRET", False)
-    monkeypatch.setattr(wideconv, "ROWS", rows)
-    monkeypatch.setattr(wideconv, "EVICT", evict)
+    monkeypatch.setattr(wideconv, "WIDTH", width)
     for pad, size, channels in [(0, 41, (32, 32, 32, 32)), (2, 35, (16, 32, 32, 32))]:
         x = jax.ShapeDtypeStruct((2, 8, size, size, channels[0]), jnp.bfloat16)
         layers = tuple(

@@ -1,5 +1,7 @@
 """dear_jax.wideconv: stride-1 conv stacks as Pallas kernels (here in Pallas' interpreter)."""
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -141,3 +143,35 @@ def test_unknown_stack_is_refused():
             pass
     with pytest.raises(ValueError, match="unknown conv_stack 'cutlass'.*'xla', 'pallas'"):
         update.AgentConfig(action_dim=6, conv_stack="cutlass")
+
+
+def test_sweep_grid_and_pick_write_the_fastest_settings(tmp_path):
+    """benchmarks.wideconv: a grid is the product of its settings, an unknown name is refused
+    with the valid ones, and --pick writes the fastest variant's settings (both stacks' times of
+    one pass, summed) into a module's defaults."""
+    from benchmarks import wideconv as sweep
+
+    assert sweep.parse_grid(["WIDTH=4,1", "BLOCK=64"]) == [
+        {"WIDTH": 4, "BLOCK": 64},
+        {"WIDTH": 1, "BLOCK": 64},
+    ]
+    with pytest.raises(SystemExit, match="NAME one of .*'BLOCK'"):
+        sweep.parse_grid(["BLOKC=64"])
+    module = tmp_path / "settings.py"
+    module.write_text("BLOCK = 64  # rows\nNUM_WARPS = 4\nWIDTH = 4\n")
+    rows = [
+        dict(variant=v, settings=st, pass_=p, stack=s, ms_per_call=ms)
+        for v, st, p, s, ms in [
+            ("pallas_current", {}, "forward", "encoder", 2.0),
+            ("pallas_current", {}, "forward", "decoder", 2.0),
+            ("pallas_a", {"BLOCK": 128, "NUM_WARPS": 2}, "forward", "encoder", 1.5),
+            ("pallas_a", {"BLOCK": 128, "NUM_WARPS": 2}, "forward", "decoder", 2.0),
+            ("pallas_a", {"BLOCK": 128, "NUM_WARPS": 2}, "forward_backward", "encoder", 9.0),
+            ("xla_loop", {}, "forward", "encoder", 0.1),
+        ]
+    ]
+    results = tmp_path / "sweep.json"
+    results.write_text(json.dumps(dict(rows=rows)))
+    assert sweep.pick(str(results), "forward", module) == {"BLOCK": 128, "NUM_WARPS": 2}
+    assert module.read_text() == "BLOCK = 128\nNUM_WARPS = 2\nWIDTH = 4\n"
+    assert sweep.pick(str(results), "forward_backward", module) == {"BLOCK": 128, "NUM_WARPS": 2}

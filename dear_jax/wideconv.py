@@ -15,7 +15,8 @@ stack), a pixel of a smaller activation sitting at the top left with zeros aroun
 rows again. A 3x3 tap (i, j) is then a fixed shift of the rows, `offset = i * size + j`, and the
 three taps of a kernel row are 3 consecutive pixels: one load of a 4-pixel window per kernel row
 ([BLOCK, 4C], overlapping from row to row; the 4th pixel's weights are zero) makes a convolution
-three [BLOCK, 4C] x [4C, F] products per block of rows (implicit GEMM without the im2col copy).
+three [BLOCK, 4C] x [4C, F] products per block of rows (implicit GEMM without the im2col copy);
+with WIDTH 1, nine [BLOCK, C] x [C, F] products, one per tap.
 Its input gradient is the same with the shifts negated and the kernel transposed. A pixel outside
 a layer's valid region is zero, so the shifts that leave a region, wrap into the next row or
 cross into the next image read zeros, exactly the VALID/FULL convolution's padding; the margins
@@ -99,7 +100,7 @@ class _Layout:
         return self.images * self.size * self.size
 
     @property
-    def margin(self) -> int:  # a window reads at most 2 * size + 2 rows before its tile
+    def margin(self) -> int:  # a window reads at most 2 * size + 2 rows before its row
         return _round_up(2 * self.size + 4, BLOCK)
 
     @property

@@ -89,7 +89,8 @@ def pick(results: str, by: str, module=pathlib.Path(wideconv.__file__)) -> dict:
     text = module.read_text()
     for name, value in settings[best].items():
         text, n = re.subn(rf"(?m)^({name}(?:: [^=]+)?) = .*$", rf"\1 = {value!r}", text)
-        assert n == 1, f"{name} is not a setting of {module}"
+        if n != 1:
+            raise SystemExit(f"{results}: {name} is not a setting of {module}")
     module.write_text(text)
     print(f"{best}: {total[best]:.3f} ms ({by}, both stacks); written into {module}")
     return settings[best]

@@ -291,7 +291,7 @@ PY
       # Each sweep times the tree's current settings too, and writes its fastest into the tree,
       # so a later sweep starts from an earlier one's choice.
       export JAX_COMPILATION_CACHE_DIR=/tmp/jax_cache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
-      IFS=';' read -ra sweeps <<< "${WC_SWEEPS:-forward_backward:WIDTH=4,1 BLOCK=64,128 NUM_WARPS=4,8}"
+      IFS=';' read -ra sweeps <<< "${WC_SWEEPS:-forward_backward:BLOCK=64,128 NUM_WARPS=2,4}"
       n=0
       for sweep in "${sweeps[@]}"; do
         pass_=${sweep%%:*}; n=$((n + 1))

@@ -1,7 +1,7 @@
 """The stride-1 conv stacks of a DEAR update: cuDNN layer by layer against dear_jax.wideconv.
 
     python -m benchmarks.wideconv [--seeds 5] [--batch 512] [--iters 20]
-        [--grid WIDTH=4,1 BLOCK=64,128 NUM_WARPS=4,8] [--passes forward forward_backward]
+        [--grid BLOCK=64,128 NUM_WARPS=2,4] [--passes forward forward_backward]
     python -m benchmarks.wideconv --pick RESULTS.json [--by forward_backward]
 
 For every seed (vmapped, as the update does), bf16:
@@ -61,7 +61,7 @@ def _programs(impl, pad):
 
 
 def parse_grid(items: list[str]) -> list[dict]:
-    """["WIDTH=4,1", "BLOCK=64"] -> [{"WIDTH": 4, "BLOCK": 64}, {"WIDTH": 1, "BLOCK": 64}]."""
+    """["STAGES=2,3", "BLOCK=64"] -> [{"STAGES": 2, "BLOCK": 64}, {"STAGES": 3, "BLOCK": 64}]."""
     axes = {}
     for item in items:
         name, _, values = item.partition("=")
@@ -101,7 +101,7 @@ def main():
     p.add_argument("--seeds", type=int, default=5)
     p.add_argument("--batch", type=int, default=512)
     p.add_argument("--iters", type=int, default=20)
-    p.add_argument("--grid", nargs="+", default=["WIDTH=4,1", "BLOCK=64,128", "NUM_WARPS=4,8"])
+    p.add_argument("--grid", nargs="+", default=["BLOCK=64,128", "NUM_WARPS=2,4"])
     p.add_argument(
         "--passes",
         nargs="+",

@@ -247,53 +247,125 @@ class ConvTranspose(nn.Module):
         bias = self.param("bias", ZEROS, (self.features,))
         if weights_only:
             return kernel, bias
-        taps = (k - 1) // s + 1  # kernel taps of one phase along one axis
-        size = (n - 1) * s + k + op  # output size
-        phases = -(-size // s)  # output pixels per phase along one axis
-        # Phase r, tap u reads input pixel m + u - (taps - 1) with kernel index s*(u-taps+1)+k-1-r.
-        zero = jnp.zeros_like(kernel[0, 0])
-
-        def tap(ry, uy, rx, ux):
-            iy, ix = (s * (u - taps + 1) + k - 1 - r for r, u in ((ry, uy), (rx, ux)))
-            return kernel[iy, ix] if 0 <= iy < k and 0 <= ix < k else zero
-
-        rows = [
-            [
-                jnp.concatenate([tap(ry, uy, rx, ux) for ry in range(s) for rx in range(s)], -1)
-                for ux in range(taps)
-            ]
-            for uy in range(taps)
-        ]
-        w = jnp.stack([jnp.stack(row) for row in rows])  # [uy, ux, cin, (ry, rx, cout)]
+        taps, size, phases = _subpixel_geometry(n, k, s, op)
         pad = (taps - 1, phases - n)
         # The barrier keeps XLA from folding the zero padding into the convolution: a padded
         # convolution's weight gradient is not matched to cuDNN's filter-gradient kernels and
         # ran 2-3x slower on an H100 (benchmarks/results/decoder_h100.json; DEAR update at batch
         # 512: 15.5 -> 10.3 ms per seed, benchmarks/results/update_h100_512.json).
         x = jax.lax.optimization_barrier(jnp.pad(x, ((0, 0),) * (x.ndim - 3) + (pad, pad, (0, 0))))
+        w = _subpixel_kernel(kernel, s)
         y = _conv2d(x, w, 1, self.dtype, self.channels or tensor_core_channels(self.dtype))
-        # [N, m, m, (ry, rx, c)] -> [N, (m, ry), (m, rx), c], cropped to the output size.
-        y = y.reshape(-1, phases, phases, s, s, self.features).transpose(0, 1, 3, 2, 4, 5)
-        y = y.reshape(*x.shape[:-3], phases * s, phases * s, self.features)[..., :size, :size, :]
+        y = _depth_to_space(y, s)[..., :size, :size, :]
         return y + bias.astype(self.dtype)
 
 
-def _relu_stack(x: jax.Array, layers: list, pad: int) -> jax.Array:
-    """x through each stride-1 3x3 layer (`Conv`, pad 0, or `ConvTranspose`, pad 2) and a ReLU:
-    layer by layer, or as one `wideconv.conv_stack` where the settings ask for it and it takes
-    the shapes (the same parameters and function either way)."""
-    if _CONV.get().stack == "pallas":
-        weights, shape = [], x.shape
-        for layer in layers:
-            weights.append(layer(jax.ShapeDtypeStruct(shape, x.dtype), weights_only=True))
-            shape = (*shape[:-1], weights[-1][0].shape[-1])
-        flat = x.reshape(-1, *x.shape[-3:])
-        if wideconv.supported(flat.shape, weights, pad):
-            y = wideconv.conv_stack(flat, tuple(weights), pad)
-            return y.reshape(*x.shape[:-3], *y.shape[1:])
-    for layer in layers:
-        x = nn.relu(layer(x))
-    return x
+def _subpixel_geometry(n: int, k: int, s: int, op: int) -> tuple[int, int, int]:
+    """(kernel taps of one phase along an axis, output size, output pixels per phase along an
+    axis) of a k x k transposed convolution with stride s and output padding op on n x n."""
+    return (k - 1) // s + 1, (n - 1) * s + k + op, -(-((n - 1) * s + k + op) // s)
+
+
+def _subpixel_kernel(kernel: jax.Array, s: int) -> jax.Array:
+    """A transposed convolution's kernel [k, k, in, out] as the dense kernel of its s*s output
+    phases, [taps, taps, in, (s, s, out)]: phase r, tap u reads input pixel m + u - (taps - 1)
+    with kernel index s * (u - taps + 1) + k - 1 - r (zero where that is outside the kernel)."""
+    k = kernel.shape[0]
+    taps = (k - 1) // s + 1
+    zero = jnp.zeros_like(kernel[0, 0])
+
+    def tap(ry, uy, rx, ux):
+        iy, ix = (s * (u - taps + 1) + k - 1 - r for r, u in ((ry, uy), (rx, ux)))
+        return kernel[iy, ix] if 0 <= iy < k and 0 <= ix < k else zero
+
+    rows = [
+        [
+            jnp.concatenate([tap(ry, uy, rx, ux) for ry in range(s) for rx in range(s)], -1)
+            for ux in range(taps)
+        ]
+        for uy in range(taps)
+    ]
+    return jnp.stack([jnp.stack(row) for row in rows])
+
+
+def _depth_to_space(y: jax.Array, s: int) -> jax.Array:
+    """[..., m, m, (s, s, c)] -> [..., m * s, m * s, c]: channel (ry, rx, c) of pixel (i, j)
+    becomes channel c of pixel (s * i + ry, s * j + rx)."""
+    *lead, m, _, sc = y.shape
+    y = y.reshape(*lead, m, m, s, s, sc // (s * s))
+    y = jnp.moveaxis(y, -3, -4)  # [..., m, s, m, s, c]
+    return y.reshape(*lead, m * s, m * s, sc // (s * s))
+
+
+def _space_to_depth(x: jax.Array, s: int) -> jax.Array:
+    """[..., m * s, m * s, c] -> [..., m, m, (s, s, c)], the inverse of `_depth_to_space`."""
+    *lead, h, _, c = x.shape
+    x = x.reshape(*lead, h // s, s, h // s, s, c)
+    x = jnp.moveaxis(x, -4, -3)  # [..., m, m, s, s, c]
+    return x.reshape(*lead, h // s, h // s, s * s * c)
+
+
+def _weights(modules, shape, dtype) -> list:
+    """Each layer's (kernel, bias), layer i meeting the channels of layer i - 1's output."""
+    weights = []
+    for module in modules:
+        weights.append(module(jax.ShapeDtypeStruct(shape, dtype), weights_only=True))
+        shape = (*shape[:-1], weights[-1][0].shape[-1])
+    return weights
+
+
+def _power_of_two(n: int) -> int:
+    """The channel count Pallas' stacks take for n: the next power of two, at least 16."""
+    return max(16, 1 << (n - 1).bit_length())
+
+
+def _pallas_trunk(obs: jax.Array, modules, dtype) -> jax.Array | None:
+    """The conv trunk (a stride-2 3x3 layer, then stride-1 3x3 layers, ReLU after each) of uint8
+    pixels as one `wideconv.conv_stack`, or None where that does not take the shapes.
+
+    The stride-2 layer is a 2x2 convolution of the pixels' 2x2 blocks (space to depth): output
+    (y, x) reads pixels (2y + i, 2x + j), i, j < 3, which are tap (i // 2, j // 2) of block
+    (y, x) at position (i % 2, j % 2); the 4th row and column of taps have zero weights. The
+    stack reads the uint8 blocks themselves, so `preprocess` (x / 255 - 0.5) is folded into
+    this layer: its kernel divided by 255 and 0.5 * sum(kernel) taken from its bias (every
+    output of a VALID layer reads only pixels of the image).
+    """
+    *lead, h, w, c = obs.shape
+    (k0, b0), *rest = _weights(modules, (h, w, c), dtype)
+    if h != w or h % 2 or k0.shape[:2] != (3, 3):
+        return None
+    channels = _power_of_two(4 * c)
+    blocks = _pad_axis(_space_to_depth(obs.reshape(-1, h, w, c), 2), -1, channels)
+    k4 = jnp.pad(k0, ((0, 1), (0, 1), (0, 0), (0, 0)))  # [4, 4, c, F]
+    kernel = jnp.moveaxis(_space_to_depth(jnp.moveaxis(k4, -1, 0), 2), 0, -1)  # [2, 2, 4c, F]
+    kernel = _pad_axis(kernel / 255.0, 2, channels)
+    layers = ((kernel, b0 - 0.5 * jnp.sum(k0, axis=(0, 1, 2))), *rest)
+    if not wideconv.supported(blocks.shape, layers, 0):
+        return None
+    y = wideconv.conv_stack(blocks, layers, 0, True, jnp.dtype(dtype))
+    return y.reshape(*lead, *y.shape[1:])
+
+
+def _pallas_decoder(x: jax.Array, modules, last, dtype) -> jax.Array | None:
+    """Stride-1 transposed 3x3 layers with ReLU (pad 2 each), then the last transposed layer
+    (strided, no ReLU) as the dense 2x2 convolution of its output phases, as one
+    `wideconv.conv_stack`; None where that does not take the shapes."""
+    *lead, n, _, c = x.shape
+    *weights, (kernel, bias) = _weights([*modules, last], (n, n, c), dtype)
+    n_last = n + 2 * len(modules)
+    taps, size, phases = _subpixel_geometry(n_last, last.kernel, last.stride, last.output_padding)
+    features = last.stride**2 * last.features
+    channels = _power_of_two(features)
+    kernel = _pad_axis(_subpixel_kernel(kernel, last.stride), 3, channels)
+    bias = _pad_axis(jnp.tile(bias, last.stride**2), 0, channels)
+    layers = (*weights, (kernel, bias))
+    pads = (2,) * len(modules) + (taps - 1,)
+    flat = x.reshape(-1, n, n, c)
+    if phases - n_last != taps - 1 or not wideconv.supported(flat.shape, layers, pads):
+        return None
+    y = wideconv.conv_stack(flat, layers, pads, False, jnp.dtype(dtype))
+    y = _depth_to_space(y[..., :features], last.stride)[:, :size, :size]
+    return y.reshape(*lead, *y.shape[1:])
 
 
 def preprocess(obs: jax.Array) -> jax.Array:
@@ -324,10 +396,15 @@ class ConvTrunk(nn.Module):
             # padding into one slow kernel; kept apart, the bf16 trunk took 1.78 instead of
             # 2.36 ms (H100, benchmarks/results/encoder_input_h100.json: shift_apart vs pad).
             obs = jax.lax.optimization_barrier(obs)
+        layers = [Conv(32, 2 if i == 0 else 1, self.dtype, self.channels) for i in range(4)]
+        if _CONV.get().stack == "pallas":
+            y = _pallas_trunk(obs, layers, self.dtype)
+            if y is not None:
+                return y
         x = preprocess(obs).astype(self.dtype)
-        x = nn.relu(Conv(32, 2, self.dtype, self.channels)(x))
-        layers = [Conv(32, 1, self.dtype, self.channels) for _ in range(3)]
-        return _relu_stack(x, layers, pad=0)
+        for layer in layers:
+            x = nn.relu(layer(x))
+        return x
 
 
 class PoolEncoder(nn.Module):
@@ -431,9 +508,14 @@ class PoolDecoder(nn.Module):
         x = x.reshape(*x.shape[:-1], 8, 8, 16)
         x = nn.relu(ConvTranspose(16, 4, stride=4, output_padding=3, dtype=dt)(x))
         layers = [ConvTranspose(features, 3, dtype=dt) for features in (32, 32, 32)]
-        x = _relu_stack(x, layers, pad=2)
-        out = ConvTranspose(self.out_channels, 3, stride=2, output_padding=1, dtype=dt)(x)
-        return out.astype(jnp.float32)
+        last = ConvTranspose(self.out_channels, 3, stride=2, output_padding=1, dtype=dt)
+        if _CONV.get().stack == "pallas":
+            y = _pallas_decoder(x, layers, last, dt)
+            if y is not None:
+                return y.astype(jnp.float32)
+        for layer in layers:
+            x = nn.relu(layer(x))
+        return last(x).astype(jnp.float32)
 
 
 class TEDClassifier(nn.Module):

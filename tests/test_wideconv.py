@@ -10,67 +10,86 @@ import pytest
 from dear_jax import networks, update, wideconv
 
 
-def _lax_stack(x, layers, pad):
-    for k, b in layers:
-        x = jnp.pad(x, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
-        y = jax.lax.conv_general_dilated(
+def _lax_stack(x, layers, pads, relu_last=True):
+    x = x.astype(jnp.float32)
+    for i, ((k, b), p) in enumerate(zip(layers, pads)):
+        x = jnp.pad(x, ((0, 0), (p, p), (p, p), (0, 0)))
+        x = jax.lax.conv_general_dilated(
             x, k, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"), precision="highest"
         )
-        x = jax.nn.relu(y + b)
+        x = x + b
+        if relu_last or i < len(layers) - 1:
+            x = jax.nn.relu(x)
     return x
 
 
-def _stack_inputs(key, size, channels, seeds=None):
-    keys = jax.random.split(key, 2 * len(channels) + 1)
-    lead = () if seeds is None else (seeds,)
-    x = jax.random.normal(keys[0], (*lead, 2, size, size, channels[0]))
-    layers = tuple(
+def _layers(key, kernels, channels, lead=()):
+    keys = jax.random.split(key, 2 * len(kernels))
+    return tuple(
         (
-            jax.random.normal(keys[1 + 2 * i], (*lead, 3, 3, c, f)) * 0.2,
-            jax.random.normal(keys[2 + 2 * i], (*lead, f)) * 0.1,
+            jax.random.normal(keys[2 * i], (*lead, k, k, c, f)) * 0.2,
+            jax.random.normal(keys[2 * i + 1], (*lead, f)) * 0.1,
         )
-        for i, (c, f) in enumerate(zip(channels, channels[1:]))
+        for i, (k, c, f) in enumerate(zip(kernels, channels, channels[1:]))
     )
-    return x, layers
 
 
-@pytest.mark.parametrize("width, block", [(4, 64), (1, 16)])
-@pytest.mark.parametrize("pad, size", [(0, 11), (2, 5)])
-def test_conv_stack_is_relu_convolutions_in_values_and_gradients(
-    monkeypatch, width, block, pad, size
-):
-    """Encoder-like (VALID, pad 0) and transposed-like (pad 2) stacks, with 4-pixel windows and
-    single taps: the values and every gradient (input, kernels, biases) of lax's convolutions."""
-    monkeypatch.setattr(wideconv, "WIDTH", width)
-    monkeypatch.setattr(wideconv, "BLOCK", block)
-    x, layers = _stack_inputs(jax.random.key(0), size, (16, 32, 16))
-    assert wideconv.supported(x.shape, layers, pad)
-    got = wideconv.conv_stack(x, layers, pad)
-    want = _lax_stack(x, layers, pad)
-    assert got.shape == (2, size + 2 * (2 * pad - 2), size + 2 * (2 * pad - 2), 16)
-    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+# (input size, kernel sizes, pads, channels, ReLU after the last layer, uint8 input)
+STACKS = dict(
+    # the encoder: a 2x2 layer on uint8 space-to-depth pixels, then 3x3 VALID layers
+    encoder=(12, (2, 3, 3), (0, 0, 0), (16, 32, 16, 16), True, True),
+    # the decoder: transposed 3x3 layers (pad 2), then the 2x2 layer of the output phases
+    decoder=(5, (3, 3, 2), (2, 2, 1), (16, 32, 16, 16), False, False),
+)
+
+
+@pytest.mark.parametrize("name", STACKS)
+def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
+    """Encoder-like and decoder-like stacks: the values and every gradient (input, kernels,
+    biases) of lax's convolutions; an integer input gets no gradient."""
+    monkeypatch.setattr(wideconv, "BLOCK", 16)
+    size, kernels, pads, channels, relu_last, pixels = STACKS[name]
+    kx, kw = jax.random.split(jax.random.key(0))
+    if pixels:
+        x = jax.random.randint(kx, (2, size, size, channels[0]), 0, 256).astype(jnp.uint8)
+    else:
+        x = jax.random.normal(kx, (2, size, size, channels[0]))
+    layers = _layers(kw, kernels, channels)
+    assert wideconv.supported(x.shape, layers, pads)
+    dtype = jnp.float32 if pixels else None
+    got = wideconv.conv_stack(x, layers, pads, relu_last, dtype)
+    want = _lax_stack(x, layers, pads, relu_last)
+    out = size + sum(2 * p - k + 1 for k, p in zip(kernels, pads))
+    assert got.shape == want.shape == (2, out, out, channels[-1])
+    assert got.dtype == jnp.float32
+    scale = float(jnp.abs(want).max())
+    np.testing.assert_allclose(got / scale, want / scale, rtol=1e-5, atol=1e-5)
 
     def loss(stack):
-        return lambda x, ws: jnp.sum(jnp.sin(stack(x, ws, pad)))
+        return lambda x, ws: jnp.sum(jnp.sin(stack(x, ws) / scale))
 
-    got = jax.grad(loss(wideconv.conv_stack), (0, 1))(x, layers)
-    want = jax.grad(loss(_lax_stack), (0, 1))(x, layers)
+    ours = lambda x, ws: wideconv.conv_stack(x, ws, pads, relu_last, dtype)  # noqa: E731
+    theirs = lambda x, ws: _lax_stack(x, ws, pads, relu_last)  # noqa: E731
+    argnums = 1 if pixels else (0, 1)
+    got = jax.grad(loss(ours), argnums)(x, layers)
+    want = jax.grad(loss(theirs), argnums)(x, layers)
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-4)
-    # The ReLU gradient is applied: a stack whose pre-activations are all negative passes none.
-    dead = tuple((k, b - 100.0) for k, b in layers)
-    grads = jax.grad(loss(wideconv.conv_stack), (0, 1))(x, dead)
-    assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads))
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)
+    if relu_last:
+        # The ReLU gradient is applied: a stack whose pre-activations are all negative passes none.
+        dead = tuple((k, b - 1e4) for k, b in layers)
+        grads = jax.grad(loss(ours), argnums)(x, dead)
+        assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads))
 
 
 def test_conv_stack_under_vmap_is_each_seed_on_its_own():
     """Vmapped over seeds (each with its own weights), bf16 activations: every seed's values and
     gradients equal the same stack run for that seed alone."""
-    x, layers = _stack_inputs(jax.random.key(1), 7, (16, 16), seeds=2)
-    x = x.astype(jnp.bfloat16)
+    x = jax.random.normal(jax.random.key(1), (2, 2, 7, 7, 16)).astype(jnp.bfloat16)
+    layers = _layers(jax.random.key(2), (3, 2), (16, 16, 16), lead=(2,))
 
     def f(x, ws):
-        return jnp.sum(wideconv.conv_stack(x, ws, 0).astype(jnp.float32) ** 2)
+        return jnp.sum(wideconv.conv_stack(x, ws, (0, 1), False).astype(jnp.float32) ** 2)
 
     both = jax.vmap(jax.value_and_grad(f, (0, 1)))(x, layers)
     for s in range(2):
@@ -81,38 +100,45 @@ def test_conv_stack_under_vmap_is_each_seed_on_its_own():
 
 
 def test_supported_shapes():
-    k = lambda c, f: (jnp.zeros((3, 3, c, f)), jnp.zeros(f))  # noqa: E731
+    k = lambda c, f, n=3: (jnp.zeros((n, n, c, f)), jnp.zeros(f))  # noqa: E731
     assert wideconv.supported((2, 41, 41, 32), (k(32, 32),) * 3, 0)
-    assert wideconv.supported((2, 35, 35, 16), (k(16, 32), k(32, 32), k(32, 32)), 2)
+    assert wideconv.supported((2, 42, 42, 64), (k(64, 32, 2),) + (k(32, 32),) * 3, 0)
+    assert wideconv.supported((2, 35, 35, 16), (k(16, 32), k(32, 32), k(32, 16, 2)), (2, 2, 1))
     assert not wideconv.supported((2, 41, 41, 12), (k(12, 32),), 0)  # 12: not a power of 2
     assert not wideconv.supported((2, 41, 40, 32), (k(32, 32),), 0)  # not square
-    assert not wideconv.supported((2, 41, 41, 32), (k(32, 32),), 1)  # only pad 0 or 2
+    assert not wideconv.supported((2, 41, 41, 32), (k(32, 32),), 3)  # pad as wide as the kernel
     assert not wideconv.supported((2, 41, 41, 32), (k(16, 32),), 0)  # kernel's channels differ
     assert not wideconv.supported((2, 5, 5, 32), (k(32, 32),) * 3, 0)  # nothing left: 5 -> -1
+    # a 3x3 layer padded by 1 keeps the size: no zero pixels right of its input to read
+    assert not wideconv.supported((2, 9, 9, 32), (k(32, 32),), 1)
+    assert not wideconv.supported((2, 9, 9, 32), (k(32, 32),) * 2, (0,))  # one pad, two layers
 
 
-@pytest.mark.parametrize("width", [1, 4])
-def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypatch, width):
+def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypatch):
     """Compiled (not interpreted) on any machine: forward, input gradient and filter gradient
-    of each layer are one Triton kernel each, for all vmapped seeds."""
+    of each layer are one Triton kernel each, for all vmapped seeds; the uint8 input of the
+    encoder's stack gets no input gradient."""
     monkeypatch.setattr(wideconv, "INTERPRET", False)
-    monkeypatch.setattr(wideconv, "WIDTH", width)
-    for pad, size, channels in [(0, 41, (32, 32, 32, 32)), (2, 35, (16, 32, 32, 32))]:
-        x = jax.ShapeDtypeStruct((2, 8, size, size, channels[0]), jnp.bfloat16)
+    encoder = (42, (2, 3, 3, 3), 0, (64, 32, 32, 32, 32), True, jnp.uint8, 4 + 4 + 3)
+    decoder = (35, (3, 3, 3, 2), (2, 2, 2, 1), (16, 32, 32, 32, 16), False, jnp.bfloat16, 12)
+    for size, kernels, pads, channels, relu_last, dtype, kernel_count in (encoder, decoder):
+        x = jax.ShapeDtypeStruct((2, 8, size, size, channels[0]), dtype)
         layers = tuple(
             (
-                jax.ShapeDtypeStruct((2, 3, 3, c, f), jnp.float32),
+                jax.ShapeDtypeStruct((2, n, n, c, f), jnp.float32),
                 jax.ShapeDtypeStruct((2, f), jnp.float32),
             )
-            for c, f in zip(channels, channels[1:])
+            for n, c, f in zip(kernels, channels, channels[1:])
         )
 
-        def loss(x, ws, pad=pad):
-            return jnp.sum(wideconv.conv_stack(x, ws, pad).astype(jnp.float32))
+        def loss(x, ws, pads=pads, relu_last=relu_last):
+            y = wideconv.conv_stack(x, ws, pads, relu_last, jnp.bfloat16)
+            return jnp.sum(y.astype(jnp.float32))
 
-        fn = jax.vmap(jax.value_and_grad(loss, (0, 1)))
+        argnums = 1 if dtype == jnp.uint8 else (0, 1)
+        fn = jax.vmap(jax.value_and_grad(loss, argnums))
         text = jax.jit(fn).trace(x, layers).lower(lowering_platforms=("cuda",)).as_text()
-        assert text.count("xla.gpu.triton") == 9
+        assert text.count("xla.gpu.triton") == kernel_count
 
 
 def test_networks_with_pallas_stacks_are_the_same_function():
@@ -151,14 +177,14 @@ def test_sweep_grid_and_pick_write_the_fastest_settings(tmp_path):
     one pass, summed) into a module's defaults."""
     from benchmarks import wideconv as sweep
 
-    assert sweep.parse_grid(["WIDTH=4,1", "BLOCK=64"]) == [
-        {"WIDTH": 4, "BLOCK": 64},
-        {"WIDTH": 1, "BLOCK": 64},
+    assert sweep.parse_grid(["STAGES=2,3", "BLOCK=64"]) == [
+        {"STAGES": 2, "BLOCK": 64},
+        {"STAGES": 3, "BLOCK": 64},
     ]
     with pytest.raises(SystemExit, match="NAME one of .*'BLOCK'"):
         sweep.parse_grid(["BLOKC=64"])
     module = tmp_path / "settings.py"
-    module.write_text("BLOCK = 64  # rows\nNUM_WARPS = 4\nWIDTH = 4\n")
+    module.write_text("BLOCK = 64  # rows\nNUM_WARPS = 4\nSTAGES = 3\n")
     rows = [
         dict(variant=v, settings=st, pass_=p, stack=s, ms_per_call=ms)
         for v, st, p, s, ms in [
@@ -173,5 +199,5 @@ def test_sweep_grid_and_pick_write_the_fastest_settings(tmp_path):
     results = tmp_path / "sweep.json"
     results.write_text(json.dumps(dict(rows=rows)))
     assert sweep.pick(str(results), "forward", module) == {"BLOCK": 128, "NUM_WARPS": 2}
-    assert module.read_text() == "BLOCK = 128\nNUM_WARPS = 2\nWIDTH = 4\n"
+    assert module.read_text() == "BLOCK = 128\nNUM_WARPS = 2\nSTAGES = 3\n"
     assert sweep.pick(str(results), "forward_backward", module) == {"BLOCK": 128, "NUM_WARPS": 2}

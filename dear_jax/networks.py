@@ -297,14 +297,6 @@ def _depth_to_space(y: jax.Array, s: int) -> jax.Array:
     return y.reshape(*lead, m * s, m * s, sc // (s * s))
 
 
-def _space_to_depth(x: jax.Array, s: int) -> jax.Array:
-    """[..., m * s, m * s, c] -> [..., m, m, (s, s, c)], the inverse of `_depth_to_space`."""
-    *lead, h, _, c = x.shape
-    x = x.reshape(*lead, h // s, s, h // s, s, c)
-    x = jnp.moveaxis(x, -4, -3)  # [..., m, m, s, s, c]
-    return x.reshape(*lead, h // s, h // s, s * s * c)
-
-
 def _weights(modules, shape, dtype) -> list:
     """Each layer's (kernel, bias), layer i meeting the channels of layer i - 1's output."""
     weights = []
@@ -323,26 +315,17 @@ def _pallas_trunk(obs: jax.Array, modules, dtype) -> jax.Array | None:
     """The conv trunk (a stride-2 3x3 layer, then stride-1 3x3 layers, ReLU after each) of uint8
     pixels as one `wideconv.conv_stack`, or None where that does not take the shapes.
 
-    The stride-2 layer is a 2x2 convolution of the pixels' 2x2 blocks (space to depth): output
-    (y, x) reads pixels (2y + i, 2x + j), i, j < 3, which are tap (i // 2, j // 2) of block
-    (y, x) at position (i % 2, j % 2); the 4th row and column of taps have zero weights. The
-    stack reads the uint8 blocks themselves, so `preprocess` (x / 255 - 0.5) is folded into
-    this layer: its kernel divided by 255 and 0.5 * sum(kernel) taken from its bias (every
-    output of a VALID layer reads only pixels of the image).
+    The stack's strided first layer reads the uint8 pixels themselves, so `preprocess`
+    (x / 255 - 0.5) is folded into that layer: its kernel divided by 255 and 0.5 * sum(kernel)
+    taken from its bias (every output of a VALID layer reads only pixels of the image).
     """
     *lead, h, w, c = obs.shape
     (k0, b0), *rest = _weights(modules, (h, w, c), dtype)
-    if h != w or h % 2 or k0.shape[:2] != (3, 3):
+    layers = ((k0 / 255.0, b0 - 0.5 * jnp.sum(k0, axis=(0, 1, 2))), *rest)
+    pixels = obs.reshape(-1, h, w, c)
+    if not wideconv.supported(pixels, layers, 0, stride=modules[0].stride):
         return None
-    channels = _power_of_two(4 * c)
-    blocks = _pad_axis(_space_to_depth(obs.reshape(-1, h, w, c), 2), -1, channels)
-    k4 = jnp.pad(k0, ((0, 1), (0, 1), (0, 0), (0, 0)))  # [4, 4, c, F]
-    kernel = jnp.moveaxis(_space_to_depth(jnp.moveaxis(k4, -1, 0), 2), 0, -1)  # [2, 2, 4c, F]
-    kernel = _pad_axis(kernel / 255.0, 2, channels)
-    layers = ((kernel, b0 - 0.5 * jnp.sum(k0, axis=(0, 1, 2))), *rest)
-    if not wideconv.supported(blocks.shape, layers, 0):
-        return None
-    y = wideconv.conv_stack(blocks, layers, 0, True, jnp.dtype(dtype))
+    y = wideconv.conv_stack(pixels, layers, 0, True, jnp.dtype(dtype), modules[0].stride)
     return y.reshape(*lead, *y.shape[1:])
 
 
@@ -361,7 +344,7 @@ def _pallas_decoder(x: jax.Array, modules, last, dtype) -> jax.Array | None:
     layers = (*weights, (kernel, bias))
     pads = (2,) * len(modules) + (taps - 1,)
     flat = x.reshape(-1, n, n, c)
-    if phases - n_last != taps - 1 or not wideconv.supported(flat.shape, layers, pads):
+    if phases - n_last != taps - 1 or not wideconv.supported(flat, layers, pads):
         return None
     y = wideconv.conv_stack(flat, layers, pads, False, jnp.dtype(dtype))
     y = _depth_to_space(y[..., :features], last.stride)[:, :size, :size]

@@ -66,31 +66,38 @@ def _pads(pads, n: int) -> tuple[int, ...]:
     return (pads,) * n if isinstance(pads, int) else tuple(pads)
 
 
-def supported(x_shape, layers, pads) -> bool:
-    """Whether `conv_stack` takes this stack: square NHWC images, square kernels no wider than
-    3 padded by less than their width, channel counts that are powers of two >= 16 (Triton's
-    dot), and room for the zeros that the shifts need."""
+def supported(x, layers, pads, stride: int = 1) -> bool:
+    """Whether `conv_stack` takes this stack (x: an array or its shape and dtype): square NHWC
+    images, square kernels no wider than 3 padded by less than their width, channel counts that
+    are powers of two >= 16 (Triton's dot), and room for the zeros that the shifts need. A
+    strided first layer reads integer pixels of at most 16 channels, unpadded."""
     pads = _pads(pads, len(layers))
-    if len(x_shape) != 4 or x_shape[1] != x_shape[2] or not layers or len(pads) != len(layers):
+    if x.ndim != 4 or x.shape[1] != x.shape[2] or not layers or len(pads) != len(layers):
         return False
     kernels = [k.shape for k, _ in layers]
-    channels = [x_shape[-1]] + [k[-1] for k in kernels]
+    channels = [x.shape[-1]] + [k[-1] for k in kernels]
     if not all(k[0] == k[1] <= 3 and 0 <= p < k[0] for k, p in zip(kernels, pads)):
         return False
-    sizes = _sizes(x_shape[1], kernels, pads)
+    if stride > 1 and (pads[0] or x.shape[-1] > 16 or jnp.issubdtype(x.dtype, jnp.floating)):
+        return False
+    sizes = _sizes(x.shape[1], kernels, pads, stride)
+    first = int(stride > 1)  # the first layer in the layout
+    side = max(sizes[first:])
     return (
-        all(c >= 16 and c & (c - 1) == 0 for c in channels)
+        all(c >= 16 and c & (c - 1) == 0 for c in channels[first:])
         and [k[2] for k in kernels] == channels[:-1]
         and min(sizes) > 0
         # a padded layer reads p pixels beyond its input on each side: zeros of the layout
-        and all(s + p <= max(sizes) for s, p in zip(sizes, pads))
+        and all(sizes[i] + pads[i] <= side for i in range(first, len(layers)))
     )
 
 
-def _sizes(size: int, kernels, pads) -> list[int]:
+def _sizes(size: int, kernels, pads, stride: int = 1) -> list[int]:
+    """The side of the input and of each layer's output."""
     sizes = [size]
-    for k, p in zip(kernels, pads):
-        sizes.append(sizes[-1] + 2 * p - k[0] + 1)
+    for i, (k, p) in enumerate(zip(kernels, pads)):
+        s = stride if i == 0 else 1
+        sizes.append((sizes[-1] + 2 * p - k[0]) // s + 1)
     return sizes
 
 
@@ -148,13 +155,52 @@ def _round_up(n: int, multiple: int) -> int:
     return -(-n // multiple) * multiple
 
 
-def _taps(x_ref, rows, c: int, dtype):
-    """x's pixels at `rows`, [len(rows), c], in `dtype` (x_ref is the flat array as one
-    dimension)."""
-    return x_ref[rows[:, None] * c + jnp.arange(c, dtype=jnp.int32)[None, :]].astype(dtype)
+@dataclasses.dataclass(frozen=True)
+class _Pixels:
+    """The input of a strided first layer: x itself ([N, side, side, channels], not in the
+    layout), read tap by tap for each output pixel of the layout, channels padded with zeros
+    to `width` (a power of two >= 16)."""
+
+    side: int
+    channels: int
+    stride: int
+    kernel: int
+    valid: int  # side of the layer's output
+
+    @property
+    def width(self) -> int:
+        return max(16, 1 << (self.channels - 1).bit_length())
+
+    def loader(self, x_ref, rows, layout, dtype):
+        """tap t -> [len(rows), width]: for each output pixel at `rows` of the layout, the
+        input pixels of tap t (zeros outside the output's valid pixels)."""
+        pos = rows - layout.margin
+        image, pixel = jax.lax.div(pos, layout.size**2), jax.lax.rem(pos, layout.size**2)
+        y, x = jax.lax.div(pixel, layout.size), jax.lax.rem(pixel, layout.size)
+        keep = (pos < layout.body) & (y < self.valid) & (x < self.valid)
+        base = ((image * self.side + self.stride * y) * self.side + self.stride * x) * self.channels
+        base = jnp.where(keep, base, 0)
+        lanes = jnp.arange(self.width, dtype=jnp.int32)
+        mask = keep[:, None] & (lanes < self.channels)[None, :]
+
+        def load(t):
+            i, j = divmod(t, self.kernel)
+            idx = base[:, None] + (i * self.side + j) * self.channels + lanes[None, :]
+            return plt.load(x_ref.at[idx], mask=mask, other=0).astype(dtype)
+
+        return load
 
 
-def _conv_kernel(*refs, offsets, layout, valid, relu, has_bias, has_mask):
+def _loader(x_ref, rows, offsets, c: int, layout, pixels, dtype):
+    """tap t -> x's pixels for the output pixels at `rows`, [len(rows), c], in `dtype`: in
+    the layout, the rows shifted by offsets[t] (x_ref is the flat array as one dimension)."""
+    if pixels is not None:
+        return pixels.loader(x_ref, rows, layout, dtype)
+    lanes = jnp.arange(c, dtype=jnp.int32)[None, :]
+    return lambda t: x_ref[(rows + offsets[t])[:, None] * c + lanes].astype(dtype)
+
+
+def _conv_kernel(*refs, offsets, layout, valid, relu, has_bias, has_mask, pixels):
     x_ref, w_ref = refs[:2]
     b_ref = refs[2] if has_bias else None
     m_ref = refs[2 + has_bias] if has_mask else None
@@ -166,9 +212,10 @@ def _conv_kernel(*refs, offsets, layout, valid, relu, has_bias, has_mask):
     def _():
         start = layout.margin + p * BLOCK
         rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
+        taps = _loader(x_ref, rows, offsets, c, layout, pixels, w_ref.dtype)
         acc = jnp.zeros((BLOCK, f), jnp.float32)
-        for t, offset in enumerate(offsets):
-            acc += plt.dot(_taps(x_ref, rows + offset, c, w_ref.dtype), w_ref[t])
+        for t in range(w_ref.shape[0]):
+            acc += plt.dot(taps(t), w_ref[t])
         if has_bias:
             acc += b_ref[...][None, :]
         if relu:
@@ -194,10 +241,11 @@ def _conv_kernel(*refs, offsets, layout, valid, relu, has_bias, has_mask):
         o_ref[pl.ds(first, BLOCK), :] = jnp.zeros((BLOCK, f), o_ref.dtype)
 
 
-def _conv(x, w, offsets, layout, *, bias=None, relu=False, valid=None, mask=None):
+def _conv(x, w, offsets, layout, *, bias=None, relu=False, valid=None, mask=None, pixels=None):
     """out[q] = sum_t x[q + offsets[t]] @ w[t] (+ bias, ReLU) in w's dtype, zero outside
     `valid` x `valid` (if given) and in the margins, and zero where `mask` is not positive (if
-    given). x may be of another dtype (uint8 pixels): each tap is converted to w's."""
+    given). x may be of another dtype (uint8 pixels): each tap is converted to w's. With
+    `pixels`, x is a strided layer's input as it is, read as `_Pixels` says."""
     f = w.shape[-1]
     args = [x.reshape(-1), w]
     if bias is not None:
@@ -214,6 +262,7 @@ def _conv(x, w, offsets, layout, *, bias=None, relu=False, valid=None, mask=None
             relu=relu,
             has_bias=bias is not None,
             has_mask=mask is not None,
+            pixels=pixels,
         ),
         out_shape=jax.ShapeDtypeStruct((layout.rows, f), w.dtype),
         grid=(layout.conv_programs + zero_blocks,),
@@ -223,8 +272,8 @@ def _conv(x, w, offsets, layout, *, bias=None, relu=False, valid=None, mask=None
     )(*args)
 
 
-def _wgrad_kernel(x_ref, g_ref, w_ref, b_ref, *, offsets, layout):
-    f, c = g_ref.shape[-1], w_ref.shape[2]
+def _wgrad_kernel(x_ref, g_ref, w_ref, b_ref, *, offsets, layout, pixels):
+    f, c, n = g_ref.shape[-1], w_ref.shape[2], w_ref.shape[1]
     p = pl.program_id(0)
 
     def step(s, carry):
@@ -232,27 +281,27 @@ def _wgrad_kernel(x_ref, g_ref, w_ref, b_ref, *, offsets, layout):
         start = layout.margin + (p * WGRAD_STEPS + s) * WGRAD_BLOCK
         rows = start + jnp.arange(WGRAD_BLOCK, dtype=jnp.int32)
         g = g_ref[pl.ds(start, WGRAD_BLOCK), :]
-        out = tuple(
-            acc + plt.dot(_taps(x_ref, rows + offset, c, g.dtype), g, trans_a=True)
-            for acc, offset in zip(accs, offsets)
-        )
+        taps = _loader(x_ref, rows, offsets, c, layout, pixels, g.dtype)
+        out = tuple(acc + plt.dot(taps(t), g, trans_a=True) for t, acc in enumerate(accs))
         return out, bacc + jnp.sum(g.astype(jnp.float32), axis=0)
 
-    zeros = tuple(jnp.zeros((c, f), jnp.float32) for _ in offsets)
+    zeros = tuple(jnp.zeros((c, f), jnp.float32) for _ in range(n))
     accs, bacc = jax.lax.fori_loop(0, WGRAD_STEPS, step, (zeros, jnp.zeros((f,), jnp.float32)))
-    for t in range(len(offsets)):
+    for t in range(n):
         w_ref[p, t] = accs[t]
     b_ref[p] = bacc
 
 
-def _wgrad(x, g, offsets, layout):
-    """(sum_q x[q + offsets[t]]^T g[q] for each t, sum_q g[q]), in float32."""
-    c, f = x.shape[-1], g.shape[-1]
+def _wgrad(x, g, offsets, layout, pixels=None):
+    """(sum_q x[q + offsets[t]]^T g[q] for each t, sum_q g[q]), in float32 (x read as
+    `_Pixels` says, if given)."""
+    c, f = (pixels.width if pixels else x.shape[-1]), g.shape[-1]
+    taps = pixels.kernel**2 if pixels else len(offsets)
     programs = layout.wgrad_programs
     w, b = pl.pallas_call(
-        functools.partial(_wgrad_kernel, offsets=offsets, layout=layout),
+        functools.partial(_wgrad_kernel, offsets=offsets, layout=layout, pixels=pixels),
         out_shape=(
-            jax.ShapeDtypeStruct((programs, len(offsets), c, f), jnp.float32),
+            jax.ShapeDtypeStruct((programs, taps, c, f), jnp.float32),
             jax.ShapeDtypeStruct((programs, f), jnp.float32),
         ),
         grid=(programs,),
@@ -262,11 +311,19 @@ def _wgrad(x, g, offsets, layout):
     return w.sum(0), b.sum(0)
 
 
-def _plan(x_shape, layers, pads):
-    sizes = _sizes(x_shape[1], [k.shape for k, _ in layers], pads)
-    size = max(sizes)
-    reach = max(max(p, k.shape[0] - 1 - p) * (size + 1) for (k, _), p in zip(layers, pads))
-    return _Layout(x_shape[0], size, reach), sizes
+def _plan(x_shape, layers, pads, stride):
+    """(layout, the sides of the input and of each layer's output, the strided first layer's
+    `_Pixels` or None)."""
+    kernels = [k.shape for k, _ in layers]
+    sizes = _sizes(x_shape[1], kernels, pads, stride)
+    first = int(stride > 1)
+    size = max(sizes[first:])
+    reach = max(
+        [max(p, k[0] - 1 - p) * (size + 1) for k, p in zip(kernels[first:], pads[first:])],
+        default=0,
+    )
+    pixels = _Pixels(x_shape[1], x_shape[-1], stride, kernels[0][0], sizes[1]) if first else None
+    return _Layout(x_shape[0], size, reach), sizes, pixels
 
 
 def _offsets(k: int, pad: int, size: int) -> tuple[int, ...]:
@@ -275,41 +332,52 @@ def _offsets(k: int, pad: int, size: int) -> tuple[int, ...]:
     return tuple((i - pad) * size + j - pad for i in range(k) for j in range(k))
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3, 4))
-def conv_stack(x, layers: tuple, pads, relu_last: bool = True, dtype=None) -> jax.Array:
+def _taps_of(k: jax.Array, pixels) -> jax.Array:
+    """[K, K, C, F] -> one [C, F] matrix per tap (C zero-padded to the pixels' width for a
+    strided first layer)."""
+    if pixels is not None:
+        k = jnp.pad(k, ((0, 0), (0, 0), (0, pixels.width - k.shape[2]), (0, 0)))
+    return k.reshape(-1, *k.shape[2:])
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3, 4, 5))
+def conv_stack(x, layers: tuple, pads, relu_last=True, dtype=None, stride=1) -> jax.Array:
     """relu(VALID conv(zero-pad(x, p), k) + b) for each (k, b) of `layers` and p of `pads` (one
     int: every layer's), the last ReLU only with `relu_last`; computed in `dtype` (default x's;
-    an integer x, e.g. uint8 pixels, needs one and gets no gradient).
+    an integer x, e.g. uint8 pixels, needs one and gets no gradient). The first layer may have
+    a `stride` (then x is integer pixels, read as they are, and its pad is 0).
 
-    x: [N, H, H, C]; each k: [K, K, C_in, C_out]; each b: [C_out]. Returns [N, H', H', C_out]
-    with H' = H + sum(2 p - K + 1). See `supported` for the shapes it takes.
+    x: [N, H, H, C]; each k: [K, K, C_in, C_out]; each b: [C_out]. Returns [N, H', H', C_out].
+    See `supported` for the shapes it takes.
     """
-    return _forward(x, layers, pads, relu_last, dtype)[0]
+    return _forward(x, layers, pads, relu_last, dtype, stride)[0]
 
 
-def _forward(x, layers, pads, relu_last, dtype):
+def _forward(x, layers, pads, relu_last, dtype, stride):
     dtype = dtype or x.dtype
     pads = _pads(pads, len(layers))
-    layout, sizes = _plan(x.shape, layers, pads)
-    acts = [layout.flatten(x)]
+    layout, sizes, pixels = _plan(x.shape, layers, pads, stride)
+    acts = [x.reshape(-1) if pixels else layout.flatten(x)]
     for i, ((k, b), p) in enumerate(zip(layers, pads)):
-        w = k.reshape(-1, *k.shape[2:]).astype(dtype)
+        first = pixels if i == 0 else None
+        w = _taps_of(k, first).astype(dtype)
         offsets = _offsets(k.shape[0], p, layout.size)
         relu = relu_last or i < len(layers) - 1
-        acts.append(_conv(acts[-1], w, offsets, layout, bias=b, relu=relu, valid=sizes[i + 1]))
+        acts.append(
+            _conv(acts[-1], w, offsets, layout, bias=b, relu=relu, valid=sizes[i + 1], pixels=first)
+        )
     return layout.unflatten(acts[-1], sizes[-1]), acts
 
 
-def _conv_stack_fwd(x, layers, pads, relu_last, dtype):
-    y, acts = _forward(x, layers, pads, relu_last, dtype)
-    return y, (acts, layers)
+def _conv_stack_fwd(x, layers, pads, relu_last, dtype, stride):
+    y, acts = _forward(x, layers, pads, relu_last, dtype, stride)
+    return y, (acts, layers, jnp.zeros((0, *x.shape[1:]), x.dtype))
 
 
-def _conv_stack_bwd(pads, relu_last, dtype, residuals, g):
-    acts, layers = residuals
+def _conv_stack_bwd(pads, relu_last, dtype, stride, residuals, g):
+    acts, layers, x_like = residuals
     pads = _pads(pads, len(layers))
-    h = g.shape[1] - sum(2 * p - k.shape[0] + 1 for (k, _), p in zip(layers, pads))
-    layout, sizes = _plan((g.shape[0], h), layers, pads)
+    layout, sizes, pixels = _plan((g.shape[0], *x_like.shape[1:]), layers, pads, stride)
     # The gradient at the last layer's output (its pre-activations, after a ReLU), in the layout.
     g = layout.flatten(g.astype(acts[-1].dtype))
     if relu_last:
@@ -317,15 +385,17 @@ def _conv_stack_bwd(pads, relu_last, dtype, residuals, g):
     grads = []
     for i in reversed(range(len(layers))):
         k, b = layers[i]
+        first = pixels if i == 0 else None
         offsets = _offsets(k.shape[0], pads[i], layout.size)
-        dk, db = _wgrad(acts[i], g, offsets, layout)
-        grads.append((dk.reshape(k.shape).astype(k.dtype), db.astype(b.dtype)))
-        if i == 0 and not jnp.issubdtype(acts[0].dtype, jnp.floating):
+        dk, db = _wgrad(acts[i], g, offsets, layout, first)
+        dk = dk[:, : k.shape[2]].reshape(k.shape)
+        grads.append((dk.astype(k.dtype), db.astype(b.dtype)))
+        if i == 0 and not jnp.issubdtype(x_like.dtype, jnp.floating):
             return None, tuple(reversed(grads))
         # Input gradient, with the ReLU gradient of the layer below (the stack's input has none).
-        w = jnp.swapaxes(k.reshape(-1, *k.shape[2:]), 1, 2).astype(g.dtype)
+        w = jnp.swapaxes(_taps_of(k, None), 1, 2).astype(g.dtype)
         g = _conv(g, w, tuple(-o for o in offsets), layout, mask=acts[i] if i else None)
-    dx = layout.unflatten(g, sizes[0]).astype(acts[0].dtype)
+    dx = layout.unflatten(g, sizes[0]).astype(x_like.dtype)
     return dx, tuple(reversed(grads))
 
 

@@ -10,12 +10,13 @@ import pytest
 from dear_jax import networks, update, wideconv
 
 
-def _lax_stack(x, layers, pads, relu_last=True):
+def _lax_stack(x, layers, pads, relu_last=True, stride=1):
     x = x.astype(jnp.float32)
     for i, ((k, b), p) in enumerate(zip(layers, pads)):
         x = jnp.pad(x, ((0, 0), (p, p), (p, p), (0, 0)))
+        s = (stride, stride) if i == 0 else (1, 1)
         x = jax.lax.conv_general_dilated(
-            x, k, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"), precision="highest"
+            x, k, s, "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"), precision="highest"
         )
         x = x + b
         if relu_last or i < len(layers) - 1:
@@ -34,12 +35,12 @@ def _layers(key, kernels, channels, lead=()):
     )
 
 
-# (input size, kernel sizes, pads, channels, ReLU after the last layer, uint8 input)
+# (input size, kernel sizes, pads, channels, ReLU after the last layer, first layer's stride)
 STACKS = dict(
-    # the encoder: a 2x2 layer on uint8 space-to-depth pixels, then 3x3 VALID layers
-    encoder=(12, (2, 3, 3), (0, 0, 0), (16, 32, 16, 16), True, True),
+    # the encoder: a stride-2 layer on 9-channel uint8 pixels, then 3x3 VALID layers
+    encoder=(17, (3, 3, 3), (0, 0, 0), (9, 16, 32, 16), True, 2),
     # the decoder: transposed 3x3 layers (pad 2), then the 2x2 layer of the output phases
-    decoder=(5, (3, 3, 2), (2, 2, 1), (16, 32, 16, 16), False, False),
+    decoder=(5, (3, 3, 2), (2, 2, 1), (16, 32, 16, 16), False, 1),
 )
 
 
@@ -48,18 +49,23 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     """Encoder-like and decoder-like stacks: the values and every gradient (input, kernels,
     biases) of lax's convolutions; an integer input gets no gradient."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
-    size, kernels, pads, channels, relu_last, pixels = STACKS[name]
+    size, kernels, pads, channels, relu_last, stride = STACKS[name]
+    pixels = stride > 1
     kx, kw = jax.random.split(jax.random.key(0))
     if pixels:
         x = jax.random.randint(kx, (2, size, size, channels[0]), 0, 256).astype(jnp.uint8)
     else:
         x = jax.random.normal(kx, (2, size, size, channels[0]))
     layers = _layers(kw, kernels, channels)
-    assert wideconv.supported(x.shape, layers, pads)
+    assert wideconv.supported(x, layers, pads, stride)
     dtype = jnp.float32 if pixels else None
-    got = wideconv.conv_stack(x, layers, pads, relu_last, dtype)
-    want = _lax_stack(x, layers, pads, relu_last)
-    out = size + sum(2 * p - k + 1 for k, p in zip(kernels, pads))
+    got = wideconv.conv_stack(x, layers, pads, relu_last, dtype, stride)
+    want = _lax_stack(x, layers, pads, relu_last, stride)
+    out = (
+        (size + 2 * pads[0] - kernels[0]) // stride
+        + 1
+        + sum(2 * p - k + 1 for k, p in zip(kernels[1:], pads[1:]))
+    )
     assert got.shape == want.shape == (2, out, out, channels[-1])
     assert got.dtype == jnp.float32
     scale = float(jnp.abs(want).max())
@@ -68,8 +74,8 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     def loss(stack):
         return lambda x, ws: jnp.sum(jnp.sin(stack(x, ws) / scale))
 
-    ours = lambda x, ws: wideconv.conv_stack(x, ws, pads, relu_last, dtype)  # noqa: E731
-    theirs = lambda x, ws: _lax_stack(x, ws, pads, relu_last)  # noqa: E731
+    ours = lambda x, ws: wideconv.conv_stack(x, ws, pads, relu_last, dtype, stride)  # noqa: E731
+    theirs = lambda x, ws: _lax_stack(x, ws, pads, relu_last, stride)  # noqa: E731
     argnums = 1 if pixels else (0, 1)
     got = jax.grad(loss(ours), argnums)(x, layers)
     want = jax.grad(loss(theirs), argnums)(x, layers)
@@ -101,17 +107,23 @@ def test_conv_stack_under_vmap_is_each_seed_on_its_own():
 
 def test_supported_shapes():
     k = lambda c, f, n=3: (jnp.zeros((n, n, c, f)), jnp.zeros(f))  # noqa: E731
-    assert wideconv.supported((2, 41, 41, 32), (k(32, 32),) * 3, 0)
-    assert wideconv.supported((2, 42, 42, 64), (k(64, 32, 2),) + (k(32, 32),) * 3, 0)
-    assert wideconv.supported((2, 35, 35, 16), (k(16, 32), k(32, 32), k(32, 16, 2)), (2, 2, 1))
-    assert not wideconv.supported((2, 41, 41, 12), (k(12, 32),), 0)  # 12: not a power of 2
-    assert not wideconv.supported((2, 41, 40, 32), (k(32, 32),), 0)  # not square
-    assert not wideconv.supported((2, 41, 41, 32), (k(32, 32),), 3)  # pad as wide as the kernel
-    assert not wideconv.supported((2, 41, 41, 32), (k(16, 32),), 0)  # kernel's channels differ
-    assert not wideconv.supported((2, 5, 5, 32), (k(32, 32),) * 3, 0)  # nothing left: 5 -> -1
+    x = lambda *shape, dtype=jnp.bfloat16: jax.ShapeDtypeStruct(shape, dtype)  # noqa: E731
+    pixels = x(2, 84, 84, 9, dtype=jnp.uint8)
+    assert wideconv.supported(x(2, 41, 41, 32), (k(32, 32),) * 3, 0)
+    assert wideconv.supported(pixels, (k(9, 32),) + (k(32, 32),) * 3, 0, stride=2)
+    assert wideconv.supported(x(2, 35, 35, 16), (k(16, 32), k(32, 32), k(32, 16, 2)), (2, 2, 1))
+    assert not wideconv.supported(x(2, 41, 41, 12), (k(12, 32),), 0)  # 12: not a power of 2
+    assert not wideconv.supported(x(2, 41, 40, 32), (k(32, 32),), 0)  # not square
+    assert not wideconv.supported(x(2, 41, 41, 32), (k(32, 32),), 3)  # pad as wide as the kernel
+    assert not wideconv.supported(x(2, 41, 41, 32), (k(16, 32),), 0)  # kernel's channels differ
+    assert not wideconv.supported(x(2, 5, 5, 32), (k(32, 32),) * 3, 0)  # nothing left: 5 -> -1
     # a 3x3 layer padded by 1 keeps the size: no zero pixels right of its input to read
-    assert not wideconv.supported((2, 9, 9, 32), (k(32, 32),), 1)
-    assert not wideconv.supported((2, 9, 9, 32), (k(32, 32),) * 2, (0,))  # one pad, two layers
+    assert not wideconv.supported(x(2, 9, 9, 32), (k(32, 32),), 1)
+    assert not wideconv.supported(x(2, 9, 9, 32), (k(32, 32),) * 2, (0,))  # one pad, two layers
+    # a strided first layer reads integer pixels of at most 16 channels, unpadded
+    assert not wideconv.supported(x(2, 84, 84, 9), (k(9, 32),), 0, stride=2)
+    assert not wideconv.supported(x(2, 84, 84, 32, dtype=jnp.uint8), (k(32, 32),), 0, stride=2)
+    assert not wideconv.supported(pixels, (k(9, 32),), 1, stride=2)
 
 
 def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypatch):
@@ -119,9 +131,12 @@ def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypat
     of each layer are one Triton kernel each, for all vmapped seeds; the uint8 input of the
     encoder's stack gets no input gradient."""
     monkeypatch.setattr(wideconv, "INTERPRET", False)
-    encoder = (42, (2, 3, 3, 3), 0, (64, 32, 32, 32, 32), True, jnp.uint8, 4 + 4 + 3)
-    decoder = (35, (3, 3, 3, 2), (2, 2, 2, 1), (16, 32, 32, 32, 16), False, jnp.bfloat16, 12)
-    for size, kernels, pads, channels, relu_last, dtype, kernel_count in (encoder, decoder):
+    encoder = (84, (3, 3, 3, 3), 0, (9, 32, 32, 32, 32), True, jnp.uint8, 2, 4 + 4 + 3)
+    decoder = (35, (3, 3, 3, 2), (2, 2, 2, 1), (16, 32, 32, 32, 16), False, jnp.bfloat16, 1, 12)
+    for size, kernels, pads, channels, relu_last, dtype, stride, kernel_count in (
+        encoder,
+        decoder,
+    ):
         x = jax.ShapeDtypeStruct((2, 8, size, size, channels[0]), dtype)
         layers = tuple(
             (
@@ -131,8 +146,8 @@ def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypat
             for n, c, f in zip(kernels, channels, channels[1:])
         )
 
-        def loss(x, ws, pads=pads, relu_last=relu_last):
-            y = wideconv.conv_stack(x, ws, pads, relu_last, jnp.bfloat16)
+        def loss(x, ws, pads=pads, relu_last=relu_last, stride=stride):
+            y = wideconv.conv_stack(x, ws, pads, relu_last, jnp.bfloat16, stride)
             return jnp.sum(y.astype(jnp.float32))
 
         argnums = 1 if dtype == jnp.uint8 else (0, 1)

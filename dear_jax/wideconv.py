@@ -158,8 +158,9 @@ def _round_up(n: int, multiple: int) -> int:
 @dataclasses.dataclass(frozen=True)
 class _Pixels:
     """The input of a strided first layer: x itself ([N, side, side, channels], not in the
-    layout), read tap by tap for each output pixel of the layout, channels padded with zeros
-    to `width` (a power of two >= 16)."""
+    layout), read for each output pixel of the layout one kernel row at a time: the `kernel`
+    pixels of row i are kernel * channels consecutive values, one load of `width` lanes (a
+    power of two >= 16; the lanes past them read zeros)."""
 
     side: int
     channels: int
@@ -169,11 +170,11 @@ class _Pixels:
 
     @property
     def width(self) -> int:
-        return max(16, 1 << (self.channels - 1).bit_length())
+        return max(16, 1 << (self.kernel * self.channels - 1).bit_length())
 
     def loader(self, x_ref, rows, layout, dtype):
-        """tap t -> [len(rows), width]: for each output pixel at `rows` of the layout, the
-        input pixels of tap t (zeros outside the output's valid pixels)."""
+        """kernel row i -> [len(rows), width]: for each output pixel at `rows` of the layout,
+        its input pixels of that row (zeros outside the output's valid pixels)."""
         pos = rows - layout.margin
         image, pixel = jax.lax.div(pos, layout.size**2), jax.lax.rem(pos, layout.size**2)
         y, x = jax.lax.div(pixel, layout.size), jax.lax.rem(pixel, layout.size)
@@ -181,11 +182,10 @@ class _Pixels:
         base = ((image * self.side + self.stride * y) * self.side + self.stride * x) * self.channels
         base = jnp.where(keep, base, 0)
         lanes = jnp.arange(self.width, dtype=jnp.int32)
-        mask = keep[:, None] & (lanes < self.channels)[None, :]
+        mask = keep[:, None] & (lanes < self.kernel * self.channels)[None, :]
 
-        def load(t):
-            i, j = divmod(t, self.kernel)
-            idx = base[:, None] + (i * self.side + j) * self.channels + lanes[None, :]
+        def load(i):
+            idx = base[:, None] + i * self.side * self.channels + lanes[None, :]
             return plt.load(x_ref.at[idx], mask=mask, other=0).astype(dtype)
 
         return load
@@ -193,7 +193,8 @@ class _Pixels:
 
 def _loader(x_ref, rows, offsets, c: int, layout, pixels, dtype):
     """tap t -> x's pixels for the output pixels at `rows`, [len(rows), c], in `dtype`: in
-    the layout, the rows shifted by offsets[t] (x_ref is the flat array as one dimension)."""
+    the layout, the rows shifted by offsets[t] (x_ref is the flat array as one dimension); with
+    `pixels`, kernel row t as `_Pixels` reads it."""
     if pixels is not None:
         return pixels.loader(x_ref, rows, layout, dtype)
     lanes = jnp.arange(c, dtype=jnp.int32)[None, :]
@@ -296,7 +297,7 @@ def _wgrad(x, g, offsets, layout, pixels=None):
     """(sum_q x[q + offsets[t]]^T g[q] for each t, sum_q g[q]), in float32 (x read as
     `_Pixels` says, if given)."""
     c, f = (pixels.width if pixels else x.shape[-1]), g.shape[-1]
-    taps = pixels.kernel**2 if pixels else len(offsets)
+    taps = pixels.kernel if pixels else len(offsets)
     programs = layout.wgrad_programs
     w, b = pl.pallas_call(
         functools.partial(_wgrad_kernel, offsets=offsets, layout=layout, pixels=pixels),
@@ -333,11 +334,12 @@ def _offsets(k: int, pad: int, size: int) -> tuple[int, ...]:
 
 
 def _taps_of(k: jax.Array, pixels) -> jax.Array:
-    """[K, K, C, F] -> one [C, F] matrix per tap (C zero-padded to the pixels' width for a
-    strided first layer)."""
-    if pixels is not None:
-        k = jnp.pad(k, ((0, 0), (0, 0), (0, pixels.width - k.shape[2]), (0, 0)))
-    return k.reshape(-1, *k.shape[2:])
+    """[K, K, C, F] -> one [C, F] matrix per tap; for a strided first layer, one
+    [pixels.width, F] matrix per kernel row (its K * C rows, then zeros)."""
+    if pixels is None:
+        return k.reshape(-1, *k.shape[2:])
+    k = k.reshape(k.shape[0], -1, k.shape[-1])
+    return jnp.pad(k, ((0, 0), (0, pixels.width - k.shape[1]), (0, 0)))
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3, 4, 5))
@@ -388,7 +390,8 @@ def _conv_stack_bwd(pads, relu_last, dtype, stride, residuals, g):
         first = pixels if i == 0 else None
         offsets = _offsets(k.shape[0], pads[i], layout.size)
         dk, db = _wgrad(acts[i], g, offsets, layout, first)
-        dk = dk[:, : k.shape[2]].reshape(k.shape)
+        dk = dk[:, : k.shape[1] * k.shape[2]] if first else dk
+        dk = dk.reshape(k.shape)
         grads.append((dk.astype(k.dtype), db.astype(b.dtype)))
         if i == 0 and not jnp.issubdtype(x_like.dtype, jnp.floating):
             return None, tuple(reversed(grads))

@@ -16,6 +16,8 @@ The functions here default to "pad_slice", the definition; the trainer uses `age
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 
@@ -82,12 +84,41 @@ def random_shift_pair(
     return shift(image, offset, pad, impl), shift(mask, offset, pad, impl)
 
 
+def sample_offsets(key: jax.Array, n: int, pad: int = DEFAULT_PAD) -> jax.Array:
+    """The offsets [n, 2] of `random_shift_batch` for a batch of n images and this key."""
+    return jax.vmap(sample_offset, in_axes=(0, None))(jax.random.split(key, n), pad)
+
+
+def shift_batch(
+    images: jax.Array, offsets: jax.Array, pad: int = DEFAULT_PAD, impl: str = "pad_slice"
+) -> jax.Array:
+    """Each image of a batch [B, H, W, C] cropped at its offset [B, 2]."""
+    return jax.vmap(shift, in_axes=(0, 0, None, None))(images, offsets, pad, impl)
+
+
+class Crops(NamedTuple):
+    """A batch's random-shift crops, not yet applied: each image's offset [B, 2], the pad and
+    the impl. The encoder takes them with the uncropped pixels (it may read the crops
+    directly: `networks.ConvTrunk`); `apply` crops any batch aligned with them (masks)."""
+
+    offsets: jax.Array
+    pad: int = DEFAULT_PAD
+    impl: str = "pad_slice"
+
+    @classmethod
+    def sample(cls, key: jax.Array, n: int, pad: int = DEFAULT_PAD, impl: str = "pad_slice"):
+        """The crops of `random_shift_batch` for n images and this key."""
+        return cls(sample_offsets(key, n, pad), pad, impl)
+
+    def apply(self, images: jax.Array) -> jax.Array:
+        return shift_batch(images, self.offsets, self.pad, self.impl)
+
+
 def random_shift_batch(
     images: jax.Array, key: jax.Array, pad: int = DEFAULT_PAD, impl: str = "pad_slice"
 ) -> jax.Array:
     """Independent shifts for a batch [B, H, W, C]."""
-    keys = jax.random.split(key, images.shape[0])
-    return jax.vmap(random_shift, in_axes=(0, 0, None, None))(images, keys, pad, impl)
+    return shift_batch(images, sample_offsets(key, images.shape[0], pad), pad, impl)
 
 
 def random_shift_pair_batch(
@@ -98,7 +129,5 @@ def random_shift_pair_batch(
     impl: str = "pad_slice",
 ) -> tuple[jax.Array, jax.Array]:
     """Independent shifts per sample for a batch, each shared by the sample's image and mask."""
-    keys = jax.random.split(key, images.shape[0])
-    return jax.vmap(random_shift_pair, in_axes=(0, 0, 0, None, None))(
-        images, masks, keys, pad, impl
-    )
+    offsets = sample_offsets(key, images.shape[0], pad)
+    return shift_batch(images, offsets, pad, impl), shift_batch(masks, offsets, pad, impl)

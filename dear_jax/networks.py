@@ -20,7 +20,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from dear_jax import wgrad, wideconv
+from dear_jax import augment, wgrad, wideconv
 
 LINEAR_INIT = nn.initializers.orthogonal(1.0)
 # A conv kernel [kh, kw, in, out] flattened to [kh*kw*in, out] is the transpose of PyTorch's
@@ -311,9 +311,10 @@ def _power_of_two(n: int) -> int:
     return max(16, 1 << (n - 1).bit_length())
 
 
-def _pallas_trunk(obs: jax.Array, modules, dtype) -> jax.Array | None:
+def _pallas_trunk(obs: jax.Array, modules, dtype, crops) -> jax.Array | None:
     """The conv trunk (a stride-2 3x3 layer, then stride-1 3x3 layers, ReLU after each) of uint8
-    pixels as one `wideconv.conv_stack`, or None where that does not take the shapes.
+    pixels, read through `crops` if given, as one `wideconv.conv_stack`; None where that does
+    not take the shapes.
 
     The stack's strided first layer reads the uint8 pixels themselves, so `preprocess`
     (x / 255 - 0.5) is folded into that layer: its kernel divided by 255 and 0.5 * sum(kernel)
@@ -322,10 +323,11 @@ def _pallas_trunk(obs: jax.Array, modules, dtype) -> jax.Array | None:
     *lead, h, w, c = obs.shape
     (k0, b0), *rest = _weights(modules, (h, w, c), dtype)
     layers = ((k0 / 255.0, b0 - 0.5 * jnp.sum(k0, axis=(0, 1, 2))), *rest)
-    pixels = obs.reshape(-1, h, w, c)
-    if not wideconv.supported(pixels, layers, 0, stride=modules[0].stride):
+    pixels, stride = obs.reshape(-1, h, w, c), modules[0].stride
+    shift, offsets = (crops.pad, crops.offsets.reshape(-1, 2)) if crops else (0, None)
+    if not wideconv.supported(pixels, layers, 0, stride, shift):
         return None
-    y = wideconv.conv_stack(pixels, layers, 0, True, jnp.dtype(dtype), modules[0].stride)
+    y = wideconv.conv_stack(pixels, layers, 0, True, jnp.dtype(dtype), stride, shift, offsets)
     return y.reshape(*lead, *y.shape[1:])
 
 
@@ -367,23 +369,29 @@ def avg_pool(x: jax.Array, k: int) -> jax.Array:
 
 
 class ConvTrunk(nn.Module):
-    """The four DrQ-v2 convolutions: 84 -> 41 -> 39 -> 37 -> 35, 32 channels, ReLU after each."""
+    """The four DrQ-v2 convolutions: 84 -> 41 -> 39 -> 37 -> 35, 32 channels, ReLU after each.
+
+    Called with `crops` (augment.Crops), it encodes the cropped pixels: cropped first, or with
+    Pallas stacks read through the crops by the first layer itself (no cropped copy).
+    """
 
     dtype: Any = jnp.float32  # computation dtype (parameters stay float32)
     channels: int | None = None  # see Conv
 
     @nn.compact
-    def __call__(self, obs: jax.Array) -> jax.Array:
+    def __call__(self, obs: jax.Array, crops: augment.Crops | None = None) -> jax.Array:
+        layers = [Conv(32, 2 if i == 0 else 1, self.dtype, self.channels) for i in range(4)]
+        if _CONV.get().stack == "pallas":
+            y = _pallas_trunk(obs, layers, self.dtype, crops)
+            if y is not None:
+                return y
+        if crops is not None:
+            obs = crops.apply(obs)
         if (self.channels or tensor_core_channels(self.dtype)) > 1:
             # XLA fuses the random shift's gather with the conversion to float and the channel
             # padding into one slow kernel; kept apart, the bf16 trunk took 1.78 instead of
             # 2.36 ms (H100, benchmarks/results/encoder_input_h100.json: shift_apart vs pad).
             obs = jax.lax.optimization_barrier(obs)
-        layers = [Conv(32, 2 if i == 0 else 1, self.dtype, self.channels) for i in range(4)]
-        if _CONV.get().stack == "pallas":
-            y = _pallas_trunk(obs, layers, self.dtype)
-            if y is not None:
-                return y
         x = preprocess(obs).astype(self.dtype)
         for layer in layers:
             x = nn.relu(layer(x))
@@ -397,8 +405,9 @@ class PoolEncoder(nn.Module):
     dtype: Any = jnp.float32
 
     @nn.compact
-    def __call__(self, obs: jax.Array) -> jax.Array:  # uint8 [..., 84, 84, 9] -> f32 [..., latent]
-        x = ConvTrunk(self.dtype)(obs)
+    def __call__(self, obs: jax.Array, crops: augment.Crops | None = None) -> jax.Array:
+        """uint8 [..., 84, 84, 9] (cropped by `crops` if given) -> f32 [..., latent]."""
+        x = ConvTrunk(self.dtype)(obs, crops)
         x = avg_pool(x, 4)
         x = x.reshape(*x.shape[:-3], -1)
         return _dense(self.latent_dim, dtype=self.dtype)(x).astype(jnp.float32)
@@ -410,8 +419,8 @@ class PlainEncoder(nn.Module):
     dtype: Any = jnp.float32
 
     @nn.compact
-    def __call__(self, obs: jax.Array) -> jax.Array:
-        x = ConvTrunk(self.dtype)(obs)
+    def __call__(self, obs: jax.Array, crops: augment.Crops | None = None) -> jax.Array:
+        x = ConvTrunk(self.dtype)(obs, crops)
         return x.reshape(*x.shape[:-3], -1).astype(jnp.float32)
 
 

@@ -292,17 +292,18 @@ def learner_loss(
     """
     nets = make_networks(cfg)
     k_obs, k_next, k_far, k_target, k_ted = jax.random.split(key, 5)
-    encode = lambda obs: nets.encoder.apply({"params": learner["encoder"]}, obs)  # noqa: E731
+    # The encoder crops the pixels itself (with Pallas stacks, as it reads them).
+    encode = lambda obs, crops: nets.encoder.apply(  # noqa: E731
+        {"params": learner["encoder"]}, obs, crops
+    )
+    crops, next_crops, far_crops = (
+        augment.Crops.sample(k, batch.obs.shape[0], cfg.augment_pad, cfg.shift_impl)
+        for k in (k_obs, k_next, k_far)
+    )
+    mask = crops.apply(batch.mask) if cfg.uses_mask else None
 
-    pad, impl = cfg.augment_pad, cfg.shift_impl
-    if cfg.uses_mask:
-        obs, mask = augment.random_shift_pair_batch(batch.obs, batch.mask, k_obs, pad, impl)
-    else:
-        obs, mask = augment.random_shift_batch(batch.obs, k_obs, pad, impl), None
-    next_obs = augment.random_shift_batch(batch.next_obs, k_next, pad, impl)
-
-    z = encode(obs)
-    z_next = encode(next_obs)
+    z = encode(batch.obs, crops)
+    z_next = encode(batch.next_obs, next_crops)
     # DrQ-v2 has no target encoder: the target uses the online encoder without gradient.
     z_next_sg = jax.lax.stop_gradient(z_next)
     next_action = sample_action(
@@ -334,15 +335,14 @@ def learner_loss(
         total = total + hp.beta * l_dis
     if cfg.method == "sear":
         recon = nets.recon_decoder.apply({"params": learner["recon_decoder"]}, z_env)
-        l_rec = losses.reconstruction_loss(recon, obs)
+        l_rec = losses.reconstruction_loss(recon, crops.apply(batch.obs))
         metrics["recon_loss"] = l_rec
         total = total + hp.recon_weight * l_rec
     if cfg.method == "ted":
         # Only z_t carries the encoder's gradient: as in TED's reference, the next and the
         # same-episode observations are encoded without gradient (which also spares their
         # backward passes through the encoder).
-        far = augment.random_shift_batch(batch.far_obs, k_far, pad, impl)
-        z_far = jax.lax.stop_gradient(encode(far))
+        z_far = jax.lax.stop_gradient(encode(batch.far_obs, far_crops))
         l_ted, ted_metrics = ted_classifier_loss(
             learner["ted"], z, z_next_sg, z_far, batch.far_valid, k_ted, nets=nets
         )

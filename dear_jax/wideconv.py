@@ -66,11 +66,12 @@ def _pads(pads, n: int) -> tuple[int, ...]:
     return (pads,) * n if isinstance(pads, int) else tuple(pads)
 
 
-def supported(x, layers, pads, stride: int = 1) -> bool:
+def supported(x, layers, pads, stride: int = 1, shift: int = 0) -> bool:
     """Whether `conv_stack` takes this stack (x: an array or its shape and dtype): square NHWC
     images, square kernels no wider than 3 padded by less than their width, channel counts that
     are powers of two >= 16 (Triton's dot), and room for the zeros that the shifts need. A
-    strided first layer reads integer pixels of at most 16 channels, unpadded."""
+    strided first layer reads integer pixels of at most 16 channels, unpadded (and only they
+    may be read through a random shift)."""
     pads = _pads(pads, len(layers))
     if x.ndim != 4 or x.shape[1] != x.shape[2] or not layers or len(pads) != len(layers):
         return False
@@ -79,6 +80,8 @@ def supported(x, layers, pads, stride: int = 1) -> bool:
     if not all(k[0] == k[1] <= 3 and 0 <= p < k[0] for k, p in zip(kernels, pads)):
         return False
     if stride > 1 and (pads[0] or x.shape[-1] > 16 or jnp.issubdtype(x.dtype, jnp.floating)):
+        return False
+    if shift and stride == 1:  # a shift is read with the pixels of a strided first layer
         return False
     sizes = _sizes(x.shape[1], kernels, pads, stride)
     first = int(stride > 1)  # the first layer in the layout
@@ -167,14 +170,18 @@ class _Pixels:
     stride: int
     kernel: int
     valid: int  # side of the layer's output
+    shift: int = 0  # the pad of a random shift read with the pixels (augment.shift); 0: none
 
     @property
     def width(self) -> int:
         return max(16, 1 << (self.kernel * self.channels - 1).bit_length())
 
-    def loader(self, x_ref, rows, layout, dtype):
+    def loader(self, x_ref, crop_ref, rows, layout, dtype):
         """kernel row i -> [len(rows), width]: for each output pixel at `rows` of the layout,
-        its input pixels of that row (zeros outside the output's valid pixels)."""
+        its input pixels of that row (zeros outside the output's valid pixels). With a shift,
+        the pixels of each image's crop at its (dy, dx) in crop_ref (flat [N * 2]): pixel
+        (Y, X) of the crop is pixel (clip(Y + dy - shift), clip(X + dx - shift)) of the image,
+        as `augment.shift` crops the edge-padded image."""
         pos = rows - layout.margin
         image, pixel = jax.lax.div(pos, layout.size**2), jax.lax.rem(pos, layout.size**2)
         y, x = jax.lax.div(pixel, layout.size), jax.lax.rem(pixel, layout.size)
@@ -183,6 +190,8 @@ class _Pixels:
         base = jnp.where(keep, base, 0)
         lanes = jnp.arange(self.width, dtype=jnp.int32)
         mask = keep[:, None] & (lanes < self.kernel * self.channels)[None, :]
+        if self.shift:
+            return self._shifted(x_ref, crop_ref, image, y, x, keep, lanes, mask, dtype)
 
         def load(i):
             idx = base[:, None] + i * self.side * self.channels + lanes[None, :]
@@ -190,22 +199,40 @@ class _Pixels:
 
         return load
 
+    def _shifted(self, x_ref, crop_ref, image, y, x, keep, lanes, mask, dtype):
+        image = jnp.where(keep, image, 0)
+        dy = plt.load(crop_ref.at[2 * image], mask=keep, other=0)
+        dx = plt.load(crop_ref.at[2 * image + 1], mask=keep, other=0)
+        last = self.side - 1
+        # lane l holds channel l % C of the row's pixel l // C
+        pixel, channel = jax.lax.div(lanes, self.channels), jax.lax.rem(lanes, self.channels)
+        col = self.stride * x + dx - self.shift
+        col = jnp.clip(col[:, None] + pixel[None, :], 0, last)
 
-def _loader(x_ref, rows, offsets, c: int, layout, pixels, dtype):
+        def load(i):
+            row = jnp.clip(self.stride * y + i + dy - self.shift, 0, last)
+            idx = ((image * self.side + row)[:, None] * self.side + col) * self.channels
+            return plt.load(x_ref.at[idx + channel[None, :]], mask=mask, other=0).astype(dtype)
+
+        return load
+
+
+def _loader(x_ref, crop_ref, rows, offsets, c: int, layout, pixels, dtype):
     """tap t -> x's pixels for the output pixels at `rows`, [len(rows), c], in `dtype`: in
     the layout, the rows shifted by offsets[t] (x_ref is the flat array as one dimension); with
     `pixels`, kernel row t as `_Pixels` reads it."""
     if pixels is not None:
-        return pixels.loader(x_ref, rows, layout, dtype)
+        return pixels.loader(x_ref, crop_ref, rows, layout, dtype)
     lanes = jnp.arange(c, dtype=jnp.int32)[None, :]
     return lambda t: x_ref[(rows + offsets[t])[:, None] * c + lanes].astype(dtype)
 
 
 def _conv_kernel(*refs, offsets, layout, valid, relu, has_bias, has_mask, pixels):
-    x_ref, w_ref = refs[:2]
-    b_ref = refs[2] if has_bias else None
-    m_ref = refs[2 + has_bias] if has_mask else None
-    o_ref = refs[-1]
+    x_ref, *refs, o_ref = refs
+    crop_ref = refs.pop(0) if pixels and pixels.shift else None
+    w_ref = refs.pop(0)
+    b_ref = refs.pop(0) if has_bias else None
+    m_ref = refs.pop(0) if has_mask else None
     f, c = o_ref.shape[-1], w_ref.shape[1]
     p = pl.program_id(0)
 
@@ -213,7 +240,7 @@ def _conv_kernel(*refs, offsets, layout, valid, relu, has_bias, has_mask, pixels
     def _():
         start = layout.margin + p * BLOCK
         rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
-        taps = _loader(x_ref, rows, offsets, c, layout, pixels, w_ref.dtype)
+        taps = _loader(x_ref, crop_ref, rows, offsets, c, layout, pixels, w_ref.dtype)
         acc = jnp.zeros((BLOCK, f), jnp.float32)
         for t in range(w_ref.shape[0]):
             acc += plt.dot(taps(t), w_ref[t])
@@ -246,9 +273,10 @@ def _conv(x, w, offsets, layout, *, bias=None, relu=False, valid=None, mask=None
     """out[q] = sum_t x[q + offsets[t]] @ w[t] (+ bias, ReLU) in w's dtype, zero outside
     `valid` x `valid` (if given) and in the margins, and zero where `mask` is not positive (if
     given). x may be of another dtype (uint8 pixels): each tap is converted to w's. With
-    `pixels`, x is a strided layer's input as it is, read as `_Pixels` says."""
+    `pixels`, x is a strided layer's input as it is, read as `_Pixels` says (with a shift, x is
+    (pixels, crop offsets))."""
     f = w.shape[-1]
-    args = [x.reshape(-1), w]
+    args = [*_pixel_args(x, pixels), w]
     if bias is not None:
         args.append(bias.astype(jnp.float32))
     if mask is not None:
@@ -273,7 +301,10 @@ def _conv(x, w, offsets, layout, *, bias=None, relu=False, valid=None, mask=None
     )(*args)
 
 
-def _wgrad_kernel(x_ref, g_ref, w_ref, b_ref, *, offsets, layout, pixels):
+def _wgrad_kernel(*refs, offsets, layout, pixels):
+    x_ref, *refs, w_ref, b_ref = refs
+    crop_ref = refs.pop(0) if pixels and pixels.shift else None
+    g_ref = refs.pop(0)
     f, c, n = g_ref.shape[-1], w_ref.shape[2], w_ref.shape[1]
     p = pl.program_id(0)
 
@@ -282,7 +313,7 @@ def _wgrad_kernel(x_ref, g_ref, w_ref, b_ref, *, offsets, layout, pixels):
         start = layout.margin + (p * WGRAD_STEPS + s) * WGRAD_BLOCK
         rows = start + jnp.arange(WGRAD_BLOCK, dtype=jnp.int32)
         g = g_ref[pl.ds(start, WGRAD_BLOCK), :]
-        taps = _loader(x_ref, rows, offsets, c, layout, pixels, g.dtype)
+        taps = _loader(x_ref, crop_ref, rows, offsets, c, layout, pixels, g.dtype)
         out = tuple(acc + plt.dot(taps(t), g, trans_a=True) for t, acc in enumerate(accs))
         return out, bacc + jnp.sum(g.astype(jnp.float32), axis=0)
 
@@ -291,6 +322,13 @@ def _wgrad_kernel(x_ref, g_ref, w_ref, b_ref, *, offsets, layout, pixels):
     for t in range(n):
         w_ref[p, t] = accs[t]
     b_ref[p] = bacc
+
+
+def _pixel_args(x, pixels) -> list:
+    """A layer's input as the kernels take it: flat, and with a shift its crop offsets."""
+    if pixels is not None and pixels.shift:
+        return [x[0].reshape(-1), x[1].reshape(-1).astype(jnp.int32)]
+    return [x.reshape(-1)]
 
 
 def _wgrad(x, g, offsets, layout, pixels=None):
@@ -308,11 +346,11 @@ def _wgrad(x, g, offsets, layout, pixels=None):
         grid=(programs,),
         interpret=_interpret(),
         compiler_params=plt.CompilerParams(num_warps=WGRAD_WARPS, num_stages=STAGES),
-    )(x.reshape(-1), g)
+    )(*_pixel_args(x, pixels), g)
     return w.sum(0), b.sum(0)
 
 
-def _plan(x_shape, layers, pads, stride):
+def _plan(x_shape, layers, pads, stride, shift=0):
     """(layout, the sides of the input and of each layer's output, the strided first layer's
     `_Pixels` or None)."""
     kernels = [k.shape for k, _ in layers]
@@ -323,7 +361,9 @@ def _plan(x_shape, layers, pads, stride):
         [max(p, k[0] - 1 - p) * (size + 1) for k, p in zip(kernels[first:], pads[first:])],
         default=0,
     )
-    pixels = _Pixels(x_shape[1], x_shape[-1], stride, kernels[0][0], sizes[1]) if first else None
+    pixels = (
+        _Pixels(x_shape[1], x_shape[-1], stride, kernels[0][0], sizes[1], shift) if first else None
+    )
     return _Layout(x_shape[0], size, reach), sizes, pixels
 
 
@@ -342,24 +382,29 @@ def _taps_of(k: jax.Array, pixels) -> jax.Array:
     return jnp.pad(k, ((0, 0), (0, pixels.width - k.shape[1]), (0, 0)))
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3, 4, 5))
-def conv_stack(x, layers: tuple, pads, relu_last=True, dtype=None, stride=1) -> jax.Array:
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3, 4, 5, 6))
+def conv_stack(
+    x, layers: tuple, pads, relu_last=True, dtype=None, stride=1, shift=0, crops=None
+) -> jax.Array:
     """relu(VALID conv(zero-pad(x, p), k) + b) for each (k, b) of `layers` and p of `pads` (one
     int: every layer's), the last ReLU only with `relu_last`; computed in `dtype` (default x's;
-    an integer x, e.g. uint8 pixels, needs one and gets no gradient). The first layer may have
-    a `stride` (then x is integer pixels, read as they are, and its pad is 0).
+    an integer x, e.g. uint8 pixels, needs one and gets no gradient).
+
+    The first layer may have a `stride`: then x is integer pixels, read as they are, and its
+    pad is 0. Such pixels may be read through a random shift (`augment.shift` with pad `shift`
+    > 0 at each image's offsets (dy, dx) in `crops`, [N, 2]), as if x were the shifted images.
 
     x: [N, H, H, C]; each k: [K, K, C_in, C_out]; each b: [C_out]. Returns [N, H', H', C_out].
     See `supported` for the shapes it takes.
     """
-    return _forward(x, layers, pads, relu_last, dtype, stride)[0]
+    return _forward(x, layers, pads, relu_last, dtype, stride, shift, crops)[0]
 
 
-def _forward(x, layers, pads, relu_last, dtype, stride):
+def _forward(x, layers, pads, relu_last, dtype, stride, shift, crops):
     dtype = dtype or x.dtype
     pads = _pads(pads, len(layers))
-    layout, sizes, pixels = _plan(x.shape, layers, pads, stride)
-    acts = [x.reshape(-1) if pixels else layout.flatten(x)]
+    layout, sizes, pixels = _plan(x.shape, layers, pads, stride, shift)
+    acts = [(x, crops) if shift else x if pixels else layout.flatten(x)]
     for i, ((k, b), p) in enumerate(zip(layers, pads)):
         first = pixels if i == 0 else None
         w = _taps_of(k, first).astype(dtype)
@@ -371,15 +416,15 @@ def _forward(x, layers, pads, relu_last, dtype, stride):
     return layout.unflatten(acts[-1], sizes[-1]), acts
 
 
-def _conv_stack_fwd(x, layers, pads, relu_last, dtype, stride):
-    y, acts = _forward(x, layers, pads, relu_last, dtype, stride)
+def _conv_stack_fwd(x, layers, pads, relu_last, dtype, stride, shift, crops):
+    y, acts = _forward(x, layers, pads, relu_last, dtype, stride, shift, crops)
     return y, (acts, layers, jnp.zeros((0, *x.shape[1:]), x.dtype))
 
 
-def _conv_stack_bwd(pads, relu_last, dtype, stride, residuals, g):
+def _conv_stack_bwd(pads, relu_last, dtype, stride, shift, residuals, g):
     acts, layers, x_like = residuals
     pads = _pads(pads, len(layers))
-    layout, sizes, pixels = _plan((g.shape[0], *x_like.shape[1:]), layers, pads, stride)
+    layout, sizes, pixels = _plan((g.shape[0], *x_like.shape[1:]), layers, pads, stride, shift)
     # The gradient at the last layer's output (its pre-activations, after a ReLU), in the layout.
     g = layout.flatten(g.astype(acts[-1].dtype))
     if relu_last:
@@ -391,15 +436,14 @@ def _conv_stack_bwd(pads, relu_last, dtype, stride, residuals, g):
         offsets = _offsets(k.shape[0], pads[i], layout.size)
         dk, db = _wgrad(acts[i], g, offsets, layout, first)
         dk = dk[:, : k.shape[1] * k.shape[2]] if first else dk
-        dk = dk.reshape(k.shape)
-        grads.append((dk.astype(k.dtype), db.astype(b.dtype)))
+        grads.append((dk.reshape(k.shape).astype(k.dtype), db.astype(b.dtype)))
         if i == 0 and not jnp.issubdtype(x_like.dtype, jnp.floating):
-            return None, tuple(reversed(grads))
+            return None, tuple(reversed(grads)), None
         # Input gradient, with the ReLU gradient of the layer below (the stack's input has none).
         w = jnp.swapaxes(_taps_of(k, None), 1, 2).astype(g.dtype)
         g = _conv(g, w, tuple(-o for o in offsets), layout, mask=acts[i] if i else None)
     dx = layout.unflatten(g, sizes[0]).astype(x_like.dtype)
-    return dx, tuple(reversed(grads))
+    return dx, tuple(reversed(grads)), None
 
 
 conv_stack.defvjp(_conv_stack_fwd, _conv_stack_bwd)

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dear_jax import networks, update, wideconv
+from dear_jax import augment, networks, update, wideconv
 
 
 def _lax_stack(x, layers, pads, relu_last=True, stride=1):
@@ -35,12 +35,15 @@ def _layers(key, kernels, channels, lead=()):
     )
 
 
-# (input size, kernel sizes, pads, channels, ReLU after the last layer, first layer's stride)
+# (input size, kernel sizes, pads, channels, ReLU after the last layer, first layer's stride,
+# random shift's pad)
 STACKS = dict(
     # the encoder: a stride-2 layer on 9-channel uint8 pixels, then 3x3 VALID layers
-    encoder=(17, (3, 3, 3), (0, 0, 0), (9, 16, 32, 16), True, 2),
+    encoder=(17, (3, 3, 3), (0, 0, 0), (9, 16, 32, 16), True, 2, 0),
+    # the same reading the pixels through DrQ-v2's random shift
+    encoder_shifted=(17, (3, 3, 3), (0, 0, 0), (9, 16, 32, 16), True, 2, 3),
     # the decoder: transposed 3x3 layers (pad 2), then the 2x2 layer of the output phases
-    decoder=(5, (3, 3, 2), (2, 2, 1), (16, 32, 16, 16), False, 1),
+    decoder=(5, (3, 3, 2), (2, 2, 1), (16, 32, 16, 16), False, 1, 0),
 )
 
 
@@ -49,7 +52,7 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     """Encoder-like and decoder-like stacks: the values and every gradient (input, kernels,
     biases) of lax's convolutions; an integer input gets no gradient."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
-    size, kernels, pads, channels, relu_last, stride = STACKS[name]
+    size, kernels, pads, channels, relu_last, stride, shift = STACKS[name]
     pixels = stride > 1
     kx, kw = jax.random.split(jax.random.key(0))
     if pixels:
@@ -57,10 +60,21 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     else:
         x = jax.random.normal(kx, (2, size, size, channels[0]))
     layers = _layers(kw, kernels, channels)
-    assert wideconv.supported(x, layers, pads, stride)
+    assert wideconv.supported(x, layers, pads, stride, shift)
     dtype = jnp.float32 if pixels else None
-    got = wideconv.conv_stack(x, layers, pads, relu_last, dtype, stride)
-    want = _lax_stack(x, layers, pads, relu_last, stride)
+    # each image's crop offsets, the shift's extremes among them (edge pixels repeated)
+    crops = jnp.array([[0, 2 * shift], [shift + 1, 1]]) if shift else None
+
+    def shifted(x):
+        return augment.shift_batch(x, crops, shift, "gather") if shift else x
+
+    def ours(x, ws):
+        return wideconv.conv_stack(x, ws, pads, relu_last, dtype, stride, shift, crops)
+
+    def theirs(x, ws):
+        return _lax_stack(shifted(x), ws, pads, relu_last, stride)
+
+    got, want = ours(x, layers), theirs(x, layers)
     out = (
         (size + 2 * pads[0] - kernels[0]) // stride
         + 1
@@ -74,8 +88,6 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     def loss(stack):
         return lambda x, ws: jnp.sum(jnp.sin(stack(x, ws) / scale))
 
-    ours = lambda x, ws: wideconv.conv_stack(x, ws, pads, relu_last, dtype, stride)  # noqa: E731
-    theirs = lambda x, ws: _lax_stack(x, ws, pads, relu_last, stride)  # noqa: E731
     argnums = 1 if pixels else (0, 1)
     got = jax.grad(loss(ours), argnums)(x, layers)
     want = jax.grad(loss(theirs), argnums)(x, layers)
@@ -158,14 +170,16 @@ def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypat
 
 def test_networks_with_pallas_stacks_are_the_same_function():
     """With conv_settings(stack="pallas") the pool encoder and decoder keep their parameters
-    (names, shapes, initial values) and give the same values and gradients."""
+    (names, shapes, initial values) and give the same values and gradients, the encoder
+    reading its pixels through random-shift crops as the XLA path crops them first."""
     enc, dec = networks.PoolEncoder(64), networks.PoolDecoder(3)
-    obs = jax.random.randint(jax.random.key(1), (1, 84, 84, 9), 0, 256).astype(jnp.uint8)
-    z = jax.random.normal(jax.random.key(2), (1, 32))
+    obs = jax.random.randint(jax.random.key(1), (2, 84, 84, 9), 0, 256).astype(jnp.uint8)
+    crops = augment.Crops.sample(jax.random.key(3), 2, 4, "gather")
+    z = jax.random.normal(jax.random.key(2), (2, 32))
     params = enc.init(jax.random.key(0), obs), dec.init(jax.random.key(0), z)
 
     def loss(p):
-        latent = enc.apply(p[0], obs)
+        latent = enc.apply(p[0], obs, crops)
         return jnp.sum(latent**2) + jnp.sum(jnp.tanh(dec.apply(p[1], latent[:, :32])))
 
     want = jax.value_and_grad(loss)(params)

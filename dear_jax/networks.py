@@ -106,10 +106,11 @@ class ConvSettings:
     filter_gradient: "cudnn" (XLA's convolution) or "pallas" (`dear_jax.wgrad`, one kernel,
         also for all vmapped seeds at once) where it takes the shape; meant for GPUs: elsewhere
         it runs in Pallas' interpreter.
-    stack: how the stride-1 3x3 layers of the encoder and the decoders run: "xla" (one
-        convolution each, as above) or "pallas" (`dear_jax.wideconv`: each stack of them as
+    stack: how the conv trunk and the decoders' layers after their first run: "xla" (one
+        convolution each, as above) or "pallas" (`dear_jax.wideconv`: each as one stack of
         Pallas kernels on one flat layout, one launch per layer for all vmapped seeds, bias,
-        ReLU and its gradient fused); meant for GPUs: elsewhere it runs in Pallas' interpreter.
+        ReLU and its gradient fused, the trunk reading the uint8 frames through their crops);
+        meant for GPUs: elsewhere it runs in Pallas' interpreter.
     """
 
     loop_seeds: bool = False

@@ -1,4 +1,4 @@
-"""Stacks of stride-1 convolutions (with ReLU) as Pallas (Triton) kernels on one flat layout.
+"""Stacks of convolutions (with ReLU) as Pallas (Triton) kernels on one flat layout.
 
 Why: the stride-1 layers of the encoder (41 -> 39 -> 37 -> 35) and of the mask decoder
 (35 -> 37 -> 39 -> 41, transposed) are most of a DEAR update, and on an H100 cuDNN runs them well
@@ -8,10 +8,10 @@ gradient ~165 µs, where reading and writing the activations takes ~35 µs
 operands out of the stacked batch and stacking the results back cost another 4.1 ms of a 24.8 ms
 5-seed call (benchmarks/results/profile_dear_hybrid_h100.json). Here each layer is one kernel for
 all seeds (Pallas batches the grid under `jax.vmap`), with bias, ReLU and the ReLU gradient fused.
-The strided layers around them join the stacks as stride-1 convolutions on space-to-depth
-pixels (see `networks.ConvTrunk` and `networks.PoolDecoder`): the encoder's first layer as a
-2x2 convolution of the pixels' 2x2 blocks, read as uint8, and the decoder's last as a 2x2
-convolution producing the four output phases.
+The strided layers around them join the stacks (`networks.ConvTrunk`, `networks.PoolDecoder`):
+the encoder's stride-2 first layer reads the uint8 frames themselves (through the random
+shift's crops, so no shifted copy is made), and the decoder's last layer, a stride-2 transposed
+convolution, is the 2x2 convolution that produces its four output phases.
 
 The layout. Every activation of a stack is one flat array [rows, C]: zero rows (the margin),
 then each image as `size` x `size` pixels in row-major order (`size` is the largest side in the

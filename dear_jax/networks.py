@@ -307,11 +307,6 @@ def _weights(modules, shape, dtype) -> list:
     return weights
 
 
-def _power_of_two(n: int) -> int:
-    """The channel count Pallas' stacks take for n: the next power of two, at least 16."""
-    return max(16, 1 << (n - 1).bit_length())
-
-
 def _pallas_trunk(obs: jax.Array, modules, dtype, crops) -> jax.Array | None:
     """The conv trunk (a stride-2 3x3 layer, then stride-1 3x3 layers, ReLU after each) of uint8
     pixels, read through `crops` if given, as one `wideconv.conv_stack`; None where that does
@@ -341,7 +336,7 @@ def _pallas_decoder(x: jax.Array, modules, last, dtype) -> jax.Array | None:
     n_last = n + 2 * len(modules)
     taps, size, phases = _subpixel_geometry(n_last, last.kernel, last.stride, last.output_padding)
     features = last.stride**2 * last.features
-    channels = _power_of_two(features)
+    channels = wideconv.channels_for(features)
     kernel = _pad_axis(_subpixel_kernel(kernel, last.stride), 3, channels)
     bias = _pad_axis(jnp.tile(bias, last.stride**2), 0, channels)
     layers = (*weights, (kernel, bias))

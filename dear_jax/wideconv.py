@@ -62,6 +62,11 @@ def _interpret() -> bool:
     return jax.default_backend() != "gpu" if INTERPRET is None else INTERPRET
 
 
+def channels_for(n: int) -> int:
+    """The channel count the kernels compute n channels with: the next power of two, >= 16."""
+    return max(16, 1 << (n - 1).bit_length())
+
+
 def _pads(pads, n: int) -> tuple[int, ...]:
     return (pads,) * n if isinstance(pads, int) else tuple(pads)
 
@@ -174,7 +179,7 @@ class _Pixels:
 
     @property
     def width(self) -> int:
-        return max(16, 1 << (self.kernel * self.channels - 1).bit_length())
+        return channels_for(self.kernel * self.channels)
 
     def loader(self, x_ref, crop_ref, rows, layout, dtype):
         """kernel row i -> [len(rows), width]: for each output pixel at `rows` of the layout,

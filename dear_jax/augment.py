@@ -1,7 +1,7 @@
 """DrQ-v2's random-shift augmentation: edge-pad by `pad` pixels, crop back at an integer offset.
 
-Written for one image and vmapped by the caller. An observation and its mask share one shift, so
-the mask target stays aligned with the pixels the encoder sees.
+`shift` crops one image; `Crops` holds a batch's offsets, drawn once, so an observation and its
+mask share one shift and the mask target stays aligned with the pixels the encoder sees.
 
 The crop can be computed three ways that give the same pixels (`SHIFT_IMPLS`, the update's
 `agent.shift_impl`); they differ in speed only (`python -m benchmarks.shift`):
@@ -65,37 +65,6 @@ def sample_offset(key: jax.Array, pad: int = DEFAULT_PAD) -> jax.Array:
     return jax.random.randint(key, (2,), 0, 2 * pad + 1)
 
 
-def random_shift(
-    image: jax.Array, key: jax.Array, pad: int = DEFAULT_PAD, impl: str = "pad_slice"
-) -> jax.Array:
-    """Randomly shifted copy of one image [H, W, C]."""
-    return shift(image, sample_offset(key, pad), pad, impl)
-
-
-def random_shift_pair(
-    image: jax.Array,
-    mask: jax.Array,
-    key: jax.Array,
-    pad: int = DEFAULT_PAD,
-    impl: str = "pad_slice",
-) -> tuple[jax.Array, jax.Array]:
-    """Shift an image [H, W, C] and its mask [H, W, K] by the same random offset."""
-    offset = sample_offset(key, pad)
-    return shift(image, offset, pad, impl), shift(mask, offset, pad, impl)
-
-
-def sample_offsets(key: jax.Array, n: int, pad: int = DEFAULT_PAD) -> jax.Array:
-    """The offsets [n, 2] of `random_shift_batch` for a batch of n images and this key."""
-    return jax.vmap(sample_offset, in_axes=(0, None))(jax.random.split(key, n), pad)
-
-
-def shift_batch(
-    images: jax.Array, offsets: jax.Array, pad: int = DEFAULT_PAD, impl: str = "pad_slice"
-) -> jax.Array:
-    """Each image of a batch [B, H, W, C] cropped at its offset [B, 2]."""
-    return jax.vmap(shift, in_axes=(0, 0, None, None))(images, offsets, pad, impl)
-
-
 class Crops(NamedTuple):
     """A batch's random-shift crops, not yet applied: each image's offset [B, 2], the pad and
     the impl. The encoder takes them with the uncropped pixels (it may read the crops
@@ -107,27 +76,18 @@ class Crops(NamedTuple):
 
     @classmethod
     def sample(cls, key: jax.Array, n: int, pad: int = DEFAULT_PAD, impl: str = "pad_slice"):
-        """The crops of `random_shift_batch` for n images and this key."""
-        return cls(sample_offsets(key, n, pad), pad, impl)
+        """Independent offsets for n images (those of `random_shift_batch` with this key)."""
+        keys = jax.random.split(key, n)
+        return cls(jax.vmap(sample_offset, in_axes=(0, None))(keys, pad), pad, impl)
 
     def apply(self, images: jax.Array) -> jax.Array:
-        return shift_batch(images, self.offsets, self.pad, self.impl)
+        """Each image of a batch [B, H, W, C] cropped at its offset."""
+        shift_each = jax.vmap(shift, in_axes=(0, 0, None, None))
+        return shift_each(images, self.offsets, self.pad, self.impl)
 
 
 def random_shift_batch(
     images: jax.Array, key: jax.Array, pad: int = DEFAULT_PAD, impl: str = "pad_slice"
 ) -> jax.Array:
     """Independent shifts for a batch [B, H, W, C]."""
-    return shift_batch(images, sample_offsets(key, images.shape[0], pad), pad, impl)
-
-
-def random_shift_pair_batch(
-    images: jax.Array,
-    masks: jax.Array,
-    key: jax.Array,
-    pad: int = DEFAULT_PAD,
-    impl: str = "pad_slice",
-) -> tuple[jax.Array, jax.Array]:
-    """Independent shifts per sample for a batch, each shared by the sample's image and mask."""
-    offsets = sample_offsets(key, images.shape[0], pad)
-    return shift_batch(images, offsets, pad, impl), shift_batch(masks, offsets, pad, impl)
+    return Crops.sample(key, images.shape[0], pad, impl).apply(images)

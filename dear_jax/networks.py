@@ -312,13 +312,14 @@ def _pallas_trunk(obs: jax.Array, modules, dtype, crops) -> jax.Array | None:
     pixels, read through `crops` if given, as one `wideconv.conv_stack`; None where that does
     not take the shapes.
 
-    The stack's strided first layer reads the uint8 pixels themselves, so `preprocess`
-    (x / 255 - 0.5) is folded into that layer: its kernel divided by 255 and 0.5 * sum(kernel)
-    taken from its bias (every output of a VALID layer reads only pixels of the image).
+    The stack's strided first layer reads the uint8 pixels themselves, so `preprocess` is
+    folded into that layer: its kernel times PIXEL_SCALE, and PIXEL_ZERO * sum(kernel) added
+    to its bias (every output of a VALID layer reads only pixels of the image).
     """
     *lead, h, w, c = obs.shape
     (k0, b0), *rest = _weights(modules, (h, w, c), dtype)
-    layers = ((k0 / 255.0, b0 - 0.5 * jnp.sum(k0, axis=(0, 1, 2))), *rest)
+    bias = b0 + PIXEL_ZERO * jnp.sum(k0, axis=(0, 1, 2))
+    layers = ((k0 * PIXEL_SCALE, bias), *rest)
     pixels, stride = obs.reshape(-1, h, w, c), modules[0].stride
     shift, offsets = (crops.pad, crops.offsets.reshape(-1, 2)) if crops else (0, None)
     if not wideconv.supported(pixels, layers, 0, stride, shift):
@@ -349,9 +350,12 @@ def _pallas_decoder(x: jax.Array, modules, last, dtype) -> jax.Array | None:
     return y.reshape(*lead, *y.shape[1:])
 
 
+PIXEL_SCALE, PIXEL_ZERO = 1 / 255.0, -0.5  # preprocess: x * PIXEL_SCALE + PIXEL_ZERO
+
+
 def preprocess(obs: jax.Array) -> jax.Array:
     """uint8 pixels [..., H, W, C] -> float32 in [-0.5, 0.5]."""
-    return obs.astype(jnp.float32) / 255.0 - 0.5
+    return obs.astype(jnp.float32) * PIXEL_SCALE + PIXEL_ZERO
 
 
 def avg_pool(x: jax.Array, k: int) -> jax.Array:

@@ -409,7 +409,10 @@ def _forward(x, layers, pads, relu_last, dtype, stride, shift, crops):
     dtype = dtype or x.dtype
     pads = _pads(pads, len(layers))
     layout, sizes, pixels = _plan(x.shape, layers, pads, stride, shift)
-    acts = [(x, crops) if shift else x if pixels else layout.flatten(x)]
+    if pixels is None:
+        acts = [layout.flatten(x)]
+    else:  # read as they are (through the crops, with a shift)
+        acts = [(x, crops) if shift else x]
     for i, ((k, b), p) in enumerate(zip(layers, pads)):
         first = pixels if i == 0 else None
         w = _taps_of(k, first).astype(dtype)
@@ -423,6 +426,7 @@ def _forward(x, layers, pads, relu_last, dtype, stride, shift, crops):
 
 def _conv_stack_fwd(x, layers, pads, relu_last, dtype, stride, shift, crops):
     y, acts = _forward(x, layers, pads, relu_last, dtype, stride, shift, crops)
+    # An empty array of x's image shape and dtype: the backward pass's plan and dx need them.
     return y, (acts, layers, jnp.zeros((0, *x.shape[1:]), x.dtype))
 
 

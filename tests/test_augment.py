@@ -31,7 +31,8 @@ def test_pair_shift_moves_obs_and_mask_together():
     obs = jnp.asarray(rng.integers(0, 256, (16, 84, 84, 9), dtype=np.uint8))
     # The mask is a copy of obs channels, so a shared shift keeps them equal after shifting.
     mask = obs[..., :3]
-    s_obs, s_mask = jax.jit(augment.random_shift_pair_batch)(obs, mask, jax.random.key(3))
+    crops = augment.Crops.sample(jax.random.key(3), 16)
+    s_obs, s_mask = jax.jit(lambda o, m: (crops.apply(o), crops.apply(m)))(obs, mask)
     np.testing.assert_array_equal(s_obs[..., :3], s_mask)
     # And the samples of the batch got different shifts.
     shifted = [not np.array_equal(s_obs[i], obs[i]) for i in range(16)]
@@ -61,10 +62,9 @@ def test_every_shift_impl_gives_pad_slices_pixels(impl):
             np.testing.assert_array_equal(got, want)
     obs = jnp.asarray(rng.integers(0, 256, (8, 84, 84, 9), dtype=np.uint8))
     key = jax.random.key(6)
-    want = augment.random_shift_pair_batch(obs, obs[..., :3], key)
-    got = augment.random_shift_pair_batch(obs, obs[..., :3], key, impl=impl)
-    for a, b in zip(got, want):
-        np.testing.assert_array_equal(a, b)
+    want = augment.random_shift_batch(obs, key)
+    got = augment.Crops.sample(key, 8, impl=impl).apply(obs)
+    np.testing.assert_array_equal(got, want)
 
 
 def test_unknown_shift_impl_is_refused_by_name():

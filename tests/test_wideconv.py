@@ -66,7 +66,7 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     crops = jnp.array([[0, 2 * shift], [shift + 1, 1]]) if shift else None
 
     def shifted(x):
-        return augment.shift_batch(x, crops, shift, "gather") if shift else x
+        return augment.Crops(crops, shift, "gather").apply(x) if shift else x
 
     def ours(x, ws):
         return wideconv.conv_stack(x, ws, pads, relu_last, dtype, stride, shift, crops)

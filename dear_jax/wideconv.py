@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -73,10 +74,9 @@ def _pads(pads, n: int) -> tuple[int, ...]:
 
 def supported(x, layers, pads, stride: int = 1, shift: int = 0) -> bool:
     """Whether `conv_stack` takes this stack (x: an array or its shape and dtype): square NHWC
-    images, square kernels no wider than 3 padded by less than their width, channel counts that
-    are powers of two >= 16 (Triton's dot), and room for the zeros that the shifts need. A
-    strided first layer reads integer pixels of at most 16 channels, unpadded (and only they
-    may be read through a random shift)."""
+    images, square kernels no wider than 3 padded by less than their width, and channel counts
+    that are powers of two >= 16 (Triton's dot). A strided first layer reads integer pixels of
+    at most 16 channels, unpadded (and only they may be read through a random shift)."""
     pads = _pads(pads, len(layers))
     if x.ndim != 4 or x.shape[1] != x.shape[2] or not layers or len(pads) != len(layers):
         return False
@@ -88,75 +88,53 @@ def supported(x, layers, pads, stride: int = 1, shift: int = 0) -> bool:
         return False
     if shift and stride == 1:  # a shift is read with the pixels of a strided first layer
         return False
-    sizes = _sizes(x.shape[1], kernels, pads, stride)
-    first = int(stride > 1)  # the first layer in the layout
-    side = max(sizes[first:])
+    first = int(stride > 1)  # the pixels of a strided first layer are read as they are
     return (
         all(c >= 16 and c & (c - 1) == 0 for c in channels[first:])
         and [k[2] for k in kernels] == channels[:-1]
-        and min(sizes) > 0
-        # a padded layer reads p pixels beyond its input on each side: zeros of the layout
-        and all(sizes[i] + pads[i] <= side for i in range(first, len(layers)))
+        and min(_sizes(x.shape[1], [k[0] for k in kernels], pads, stride)) > 0
     )
 
 
 def _sizes(size: int, kernels, pads, stride: int = 1) -> list[int]:
-    """The side of the input and of each layer's output."""
+    """The side of the input and of each layer's output (kernels: each layer's width)."""
     sizes = [size]
     for i, (k, p) in enumerate(zip(kernels, pads)):
         s = stride if i == 0 else 1
-        sizes.append((sizes[-1] + 2 * p - k[0]) // s + 1)
+        sizes.append((sizes[-1] + 2 * p - k) // s + 1)
     return sizes
 
 
 @dataclasses.dataclass(frozen=True)
-class _Layout:
-    """Where the images sit in a flat array: `margin` zero rows, the images, zero rows to the
-    end. The margins are as long as the farthest read of a tap (`reach` rows away), so no load
-    leaves the array and none needs a mask. A convolution's programs cover `conv_cover` rows
-    from the margin on, a filter gradient's `wgrad_cover`; the rows past the images read and
-    write zeros."""
+class _Grid:
+    """An activation as the kernels hold it: [rows, C], pixel (y, x) of image n at row
+    (n * size + y) * size + x, then zero rows up to a multiple of both blocks (so a block of
+    rows lies wholly inside the pixels, wholly in the zero tail, or straddles its start)."""
 
     images: int
-    size: int  # side of every image in the flat array
-    reach: int  # largest |offset| of a tap, forward or backward
+    size: int
 
     @property
-    def body(self) -> int:
+    def pixels(self) -> int:
         return self.images * self.size * self.size
 
     @property
-    def margin(self) -> int:
-        return _round_up(self.reach, BLOCK)
-
-    @property
-    def conv_programs(self) -> int:
-        return -(-self.body // BLOCK)
-
-    @property
-    def conv_cover(self) -> int:
-        return self.conv_programs * BLOCK
-
-    @property
-    def wgrad_programs(self) -> int:
-        return -(-self.body // (WGRAD_BLOCK * WGRAD_STEPS))
-
-    @property
     def rows(self) -> int:
-        wgrad_cover = self.wgrad_programs * WGRAD_BLOCK * WGRAD_STEPS
-        tail = max(wgrad_cover - self.conv_cover, 0) + self.reach
-        return self.margin + self.conv_cover + _round_up(tail, BLOCK)
+        return _round_up(self.pixels, math.lcm(BLOCK, WGRAD_BLOCK))
 
     def flatten(self, x: jax.Array) -> jax.Array:
-        """[N, h, h, C] -> [rows, C]: zeros right of and below each image, and the margins."""
-        h, s = x.shape[1], self.size
-        x = jnp.pad(x, ((0, 0), (0, s - h), (0, s - h), (0, 0))).reshape(-1, x.shape[-1])
-        return jnp.pad(x, ((self.margin, self.rows - self.margin - self.body), (0, 0)))
+        """[N, size, size, C] -> [rows, C]."""
+        return jnp.pad(x.reshape(-1, x.shape[-1]), ((0, self.rows - self.pixels), (0, 0)))
 
-    def unflatten(self, flat: jax.Array, h: int) -> jax.Array:
-        """[rows, C] -> [N, h, h, C], the top-left h x h of each image."""
-        x = flat[self.margin : self.margin + self.body]
-        return x.reshape(self.images, self.size, self.size, flat.shape[-1])[:, :h, :h]
+    def unflatten(self, flat: jax.Array) -> jax.Array:
+        """[rows, C] -> [N, size, size, C]."""
+        return flat[: self.pixels].reshape(self.images, self.size, self.size, flat.shape[-1])
+
+    def position(self, rows):
+        """(in the pixels, image, y, x) of each row."""
+        image, pixel = jax.lax.div(rows, self.size**2), jax.lax.rem(rows, self.size**2)
+        y, x = jax.lax.div(pixel, self.size), jax.lax.rem(pixel, self.size)
+        return rows < self.pixels, image, y, x
 
 
 def _round_up(n: int, multiple: int) -> int:
@@ -164,33 +142,85 @@ def _round_up(n: int, multiple: int) -> int:
 
 
 @dataclasses.dataclass(frozen=True)
+class _Pass:
+    """One convolution of a stack: k x k taps over the `size_in` x `size_in` input zero-padded
+    by `pad`, giving `size` x `size` (VALID, stride 1)."""
+
+    images: int
+    size_in: int
+    size: int
+    kernel: int
+    pad: int
+
+    @property
+    def out(self) -> _Grid:
+        return _Grid(self.images, self.size)
+
+    @property
+    def input_gradient(self) -> _Pass:
+        """The convolution that computes this one's input gradient (with the kernel flipped
+        and transposed, `_taps_of(..., flip=True)`)."""
+        return _Pass(self.images, self.size, self.size_in, self.kernel, self.kernel - 1 - self.pad)
+
+    def loader(self, x_ref, rows, c: int, dtype):
+        """tap t = (i, j) -> [len(rows), c]: for the output pixel (y, x) at each of `rows`,
+        input pixel (y + i - pad, x + j - pad), zero where that is padding or the row is past
+        the pixels. x_ref is the input's rows as one dimension."""
+        keep, image, y, x = self.out.position(rows)
+        base = (image * self.size_in + y - self.pad) * self.size_in + x - self.pad
+        lanes = jnp.arange(c, dtype=jnp.int32)[None, :]
+        if not self.pad:  # a VALID convolution reads inside its input
+            base = jnp.where(keep, base, 0)
+        k, last = self.kernel, self.size_in - 1
+
+        def load(t):
+            i, j = divmod(t, k)
+            idx = base + i * self.size_in + j
+            if not self.pad:
+                return x_ref[idx[:, None] * c + lanes].astype(dtype)
+            ok = keep
+            # (the checks that can fail for this tap: the output spans [0, size) and
+            # size - 1 + k - 1 - 2 * pad = size_in - 1)
+            if i < self.pad:
+                ok &= y + i - self.pad >= 0
+            if i > k - 1 - self.pad:
+                ok &= y + i - self.pad <= last
+            if j < self.pad:
+                ok &= x + j - self.pad >= 0
+            if j > k - 1 - self.pad:
+                ok &= x + j - self.pad <= last
+            idx = jnp.where(ok, idx, 0)[:, None] * c + lanes
+            mask = jnp.broadcast_to(ok[:, None], idx.shape)
+            return plt.load(x_ref.at[idx], mask=mask, other=0).astype(dtype)
+
+        return load
+
+
+@dataclasses.dataclass(frozen=True)
 class _Pixels:
-    """The input of a strided first layer: x itself ([N, side, side, channels], not in the
-    layout), read for each output pixel of the layout one kernel row at a time: the `kernel`
-    pixels of row i are kernel * channels consecutive values, one load of `width` lanes (a
-    power of two >= 16; the lanes past them read zeros)."""
+    """The input of a strided first layer: x itself ([N, side, side, channels]), read for
+    each output pixel one kernel row at a time: the `kernel` pixels of row i are kernel *
+    channels consecutive values, one load of `width` lanes (a power of two >= 16; the lanes
+    past them read zeros)."""
 
     side: int
     channels: int
     stride: int
     kernel: int
-    valid: int  # side of the layer's output
+    out: _Grid  # the layer's output
     shift: int = 0  # the pad of a random shift read with the pixels (augment.shift); 0: none
 
     @property
     def width(self) -> int:
         return channels_for(self.kernel * self.channels)
 
-    def loader(self, x_ref, crop_ref, rows, layout, dtype):
-        """kernel row i -> [len(rows), width]: for each output pixel at `rows` of the layout,
-        its input pixels of that row (zeros outside the output's valid pixels). With a shift,
-        the pixels of each image's crop at its (dy, dx) in crop_ref (flat [N * 2]): pixel
-        (Y, X) of the crop is pixel (clip(Y + dy - shift), clip(X + dx - shift)) of the image,
-        as `augment.shift` crops the edge-padded image."""
-        pos = rows - layout.margin
-        image, pixel = jax.lax.div(pos, layout.size**2), jax.lax.rem(pos, layout.size**2)
-        y, x = jax.lax.div(pixel, layout.size), jax.lax.rem(pixel, layout.size)
-        keep = (pos < layout.body) & (y < self.valid) & (x < self.valid)
+    def loader(self, x_ref, crop_ref, rows, dtype):
+        """kernel row i -> [len(rows), width]: for each output pixel at `rows`, its input
+        pixels of that row (zeros past the pixels). With a shift, the pixels of each image's
+        crop at its (dy, dx) in crop_ref (flat [N * 2]): pixel (Y, X) of the crop is pixel
+        (clip(Y + dy - shift), clip(X + dx - shift)) of the image, as `augment.shift` crops
+        the edge-padded image."""
+        keep, image, y, x = self.out.position(rows)
         base = ((image * self.side + self.stride * y) * self.side + self.stride * x) * self.channels
         base = jnp.where(keep, base, 0)
         lanes = jnp.arange(self.width, dtype=jnp.int32)
@@ -222,103 +252,79 @@ class _Pixels:
         return load
 
 
-def _loader(x_ref, crop_ref, rows, offsets, c: int, layout, pixels, dtype):
-    """tap t -> x's pixels for the output pixels at `rows`, [len(rows), c], in `dtype`: in
-    the layout, the rows shifted by offsets[t] (x_ref is the flat array as one dimension); with
-    `pixels`, kernel row t as `_Pixels` reads it."""
-    if pixels is not None:
-        return pixels.loader(x_ref, crop_ref, rows, layout, dtype)
-    lanes = jnp.arange(c, dtype=jnp.int32)[None, :]
-    return lambda t: x_ref[(rows + offsets[t])[:, None] * c + lanes].astype(dtype)
+def _loader(x_ref, crop_ref, rows, layer, c: int, dtype):
+    """tap t -> the input of `layer` (a `_Pass` or `_Pixels`) for the output pixels at `rows`,
+    [len(rows), c] in `dtype`."""
+    if isinstance(layer, _Pixels):
+        return layer.loader(x_ref, crop_ref, rows, dtype)
+    return layer.loader(x_ref, rows, c, dtype)
 
 
-def _conv_kernel(*refs, offsets, layout, valid, relu, has_bias, has_mask, pixels):
+def _conv_kernel(*refs, layer, relu, has_bias, has_mask):
     x_ref, *refs, o_ref = refs
-    crop_ref = refs.pop(0) if pixels and pixels.shift else None
+    crop_ref = refs.pop(0) if isinstance(layer, _Pixels) and layer.shift else None
     w_ref = refs.pop(0)
     b_ref = refs.pop(0) if has_bias else None
     m_ref = refs.pop(0) if has_mask else None
     f, c = o_ref.shape[-1], w_ref.shape[1]
-    p = pl.program_id(0)
-
-    @pl.when(p < layout.conv_programs)
-    def _():
-        start = layout.margin + p * BLOCK
-        rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
-        taps = _loader(x_ref, crop_ref, rows, offsets, c, layout, pixels, w_ref.dtype)
-        acc = jnp.zeros((BLOCK, f), jnp.float32)
-        for t in range(w_ref.shape[0]):
-            acc += plt.dot(taps(t), w_ref[t])
-        if has_bias:
-            acc += b_ref[...][None, :]
-        if relu:
-            acc = jnp.maximum(acc, 0.0)
-        pos = rows - layout.margin
-        keep = pos < layout.body
-        if valid is not None:
-            pos = jax.lax.rem(pos, layout.size * layout.size)
-            keep &= (jax.lax.div(pos, layout.size) < valid) & (
-                jax.lax.rem(pos, layout.size) < valid
-            )
-        keep = keep[:, None]
-        if has_mask:
-            keep &= m_ref[pl.ds(start, BLOCK), :] > 0
-        o_ref[pl.ds(start, BLOCK), :] = jnp.where(keep, acc, 0.0).astype(o_ref.dtype)
-
-    @pl.when(p >= layout.conv_programs)
-    def _():  # the margins: zeros
-        z = p - layout.conv_programs
-        head = layout.margin // BLOCK
-        end = layout.margin + layout.conv_cover
-        first = jnp.where(z < head, z * BLOCK, end + (z - head) * BLOCK)
-        o_ref[pl.ds(first, BLOCK), :] = jnp.zeros((BLOCK, f), o_ref.dtype)
+    start = pl.program_id(0) * BLOCK
+    rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
+    taps = _loader(x_ref, crop_ref, rows, layer, c, w_ref.dtype)
+    acc = jnp.zeros((BLOCK, f), jnp.float32)
+    for t in range(w_ref.shape[0]):
+        acc += plt.dot(taps(t), w_ref[t])
+    if has_bias:
+        acc += b_ref[...][None, :]
+    if relu:
+        acc = jnp.maximum(acc, 0.0)
+    keep = (rows < layer.out.pixels)[:, None]
+    if has_mask:
+        keep &= m_ref[pl.ds(start, BLOCK), :] > 0
+    o_ref[pl.ds(start, BLOCK), :] = jnp.where(keep, acc, 0.0).astype(o_ref.dtype)
 
 
-def _conv(x, w, offsets, layout, *, bias=None, relu=False, valid=None, mask=None, pixels=None):
-    """out[q] = sum_t x[q + offsets[t]] @ w[t] (+ bias, ReLU) in w's dtype, zero outside
-    `valid` x `valid` (if given) and in the margins, and zero where `mask` is not positive (if
-    given). x may be of another dtype (uint8 pixels): each tap is converted to w's. With
-    `pixels`, x is a strided layer's input as it is, read as `_Pixels` says (with a shift, x is
-    (pixels, crop offsets))."""
-    f = w.shape[-1]
-    args = [*_pixel_args(x, pixels), w]
+def _conv(x, w, layer, *, bias=None, relu=False, mask=None):
+    """The rows of layer.out: out[q] = sum_t (tap t of x for q) @ w[t] (+ bias, ReLU) in w's
+    dtype, zero where `mask` (of the same rows) is not positive (if given) and past the
+    pixels. x may be of another dtype (uint8 pixels): each tap is converted to w's. For a
+    `_Pixels` layer x is its input as it is (with a shift, x is (pixels, crop offsets))."""
+    args = [*_pixel_args(x, layer), w]
     if bias is not None:
         args.append(bias.astype(jnp.float32))
     if mask is not None:
         args.append(mask)
-    zero_blocks = (layout.rows - layout.conv_cover) // BLOCK
+    rows = layer.out.rows
     return pl.pallas_call(
         functools.partial(
             _conv_kernel,
-            offsets=offsets,
-            layout=layout,
-            valid=valid,
+            layer=layer,
             relu=relu,
             has_bias=bias is not None,
             has_mask=mask is not None,
-            pixels=pixels,
         ),
-        out_shape=jax.ShapeDtypeStruct((layout.rows, f), w.dtype),
-        grid=(layout.conv_programs + zero_blocks,),
+        out_shape=jax.ShapeDtypeStruct((rows, w.shape[-1]), w.dtype),
+        grid=(rows // BLOCK,),
         interpret=_interpret(),
         # Triton's parameters also pick Pallas' Triton backend (not Mosaic GPU).
         compiler_params=plt.CompilerParams(num_warps=NUM_WARPS, num_stages=STAGES),
     )(*args)
 
 
-def _wgrad_kernel(*refs, offsets, layout, pixels):
+def _wgrad_kernel(*refs, layer):
     x_ref, *refs, w_ref, b_ref = refs
-    crop_ref = refs.pop(0) if pixels and pixels.shift else None
+    crop_ref = refs.pop(0) if isinstance(layer, _Pixels) and layer.shift else None
     g_ref = refs.pop(0)
     f, c, n = g_ref.shape[-1], w_ref.shape[2], w_ref.shape[1]
     p = pl.program_id(0)
 
     def step(s, carry):
         accs, bacc = carry
-        start = layout.margin + (p * WGRAD_STEPS + s) * WGRAD_BLOCK
+        start = (p * WGRAD_STEPS + s) * WGRAD_BLOCK
         rows = start + jnp.arange(WGRAD_BLOCK, dtype=jnp.int32)
-        g = g_ref[pl.ds(start, WGRAD_BLOCK), :]
-        taps = _loader(x_ref, crop_ref, rows, offsets, c, layout, pixels, g.dtype)
+        # The last program's steps past the rows read zeros (whole blocks: see _Grid).
+        inside = jnp.broadcast_to((rows < layer.out.rows)[:, None], (WGRAD_BLOCK, f))
+        g = plt.load(g_ref.at[pl.ds(start, WGRAD_BLOCK), :], mask=inside, other=0)
+        taps = _loader(x_ref, crop_ref, rows, layer, c, g.dtype)
         out = tuple(acc + plt.dot(taps(t), g, trans_a=True) for t, acc in enumerate(accs))
         return out, bacc + jnp.sum(g.astype(jnp.float32), axis=0)
 
@@ -329,21 +335,22 @@ def _wgrad_kernel(*refs, offsets, layout, pixels):
     b_ref[p] = bacc
 
 
-def _pixel_args(x, pixels) -> list:
+def _pixel_args(x, layer) -> list:
     """A layer's input as the kernels take it: flat, and with a shift its crop offsets."""
-    if pixels is not None and pixels.shift:
+    if isinstance(layer, _Pixels) and layer.shift:
         return [x[0].reshape(-1), x[1].reshape(-1).astype(jnp.int32)]
     return [x.reshape(-1)]
 
 
-def _wgrad(x, g, offsets, layout, pixels=None):
-    """(sum_q x[q + offsets[t]]^T g[q] for each t, sum_q g[q]), in float32 (x read as
-    `_Pixels` says, if given)."""
-    c, f = (pixels.width if pixels else x.shape[-1]), g.shape[-1]
-    taps = pixels.kernel if pixels else len(offsets)
-    programs = layout.wgrad_programs
+def _wgrad(x, g, layer):
+    """(sum_q (tap t of x for q)^T g[q] for each t, sum_q g[q]) over the rows of layer.out,
+    in float32."""
+    pixels = isinstance(layer, _Pixels)
+    c, f = (layer.width if pixels else x.shape[-1]), g.shape[-1]
+    taps = layer.kernel if pixels else layer.kernel**2
+    programs = -(-layer.out.rows // (WGRAD_BLOCK * WGRAD_STEPS))
     w, b = pl.pallas_call(
-        functools.partial(_wgrad_kernel, offsets=offsets, layout=layout, pixels=pixels),
+        functools.partial(_wgrad_kernel, layer=layer),
         out_shape=(
             jax.ShapeDtypeStruct((programs, taps, c, f), jnp.float32),
             jax.ShapeDtypeStruct((programs, f), jnp.float32),
@@ -351,40 +358,32 @@ def _wgrad(x, g, offsets, layout, pixels=None):
         grid=(programs,),
         interpret=_interpret(),
         compiler_params=plt.CompilerParams(num_warps=WGRAD_WARPS, num_stages=STAGES),
-    )(*_pixel_args(x, pixels), g)
+    )(*_pixel_args(x, layer), g)
     return w.sum(0), b.sum(0)
 
 
-def _plan(x_shape, layers, pads, stride, shift=0):
-    """(layout, the sides of the input and of each layer's output, the strided first layer's
-    `_Pixels` or None)."""
-    kernels = [k.shape for k, _ in layers]
+def _plan(x_shape, layers, pads, stride, shift=0) -> tuple[list[int], list]:
+    """(the sides of the input and of each layer's output, each layer's `_Pass`, the first a
+    `_Pixels` if strided)."""
+    kernels = [k.shape[0] for k, _ in layers]
     sizes = _sizes(x_shape[1], kernels, pads, stride)
-    first = int(stride > 1)
-    size = max(sizes[first:])
-    reach = max(
-        [max(p, k[0] - 1 - p) * (size + 1) for k, p in zip(kernels[first:], pads[first:])],
-        default=0,
-    )
-    pixels = (
-        _Pixels(x_shape[1], x_shape[-1], stride, kernels[0][0], sizes[1], shift) if first else None
-    )
-    return _Layout(x_shape[0], size, reach), sizes, pixels
+    n = x_shape[0]
+    passes = [_Pass(n, sizes[i], sizes[i + 1], k, p) for i, (k, p) in enumerate(zip(kernels, pads))]
+    if stride > 1:
+        passes[0] = _Pixels(x_shape[1], x_shape[-1], stride, kernels[0], _Grid(n, sizes[1]), shift)
+    return sizes, passes
 
 
-def _offsets(k: int, pad: int, size: int) -> tuple[int, ...]:
-    """Where tap (i, j) of a k x k layer padded by `pad` reads, relative to the output pixel,
-    in the order of the kernel's taps. The input gradient reads at the negated offsets."""
-    return tuple((i - pad) * size + j - pad for i in range(k) for j in range(k))
-
-
-def _taps_of(k: jax.Array, pixels) -> jax.Array:
-    """[K, K, C, F] -> one [C, F] matrix per tap; for a strided first layer, one
-    [pixels.width, F] matrix per kernel row (its K * C rows, then zeros)."""
-    if pixels is None:
-        return k.reshape(-1, *k.shape[2:])
-    k = k.reshape(k.shape[0], -1, k.shape[-1])
-    return jnp.pad(k, ((0, 0), (0, pixels.width - k.shape[1]), (0, 0)))
+def _taps_of(k: jax.Array, layer, flip: bool = False) -> jax.Array:
+    """[K, K, C, F] -> one [C, F] matrix per tap (i, j), in the order i * K + j; flipped and
+    transposed for an input gradient ([F, C] at tap (K-1-i, K-1-j)); for a `_Pixels` layer, one
+    [layer.width, F] matrix per kernel row (its K * C rows, then zeros)."""
+    if isinstance(layer, _Pixels):
+        k = k.reshape(k.shape[0], -1, k.shape[-1])
+        return jnp.pad(k, ((0, 0), (0, layer.width - k.shape[1]), (0, 0)))
+    if flip:
+        k = jnp.swapaxes(jnp.flip(k, (0, 1)), 2, 3)
+    return k.reshape(-1, *k.shape[2:])
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3, 4, 5, 6))
@@ -408,20 +407,16 @@ def conv_stack(
 def _forward(x, layers, pads, relu_last, dtype, stride, shift, crops):
     dtype = dtype or x.dtype
     pads = _pads(pads, len(layers))
-    layout, sizes, pixels = _plan(x.shape, layers, pads, stride, shift)
-    if pixels is None:
-        acts = [layout.flatten(x)]
-    else:  # read as they are (through the crops, with a shift)
+    sizes, passes = _plan(x.shape, layers, pads, stride, shift)
+    if stride > 1:  # pixels read as they are (through the crops, with a shift)
         acts = [(x, crops) if shift else x]
-    for i, ((k, b), p) in enumerate(zip(layers, pads)):
-        first = pixels if i == 0 else None
-        w = _taps_of(k, first).astype(dtype)
-        offsets = _offsets(k.shape[0], p, layout.size)
+    else:
+        acts = [_Grid(x.shape[0], sizes[0]).flatten(x)]
+    for i, ((k, b), layer) in enumerate(zip(layers, passes)):
+        w = _taps_of(k, layer).astype(dtype)
         relu = relu_last or i < len(layers) - 1
-        acts.append(
-            _conv(acts[-1], w, offsets, layout, bias=b, relu=relu, valid=sizes[i + 1], pixels=first)
-        )
-    return layout.unflatten(acts[-1], sizes[-1]), acts
+        acts.append(_conv(acts[-1], w, layer, bias=b, relu=relu))
+    return passes[-1].out.unflatten(acts[-1]), acts
 
 
 def _conv_stack_fwd(x, layers, pads, relu_last, dtype, stride, shift, crops):
@@ -433,25 +428,23 @@ def _conv_stack_fwd(x, layers, pads, relu_last, dtype, stride, shift, crops):
 def _conv_stack_bwd(pads, relu_last, dtype, stride, shift, residuals, g):
     acts, layers, x_like = residuals
     pads = _pads(pads, len(layers))
-    layout, sizes, pixels = _plan((g.shape[0], *x_like.shape[1:]), layers, pads, stride, shift)
-    # The gradient at the last layer's output (its pre-activations, after a ReLU), in the layout.
-    g = layout.flatten(g.astype(acts[-1].dtype))
+    _, passes = _plan((g.shape[0], *x_like.shape[1:]), layers, pads, stride, shift)
+    # The gradient at the last layer's output (its pre-activations, after a ReLU).
+    g = passes[-1].out.flatten(g.astype(acts[-1].dtype))
     if relu_last:
         g = jnp.where(acts[-1] > 0, g, 0)
     grads = []
     for i in reversed(range(len(layers))):
-        k, b = layers[i]
-        first = pixels if i == 0 else None
-        offsets = _offsets(k.shape[0], pads[i], layout.size)
-        dk, db = _wgrad(acts[i], g, offsets, layout, first)
-        dk = dk[:, : k.shape[1] * k.shape[2]] if first else dk
+        (k, b), layer = layers[i], passes[i]
+        dk, db = _wgrad(acts[i], g, layer)
+        dk = dk[:, : k.shape[1] * k.shape[2]] if isinstance(layer, _Pixels) else dk
         grads.append((dk.reshape(k.shape).astype(k.dtype), db.astype(b.dtype)))
         if i == 0 and not jnp.issubdtype(x_like.dtype, jnp.floating):
             return None, tuple(reversed(grads)), None
         # Input gradient, with the ReLU gradient of the layer below (the stack's input has none).
-        w = jnp.swapaxes(_taps_of(k, None), 1, 2).astype(g.dtype)
-        g = _conv(g, w, tuple(-o for o in offsets), layout, mask=acts[i] if i else None)
-    dx = layout.unflatten(g, sizes[0]).astype(x_like.dtype)
+        w = _taps_of(k, layer, flip=True).astype(g.dtype)
+        g = _conv(g, w, layer.input_gradient, mask=acts[i] if i else None)
+    dx = passes[0].input_gradient.out.unflatten(g).astype(x_like.dtype)
     return dx, tuple(reversed(grads)), None
 
 

@@ -129,8 +129,8 @@ def test_supported_shapes():
     assert not wideconv.supported(x(2, 41, 41, 32), (k(32, 32),), 3)  # pad as wide as the kernel
     assert not wideconv.supported(x(2, 41, 41, 32), (k(16, 32),), 0)  # kernel's channels differ
     assert not wideconv.supported(x(2, 5, 5, 32), (k(32, 32),) * 3, 0)  # nothing left: 5 -> -1
-    # a 3x3 layer padded by 1 keeps the size: no zero pixels right of its input to read
-    assert not wideconv.supported(x(2, 9, 9, 32), (k(32, 32),), 1)
+    # a 3x3 layer padded by 1 keeps the size (its taps past the edges read zeros)
+    assert wideconv.supported(x(2, 9, 9, 32), (k(32, 32),), 1)
     assert not wideconv.supported(x(2, 9, 9, 32), (k(32, 32),) * 2, (0,))  # one pad, two layers
     # a strided first layer reads integer pixels of at most 16 channels, unpadded
     assert not wideconv.supported(x(2, 84, 84, 9), (k(9, 32),), 0, stride=2)

@@ -104,12 +104,14 @@ def get_config() -> ConfigDict:
     # "pallas" launches cheaply, but the update ran 2-3% slower with it
     # (benchmarks/results/update_pallas_h100.json).
     c.agent.filter_gradient = "cudnn"
-    # The stride-1 conv layers of the encoder and decoders: "xla" (cuDNN, layer by layer) or
-    # "pallas" (dear_jax/wideconv.py: Pallas kernels on one flat layout, bias/ReLU fused, one
-    # launch per layer for all seeds). Same function. On an H100 "pallas" made the bf16 DEAR
-    # update 10% faster (benchmarks/results/update_wideconv_h100.json); it stays opt-in until
-    # its end-to-end gain with evaluation is measured. Off GPUs it runs in Pallas' interpreter.
-    c.agent.conv_stack = "xla"
+    # The conv layers of the encoder and decoders: "xla" (cuDNN, layer by layer), "pallas"
+    # (dear_jax/wideconv.py: each stack as Pallas kernels, bias/ReLU fused, one launch per layer
+    # for all seeds, the first layer reading the uint8 frames through the random shift) or
+    # "auto": "pallas" on GPUs, "xla" elsewhere (Pallas would run in its interpreter). Same
+    # function. On an H100 "pallas" made the bf16 DEAR update of 5 seeds at batch 512 3.39
+    # instead of 4.97 ms per seed, and a DEAR walker run learned as with cuDNN
+    # (benchmarks/RESULTS.md, "The strided layers and the random shift join the Pallas stacks").
+    c.agent.conv_stack = "auto"
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
     c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)
     c.agent.beta = 100.0  # orthogonality loss weight (DEAR)

@@ -106,7 +106,8 @@ class ConvSettings:
     filter_gradient: "cudnn" (XLA's convolution) or "pallas" (`dear_jax.wgrad`, one kernel,
         also for all vmapped seeds at once) where it takes the shape; meant for GPUs: elsewhere
         it runs in Pallas' interpreter.
-    stack: how the conv trunk and the decoders' layers after their first run: "xla" (one
+    stack: how the conv trunk and the decoders' layers after their first run: "auto"
+        (`stack_for`: "pallas" on GPUs, "xla" elsewhere), "xla" (one
         convolution each, as above) or "pallas" (`dear_jax.wideconv`: each as one stack of
         Pallas kernels on one flat layout, one launch per layer for all vmapped seeds, bias,
         ReLU and its gradient fused, the trunk reading the uint8 frames through their crops);
@@ -119,7 +120,19 @@ class ConvSettings:
 
 
 FILTER_GRADIENTS = ("cudnn", "pallas")
-STACKS = ("xla", "pallas")
+STACKS = ("auto", "xla", "pallas")
+
+
+def stack_for(name: str) -> str:
+    """A conv stack setting as the networks run it: "auto" is "pallas" on GPUs and "xla"
+    elsewhere (where Pallas kernels would run in its interpreter)."""
+    if name not in STACKS:
+        raise ValueError(f"unknown conv stack {name!r}; valid: {STACKS}")
+    if name == "auto":
+        return "pallas" if jax.default_backend() == "gpu" else "xla"
+    return name
+
+
 # Read at trace time by every convolution of the networks; set by `conv_settings`.
 _CONV = contextvars.ContextVar("conv_settings", default=ConvSettings())  # noqa: B039 (frozen)
 
@@ -133,8 +146,7 @@ def conv_settings(**changes):
         raise ValueError(
             f"unknown filter_gradient {settings.filter_gradient!r}; valid: {FILTER_GRADIENTS}"
         )
-    if settings.stack not in STACKS:
-        raise ValueError(f"unknown conv stack {settings.stack!r}; valid: {STACKS}")
+    settings = dataclasses.replace(settings, stack=stack_for(settings.stack))
     token = _CONV.set(settings)
     try:
         yield

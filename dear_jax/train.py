@@ -1397,6 +1397,7 @@ def write_summary(
         "aggregate_fps": fps,
         "backend": spec.backend,
         "device": jax.devices()[0].device_kind,
+        "conv_stack": networks.stack_for(config.agent.conv_stack),
         "render": config.env.render.to_dict(),
         "render_quality": config.env.render.quality,
         "eval_device": evaluated_on,
@@ -1413,7 +1414,8 @@ def write_summary(
         f"# {config.agent.method} on {config.env.task}\n\n"
         f"{until}{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, "
         f"{wall:.0f} s of training ({fps:.0f} frames/s in all) on {summary['device']} "
-        f"({spec.backend} physics, evaluations on {summary['eval_device']}); render "
+        f"({spec.backend} physics, {summary['conv_stack']} conv stacks, evaluations on "
+        f"{summary['eval_device']}); render "
         f"settings {summary['render']}\n\n{table}\n"
     )
     write_text_atomic(workdir / "summary.md", text)

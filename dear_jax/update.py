@@ -47,7 +47,7 @@ class AgentConfig:
     compute_dtype: str = "float32"  # "bfloat16": convolutions of encoder and decoders in bf16
     shift_impl: str = "gather"  # how the random shift is computed (augment.SHIFT_IMPLS)
     filter_gradient: str = "cudnn"  # convolutions' filter gradients (networks.FILTER_GRADIENTS)
-    conv_stack: str = "xla"  # how the conv stacks run (networks.STACKS; "pallas" on GPUs)
+    conv_stack: str = "auto"  # how the conv stacks run (networks.STACKS; "auto": Pallas on GPUs)
 
     def __post_init__(self):
         if self.method not in METHODS:

@@ -198,8 +198,19 @@ def test_unknown_stack_is_refused():
     with pytest.raises(ValueError, match="unknown conv stack 'cutlass'"):
         with networks.conv_settings(stack="cutlass"):
             pass
-    with pytest.raises(ValueError, match="unknown conv_stack 'cutlass'.*'xla', 'pallas'"):
+    with pytest.raises(ValueError, match="unknown conv_stack 'cutlass'.*'auto', 'xla', 'pallas'"):
         update.AgentConfig(action_dim=6, conv_stack="cutlass")
+
+
+def test_auto_stack_is_pallas_on_gpus_only(monkeypatch):
+    assert networks.stack_for("xla") == "xla" and networks.stack_for("pallas") == "pallas"
+    assert networks.stack_for("auto") == "xla"  # this machine: no GPU
+    with networks.conv_settings(stack="auto"):
+        assert networks._CONV.get().stack == "xla"
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert networks.stack_for("auto") == "pallas"
+    with networks.conv_settings(stack="auto"):
+        assert networks._CONV.get().stack == "pallas"
 
 
 def test_sweep_grid_and_pick_write_the_fastest_settings(tmp_path):

@@ -83,7 +83,9 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     assert got.shape == want.shape == (2, out, out, channels[-1])
     assert got.dtype == jnp.float32
     scale = float(jnp.abs(want).max())
-    np.testing.assert_allclose(got / scale, want / scale, rtol=1e-5, atol=1e-5)
+    # Compiled on a GPU, float32 dots run in TF32 (as XLA's convolutions do by default there).
+    tol = 1e-5 if wideconv._interpret() else 3e-3
+    np.testing.assert_allclose(got / scale, want / scale, rtol=tol, atol=tol)
 
     def loss(stack):
         return lambda x, ws: jnp.sum(jnp.sin(stack(x, ws) / scale))
@@ -92,7 +94,7 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     got = jax.grad(loss(ours), argnums)(x, layers)
     want = jax.grad(loss(theirs), argnums)(x, layers)
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(a, b, rtol=10 * tol, atol=10 * tol)
     if relu_last:
         # The ReLU gradient is applied: a stack whose pre-activations are all negative passes none.
         dead = tuple((k, b - 1e4) for k, b in layers)

@@ -252,16 +252,18 @@ class ConvTranspose(nn.Module):
     channels: int | None = None  # see Conv
 
     @nn.compact
-    def __call__(self, x: jax.Array, weights_only: bool = False):
-        """The layer of x; with `weights_only`, its (kernel, bias) for an input shaped like x."""
+    def __call__(self, x: jax.Array, weights_only: bool = False, phases: bool = False):
+        """The layer of x; with `weights_only`, its (kernel, bias) for an input shaped like x;
+        with `phases`, the output as its s x s phases, [..., size / s, size / s, (s, s, out)]
+        (`space_to_depth` of the output; for sizes that are multiples of s)."""
         k, s, op = self.kernel, self.stride, self.output_padding
         n = x.shape[-2]
         kernel = self.param("kernel", conv_transpose_init, (k, k, x.shape[-1], self.features))
         bias = self.param("bias", ZEROS, (self.features,))
         if weights_only:
             return kernel, bias
-        taps, size, phases = _subpixel_geometry(n, k, s, op)
-        pad = (taps - 1, phases - n)
+        taps, size, per_phase = _subpixel_geometry(n, k, s, op)
+        pad = (taps - 1, per_phase - n)
         # The barrier keeps XLA from folding the zero padding into the convolution: a padded
         # convolution's weight gradient is not matched to cuDNN's filter-gradient kernels and
         # ran 2-3x slower on an H100 (benchmarks/results/decoder_h100.json; DEAR update at batch
@@ -274,8 +276,16 @@ class ConvTranspose(nn.Module):
             y = jnp.einsum("...c,cf->...f", x.astype(self.dtype), w[0, 0].astype(self.dtype))
         else:
             y = _conv2d(x, w, 1, self.dtype, self.channels or tensor_core_channels(self.dtype))
+        if phases:
+            _check_phases(size, s)
+            return y + jnp.tile(bias, s * s).astype(self.dtype)
         y = _depth_to_space(y, s)[..., :size, :size, :]
         return y + bias.astype(self.dtype)
+
+
+def _check_phases(size: int, s: int) -> None:
+    if size % s:
+        raise ValueError(f"an output of side {size} is not whole {s} x {s} phases")
 
 
 def _subpixel_geometry(n: int, k: int, s: int, op: int) -> tuple[int, int, int]:
@@ -304,6 +314,15 @@ def _subpixel_kernel(kernel: jax.Array, s: int) -> jax.Array:
         for uy in range(taps)
     ]
     return jnp.stack([jnp.stack(row) for row in rows])
+
+
+def space_to_depth(x: jax.Array, s: int) -> jax.Array:
+    """[..., m * s, m * s, c] -> [..., m, m, (s, s, c)], the inverse of `_depth_to_space`:
+    channel (ry, rx, c) of pixel (i, j) is channel c of pixel (s * i + ry, s * j + rx)."""
+    *lead, h, _, c = x.shape
+    x = x.reshape(*lead, h // s, s, h // s, s, c)
+    x = jnp.moveaxis(x, -4, -3)  # [..., m, m, s, s, c]
+    return x.reshape(*lead, h // s, h // s, s * s * c)
 
 
 def _depth_to_space(y: jax.Array, s: int) -> jax.Array:
@@ -345,14 +364,17 @@ def _pallas_trunk(obs: jax.Array, modules, dtype, crops) -> jax.Array | None:
     return y.reshape(*lead, *y.shape[1:])
 
 
-def _pallas_decoder(x: jax.Array, modules, last, dtype) -> jax.Array | None:
+def _pallas_decoder(x: jax.Array, modules, last, dtype, phases: bool) -> jax.Array | None:
     """Stride-1 transposed 3x3 layers with ReLU (pad 2 each), then the last transposed layer
     (strided, no ReLU) as the dense 2x2 convolution of its output phases, as one
-    `wideconv.conv_stack`; None where that does not take the shapes."""
+    `wideconv.conv_stack`, interleaved unless `phases`; None where that does not take the
+    shapes."""
     *lead, n, _, c = x.shape
     *weights, (kernel, bias) = _weights([*modules, last], (n, n, c), dtype)
     n_last = n + 2 * len(modules)
-    taps, size, phases = _subpixel_geometry(n_last, last.kernel, last.stride, last.output_padding)
+    taps, size, per_phase = _subpixel_geometry(
+        n_last, last.kernel, last.stride, last.output_padding
+    )
     features = last.stride**2 * last.features
     channels = wideconv.channels_for(features)
     kernel = _pad_axis(_subpixel_kernel(kernel, last.stride), 3, channels)
@@ -360,10 +382,13 @@ def _pallas_decoder(x: jax.Array, modules, last, dtype) -> jax.Array | None:
     layers = (*weights, (kernel, bias))
     pads = (2,) * len(modules) + (taps - 1,)
     flat = x.reshape(-1, n, n, c)
-    if phases - n_last != taps - 1 or not wideconv.supported(flat, layers, pads):
+    if per_phase - n_last != taps - 1 or not wideconv.supported(flat, layers, pads):
         return None
-    y = wideconv.conv_stack(flat, layers, pads, False, jnp.dtype(dtype))
-    y = _depth_to_space(y[..., :features], last.stride)[:, :size, :size]
+    y = wideconv.conv_stack(flat, layers, pads, False, jnp.dtype(dtype))[..., :features]
+    if phases:
+        _check_phases(size, last.stride)
+    else:
+        y = _depth_to_space(y, last.stride)[:, :size, :size]
     return y.reshape(*lead, *y.shape[1:])
 
 
@@ -505,26 +530,40 @@ class PoolDecoder(nn.Module):
     Linear -> 8x8x16 -> ConvT 4x4/4 (+3) -> 35 -> 37 -> 39 -> 41 -> ConvT 3x3/2 (+1) -> 84.
     The mask decoder (3 channels) returns logits; the sigmoid lives in the loss. The SEAR
     reconstruction decoder (9 channels) returns pixels in the [-0.5, 0.5] scale.
+
+    With `phases`, the output is returned as the last layer computes it, its 2x2 phases
+    [..., 42, 42, 4 * out_channels]: `decoder_phases` of the image. A loss summed over pixels
+    is the same on either; on phases, neither the output nor its gradient is interleaved.
     """
 
     out_channels: int
     dtype: Any = jnp.float32
 
     @nn.compact
-    def __call__(self, z: jax.Array) -> jax.Array:
+    def __call__(self, z: jax.Array, phases: bool = False) -> jax.Array:
         dt = self.dtype
         x = nn.relu(_dense(16 * 8 * 8, dtype=dt)(z))
         x = x.reshape(*x.shape[:-1], 8, 8, 16)
         x = nn.relu(ConvTranspose(16, 4, stride=4, output_padding=3, dtype=dt)(x))
         layers = [ConvTranspose(features, 3, dtype=dt) for features in (32, 32, 32)]
-        last = ConvTranspose(self.out_channels, 3, stride=2, output_padding=1, dtype=dt)
+        last = ConvTranspose(
+            self.out_channels, 3, stride=DECODER_STRIDE, output_padding=1, dtype=dt
+        )
         if _CONV.get().stack == "pallas":
-            y = _pallas_decoder(x, layers, last, dt)
+            y = _pallas_decoder(x, layers, last, dt, phases)
             if y is not None:
                 return y.astype(jnp.float32)
         for layer in layers:
             x = nn.relu(layer(x))
-        return last(x).astype(jnp.float32)
+        return last(x, phases=phases).astype(jnp.float32)
+
+
+DECODER_STRIDE = 2  # PoolDecoder's last layer
+
+
+def decoder_phases(image: jax.Array) -> jax.Array:
+    """An image [..., 84, 84, C] as `PoolDecoder(phases=True)` lays out its output."""
+    return space_to_depth(image, DECODER_STRIDE)
 
 
 class TEDClassifier(nn.Module):

@@ -324,9 +324,11 @@ def learner_loss(
         **losses.latent_cosines(z_agent, z_env),
     }
     total = critic
+    # The decoders' losses are sums over pixels, taken over the decoders' output phases (the
+    # targets laid out alike): the same values, and no interleaving of outputs and gradients.
     if cfg.uses_mask:
-        logits = nets.mask_decoder.apply({"params": learner["mask_decoder"]}, z_agent)
-        l_mask = losses.mask_loss(logits, mask)
+        logits = nets.mask_decoder.apply({"params": learner["mask_decoder"]}, z_agent, phases=True)
+        l_mask = losses.mask_loss(logits, networks.decoder_phases(mask))
         metrics["mask_loss"] = l_mask
         total = total + hp.alpha * l_mask
     if cfg.method == "dear":
@@ -334,8 +336,9 @@ def learner_loss(
         metrics["ortho_loss"] = l_dis
         total = total + hp.beta * l_dis
     if cfg.method == "sear":
-        recon = nets.recon_decoder.apply({"params": learner["recon_decoder"]}, z_env)
-        l_rec = losses.reconstruction_loss(recon, crops.apply(batch.obs))
+        recon = nets.recon_decoder.apply({"params": learner["recon_decoder"]}, z_env, phases=True)
+        target = networks.decoder_phases(crops.apply(batch.obs))
+        l_rec = losses.reconstruction_loss(recon, target)
         metrics["recon_loss"] = l_rec
         total = total + hp.recon_weight * l_rec
     if cfg.method == "ted":

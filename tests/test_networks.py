@@ -70,8 +70,14 @@ def test_decoder_and_actor_values():
     mean = actor.apply(actor.init(jax.random.key(1), z), z)
     assert np.all(np.abs(np.asarray(mean)) < 1.0)
     dec = networks.PoolDecoder(3)
-    out = dec.apply(dec.init(jax.random.key(2), z), z)
+    params = dec.init(jax.random.key(2), z)
+    out = dec.apply(params, z)
     assert out.shape == (2, 84, 84, 3) and np.all(np.isfinite(np.asarray(out)))
+    phases = dec.apply(params, z, phases=True)
+    assert phases.shape == (2, 42, 42, 12)
+    np.testing.assert_array_equal(phases, networks.decoder_phases(out))
+    # pixel (2i + ry, 2j + rx), channel c is channel (ry, rx, c) of pixel (i, j)
+    np.testing.assert_array_equal(phases[1, 5, 7, 2 * 3 + 0 * 3 + 1], out[1, 11, 14, 1])
 
 
 @pytest.mark.parametrize("channels", [1, 8])
@@ -105,6 +111,12 @@ def test_transposed_convolutions_equal_pytorch_sizes_and_lax(stride, output_padd
     out = ours(params, x)
     assert out.shape == (2, size, size, 7)
     np.testing.assert_allclose(out, reference(params, x), rtol=1e-5, atol=1e-4)
+    if size % stride == 0:  # the output as its phases: the same numbers, laid out by phase
+        phases = layer.apply({"params": params}, x, phases=True)
+        np.testing.assert_array_equal(phases, networks.space_to_depth(out, stride))
+    else:
+        with pytest.raises(ValueError, match=f"side {size} is not whole"):
+            layer.apply({"params": params}, x, phases=True)
     probe = jax.random.normal(kg, out.shape)  # a random cotangent
     loss = lambda f: lambda p, x: jnp.sum(probe * f(p, x))  # noqa: E731
     grads, expected = (jax.grad(loss(f), argnums=(0, 1))(params, x) for f in (ours, reference))

@@ -182,14 +182,16 @@ def test_networks_with_pallas_stacks_are_the_same_function(monkeypatch):
     z = jax.random.normal(jax.random.key(2), (1, 32))
     params = enc.init(jax.random.key(0), obs), dec.init(jax.random.key(0), z)
 
-    def loss(p):
+    def loss(p, phases):
         latent = enc.apply(p[0], obs, crops)
-        return jnp.sum(latent**2) + jnp.sum(jnp.tanh(dec.apply(p[1], latent[:, :32])))
+        decoded = dec.apply(p[1], latent[:, :32], phases=phases)
+        return jnp.sum(latent**2) + jnp.sum(jnp.tanh(decoded))
 
-    want = jax.value_and_grad(loss)(params)
+    want = jax.value_and_grad(loss)(params, False)
     with networks.conv_settings(stack="pallas"):
         same = enc.init(jax.random.key(0), obs), dec.init(jax.random.key(0), z)
-        got = jax.value_and_grad(loss)(params)
+        # the decoder's output as its phases (as the update's losses take it): the same sum
+        got = jax.value_and_grad(loss)(params, True)
     for a, b in zip(jax.tree.leaves(same), jax.tree.leaves(params), strict=True):
         np.testing.assert_array_equal(a, b)
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):

@@ -1,4 +1,4 @@
-"""Stacks of convolutions (with ReLU) as Pallas (Triton) kernels on one flat layout.
+"""Stacks of convolutions (with ReLU) as Pallas (Triton) kernels on rows of pixels.
 
 Why: the stride-1 layers of the encoder (41 -> 39 -> 37 -> 35) and of the mask decoder
 (35 -> 37 -> 39 -> 41, transposed) are most of a DEAR update, and on an H100 cuDNN runs them well
@@ -13,16 +13,18 @@ the encoder's stride-2 first layer reads the uint8 frames themselves (through th
 shift's crops, so no shifted copy is made), and the decoder's last layer, a stride-2 transposed
 convolution, is the 2x2 convolution that produces its four output phases.
 
-The layout. Every activation of a stack is one flat array [rows, C]: zero rows (the margin),
-then each image as `size` x `size` pixels in row-major order (`size` is the largest side in the
-stack), a pixel of a smaller activation sitting at the top left with zeros around it, then zero
-rows again. A kernel tap (i, j) of a layer padded by p is then a fixed shift of the rows,
-`offset = (i - p) * size + (j - p)`, so a convolution is one [BLOCK, C] x [C, F] product per tap
-for each block of rows (implicit GEMM without the im2col copy). Its input gradient is the same
-with the shifts negated and the kernel transposed. A pixel outside a layer's valid region is
-zero, so the shifts that leave a region, wrap into the next row or cross into the next image
-read zeros, exactly the VALID convolution of the zero-padded input; the margins keep every load
-inside the array, so none is masked.
+The layout. Every activation of a stack is its pixels as rows, [N * side * side, C] (`_Grid`;
+zero rows pad it to a multiple of the blocks). A convolution is one [BLOCK, C] x [C, F] product
+per kernel tap for each block of output rows (implicit GEMM without the im2col copy): for tap
+(i, j) of a layer padded by p, output pixel (y, x) of image n reads input row
+(n * side_in + y + i - p) * side_in + x + j - p, computed once per row from the output row's
+(n, y, x), the tap adding a constant. A VALID layer's taps never leave its input; the taps that
+can reach a padded layer's padding are masked loads that read zeros there. Its input gradient
+is the convolution of the output gradient padded by k - 1 - p with the kernel flipped and
+transposed. Until the eleventh session on the H100, every activation sat in one layout of the
+stack's largest side, with zeros around smaller ones, so that a tap was a fixed shift of the
+rows; the kernels then also computed those zeros (27% of the rows of a 35 x 35 layer), and the
+bf16 DEAR update took 3.39 instead of 3.11 ms per seed (benchmarks/RESULTS.md).
 
 The settings below are the fastest of staged sweeps on an H100 (`bash
 benchmarks/train_device.sh wcsweep`; benchmarks/RESULTS.md, "The conv stacks' settings swept"):

@@ -109,7 +109,7 @@ class ConvSettings:
     stack: how the conv trunk and the decoders' layers after their first run: "auto"
         (`stack_for`: "pallas" on GPUs, "xla" elsewhere), "xla" (one
         convolution each, as above) or "pallas" (`dear_jax.wideconv`: each as one stack of
-        Pallas kernels on one flat layout, one launch per layer for all vmapped seeds, bias,
+        Pallas kernels on rows of pixels, one launch per layer for all vmapped seeds, bias,
         ReLU and its gradient fused, the trunk reading the uint8 frames through their crops);
         meant for GPUs: elsewhere it runs in Pallas' interpreter.
     """

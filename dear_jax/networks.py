@@ -524,6 +524,14 @@ class Critic(nn.Module):
         return q1, q2
 
 
+DECODER_STRIDE = 2  # PoolDecoder's last layer
+
+
+def decoder_phases(image: jax.Array) -> jax.Array:
+    """An image [..., 84, 84, C] as `PoolDecoder(phases=True)` lays out its output."""
+    return space_to_depth(image, DECODER_STRIDE)
+
+
 class PoolDecoder(nn.Module):
     """Mirror of the pool encoder: [..., in_dim] -> [..., 84, 84, out_channels] (no output activation).
 
@@ -556,14 +564,6 @@ class PoolDecoder(nn.Module):
         for layer in layers:
             x = nn.relu(layer(x))
         return last(x, phases=phases).astype(jnp.float32)
-
-
-DECODER_STRIDE = 2  # PoolDecoder's last layer
-
-
-def decoder_phases(image: jax.Array) -> jax.Array:
-    """An image [..., 84, 84, C] as `PoolDecoder(phases=True)` lays out its output."""
-    return space_to_depth(image, DECODER_STRIDE)
 
 
 class TEDClassifier(nn.Module):

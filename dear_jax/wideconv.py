@@ -110,8 +110,9 @@ def _sizes(size: int, kernels, pads, stride: int = 1) -> list[int]:
 @dataclasses.dataclass(frozen=True)
 class _Grid:
     """An activation as the kernels hold it: [rows, C], pixel (y, x) of image n at row
-    (n * size + y) * size + x, then zero rows up to a multiple of both blocks (so a block of
-    rows lies wholly inside the pixels, wholly in the zero tail, or straddles its start)."""
+    (n * size + y) * size + x, then zero rows up to a multiple of both blocks: a convolution's
+    programs cover the rows exactly, and each step of a filter gradient lies wholly inside
+    them or wholly past them (where its masked loads read zeros)."""
 
     images: int
     size: int

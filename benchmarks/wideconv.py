@@ -144,7 +144,9 @@ def main():
             for pass_name, fn in _programs(impl, pad).items():
                 if pass_name not in args.passes:
                     continue
-                if impl == "pallas" and not wideconv.supported(x.shape[1:], one_seed, pad):
+                if impl == "pallas" and not wideconv.supported(
+                    jax.ShapeDtypeStruct(x.shape[1:], x.dtype), one_seed, pad
+                ):
                     print(f"{name} {variant}: not supported")
                     continue
                 try:

@@ -52,8 +52,8 @@ import jax.numpy as jnp
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
-BLOCK = 128  # rows of one program of a convolution
-NUM_WARPS = 2
+BLOCK = 256  # rows of one program of a convolution
+NUM_WARPS = 4
 WGRAD_BLOCK = 64  # rows per step of a filter gradient
 WGRAD_STEPS = 32  # steps of one program of a filter gradient
 WGRAD_WARPS = 2

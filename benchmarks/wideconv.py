@@ -88,7 +88,9 @@ def pick(results: str, by: str, module=pathlib.Path(wideconv.__file__)) -> dict:
     best = min(total, key=total.get)
     text = module.read_text()
     for name, value in settings[best].items():
-        text, n = re.subn(rf"(?m)^({name}(?:: [^=]+)?) = .*$", rf"\1 = {value!r}", text)
+        # the value replaced, the line's comment kept
+        pattern = rf"(?m)^({name}(?:: [^=]+)?) = [^#\n]*?(\s*#.*)?$"
+        text, n = re.subn(pattern, rf"\1 = {value!r}\2", text)
         if n != 1:
             raise SystemExit(f"{results}: {name} is not a setting of {module}")
     module.write_text(text)

@@ -58,6 +58,9 @@ WGRAD_BLOCK = 64  # rows per step of a filter gradient
 WGRAD_STEPS = 32  # steps of one program of a filter gradient
 WGRAD_WARPS = 2
 STAGES = 3  # Triton's software pipelining of a filter gradient's steps
+# The float32 dots' precision on GPUs: None lets them run in TF32, as XLA's float32 convolutions
+# do there by default; jax.lax.Precision.HIGHEST makes them IEEE float32 (the GPU tests).
+PRECISION: jax.lax.Precision | None = None
 INTERPRET: bool | None = None  # Pallas' interpreter; None: off GPUs
 
 
@@ -275,7 +278,7 @@ def _conv_kernel(*refs, layer, relu, has_bias, has_mask):
     taps = _loader(x_ref, crop_ref, rows, layer, c, w_ref.dtype)
     acc = jnp.zeros((BLOCK, f), jnp.float32)
     for t in range(w_ref.shape[0]):
-        acc += plt.dot(taps(t), w_ref[t])
+        acc += plt.dot(taps(t), w_ref[t], precision=PRECISION)
     if has_bias:
         acc += b_ref[...][None, :]
     if relu:
@@ -328,7 +331,10 @@ def _wgrad_kernel(*refs, layer):
         inside = jnp.broadcast_to((rows < layer.out.rows)[:, None], (WGRAD_BLOCK, f))
         g = plt.load(g_ref.at[pl.ds(start, WGRAD_BLOCK), :], mask=inside, other=0)
         taps = _loader(x_ref, crop_ref, rows, layer, c, g.dtype)
-        out = tuple(acc + plt.dot(taps(t), g, trans_a=True) for t, acc in enumerate(accs))
+        out = tuple(
+            acc + plt.dot(taps(t), g, trans_a=True, precision=PRECISION)
+            for t, acc in enumerate(accs)
+        )
         return out, bacc + jnp.sum(g.astype(jnp.float32), axis=0)
 
     zeros = tuple(jnp.zeros((c, f), jnp.float32) for _ in range(n))

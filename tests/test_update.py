@@ -1,6 +1,5 @@
 """The learner: where gradients flow, acting, and the vmapped update over seeds."""
 
-import dataclasses
 import functools
 
 import jax
@@ -182,20 +181,16 @@ def test_vmapped_seeds_every_method(method):
         np.testing.assert_array_equal(a, b)
     if method == "dear":
         # The other seed axes: one traced update per seed ("loop"), or vmapped with the
-        # convolutions unrolled over seeds ("hybrid"); the same numbers as vmap.
-        # And with the Pallas filter gradients (in its interpreter here) looped: vmapped with
-        # loop_seeds (the hybrid's networks) they are the plain convolutions' function,
-        # tests/test_networks.py::test_networks_with_pallas_filter_gradients_are_the_same_function.
-        pallas = dataclasses.replace(cfg, filter_gradient="pallas")
-        for how, c in (("loop", cfg), ("hybrid", cfg), ("loop", pallas)):
-            other = jax.jit(update.over_seeds(functools.partial(update.update, cfg=c), how))
+        # convolutions unrolled over seeds ("hybrid"); the same numbers as vmap. (The Pallas
+        # filter gradients and conv stacks are the same functions as the convolutions:
+        # tests/test_networks.py and tests/test_wideconv.py.)
+        for how in ("loop", "hybrid"):
+            other = jax.jit(update.over_seeds(functools.partial(update.update, cfg=cfg), how))
             other_state, other_metrics = other(states, batches, keys, hp)
             for a, b in zip(
                 jax.tree.leaves((new, metrics)), jax.tree.leaves((other_state, other_metrics))
             ):
-                np.testing.assert_allclose(
-                    a, b, rtol=1e-4, atol=1e-5, err_msg=f"{how} {c.filter_gradient}"
-                )
+                np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5, err_msg=how)
         np.testing.assert_allclose(
             metrics["loss"],
             metrics["critic_loss"]

@@ -5,6 +5,7 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 from dear_jax import losses
@@ -32,6 +33,30 @@ def test_mask_loss_scales_with_pixels_not_batch():
     logits = jnp.zeros((4, 84, 84, 3))
     mask = jnp.ones((4, 84, 84, 3))
     np.testing.assert_allclose(losses.mask_loss(logits, mask), 84 * 84 * 3 * math.log(2), rtol=1e-5)
+
+
+def test_mask_loss_gradient_is_sigmoid_minus_mask_over_batch():
+    """d L / d logit = (sigmoid(logit) - mask) / B, by hand at logits 0 and +-ln 3, and the
+    values and gradients of optax's form (whose autodiff the loss's own backward replaces) from
+    -50 to 50, where a naive log(sigmoid) would overflow."""
+    logits = jnp.array([[0.0, math.log(3)], [0.0, -math.log(3)]]).reshape(2, 1, 1, 2)
+    mask = jnp.array([[1, 0], [0, 1]], jnp.uint8).reshape(2, 1, 1, 2)
+    got = jax.grad(losses.mask_loss)(logits, mask)
+    want = jnp.array([[0.5 - 1, 0.75], [0.5, 0.25 - 1]]).reshape(2, 1, 1, 2) / 2
+    np.testing.assert_allclose(got, want, rtol=1e-6)
+
+    x = jnp.linspace(-50.0, 50.0, 41)
+    for y in (jnp.zeros_like(x), jnp.ones_like(x), jnp.full_like(x, 0.3)):
+        ours = lambda x, y: jnp.sum(losses.sigmoid_cross_entropy(x, y))  # noqa: E731
+        theirs = lambda x, y: jnp.sum(optax.sigmoid_binary_cross_entropy(x, y))  # noqa: E731
+        np.testing.assert_allclose(
+            losses.sigmoid_cross_entropy(x, y),
+            optax.sigmoid_binary_cross_entropy(x, y),
+            rtol=1e-6,
+            atol=1e-6,
+        )
+        for a, b in zip(jax.grad(ours, (0, 1))(x, y), jax.grad(theirs, (0, 1))(x, y)):
+            np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)
 
 
 def test_orthogonality_loss_forms():

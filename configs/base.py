@@ -108,8 +108,8 @@ def get_config() -> ConfigDict:
     # (dear_jax/wideconv.py: each stack as Pallas kernels, bias/ReLU fused, one launch per layer
     # for all seeds, the first layer reading the uint8 frames through the random shift) or
     # "auto": "pallas" on GPUs, "xla" elsewhere (Pallas would run in its interpreter). Same
-    # function. On an H100 "pallas" made the bf16 DEAR update of 5 seeds at batch 512 3.09
-    # instead of 4.95 ms per seed (benchmarks/RESULTS.md, eleventh session), and DEAR walker
+    # function. On an H100 "pallas" made the bf16 DEAR update of 5 seeds at batch 512 3.03
+    # instead of 5.01 ms per seed (benchmarks/RESULTS.md, twelfth session), and DEAR walker
     # runs with it learned within the spread of those with cuDNN (tenth session).
     c.agent.conv_stack = "auto"
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)

@@ -30,9 +30,10 @@ The settings below are the fastest of staged sweeps on an H100 (`bash
 benchmarks/train_device.sh wcsweep`; benchmarks/RESULTS.md, ninth and twelfth sessions):
 programs of 256 rows with 4 warps, and filter gradients of 32 steps of 64 rows with 2 warps
 and 3 pipeline stages. With them the bf16 DEAR update of 5 seeds at batch 512 took 3.07 ms per
-seed against 4.93 with cuDNN (3.03 with the BCE's own gradient, losses.py). Slower in those sweeps and removed: loads of 4-pixel windows (3 taps and a zero-weighted
-pixel per load), programs of several image rows that share their windows, several blocks per
-program with the weights loaded once (commit 6d204e7), and eviction policies on the loads.
+seed against 4.93 with cuDNN (3.03 with the BCE's own gradient, losses.py). Slower in those
+sweeps and removed: loads of 4-pixel windows (3 taps and a zero-weighted pixel per load),
+programs of several image rows that share their windows, several blocks per program with the
+weights loaded once (commit 6d204e7), and eviction policies on the loads.
 
 `conv_stack(x, layers, pads)` is the function of
 `for (k, b), p in zip(layers, pads): x = relu(VALID conv of x zero-padded by p with k, + b)`,

@@ -40,7 +40,11 @@ def shift(
         return jax.lax.dynamic_slice(padded, (offset[0], offset[1], 0), (h, w, c))
     rows, cols = _source(h, offset[0], pad), _source(w, offset[1], pad)
     if impl == "gather":
-        return jnp.take(jnp.take(image, rows, axis=0), cols, axis=1)
+        # The indices are clipped already: mode "clip" spares the gathers the out-of-bounds
+        # masks of the default mode ("fill"), which XLA otherwise evaluates for every pixel
+        # read, in each fusion the crops are read into (the mask loss and its gradient).
+        take = lambda x, idx, axis: jnp.take(x, idx, axis=axis, mode="clip")  # noqa: E731
+        return take(take(image, rows, 0), cols, 1)
     if impl == "one_hot":
         if image.dtype != jnp.uint8:
             raise ValueError(

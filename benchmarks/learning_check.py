@@ -45,7 +45,7 @@ def compare(run, reference=REFERENCE, alone_fps=None) -> dict:
     ref_median = np.median(ref, 1)
     marks = list(range(100_000, int(frames[-1]) + 1, 100_000))
     rows = []
-    for mark in [*marks, int(frames[-1])]:
+    for mark in sorted({*marks, int(frames[-1])}):
         i = int(np.argmin(np.abs(frames - mark)))
         rows.append(
             dict(
@@ -195,9 +195,18 @@ def main(argv=None):
         print(
             f"frames/s in all: {tp['overall_fps']:.0f} over the run; an evaluation ran during "
             f"{tp['eval_busy']:.0%} of its training time; {tp['rows_alone']} of {tp['rows']} log "
-            f"rows had none. Training alone ({tp['alone_from']}): {tp['alone_fps']:.0f}, so the "
-            f"run took {tp['ratio']:.2f}x the time of its training alone"
+            "rows had none."
         )
+        if math.isnan(tp["alone_fps"]):
+            print(
+                "Training alone: unknown (no log row ran without an evaluation); pass "
+                "--alone-fps, the same loop's rate measured apart, for the run's ratio to it"
+            )
+        else:
+            print(
+                f"Training alone ({tp['alone_from']}): {tp['alone_fps']:.0f}, so the run took "
+                f"{tp['ratio']:.2f}x the time of its training alone"
+            )
     if args.out_png:
         plot(result, args.out_png)
     save_json(result, args.out)

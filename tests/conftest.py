@@ -1,7 +1,24 @@
 """The slowest test files first: xdist's workers (pyproject.toml: --dist loadfile, each file on
 one worker, --no-loadscope-reorder) take the files in this order, so that no long file starts
 last on one worker while the other has nothing left. Measured on a 2-core machine, slowest
-first; the other files follow in their usual order."""
+first; the other files follow in their usual order.
+
+Compiled programs are shared through JAX's persistent compilation cache, in a folder made for
+this test session (before jax is imported, so that xdist's workers and the tests' child
+processes inherit it) and removed at its end: many tests compile the same tiny update, acting
+and evaluation programs, in their own trainings or processes. A JAX_COMPILATION_CACHE_DIR set
+by the caller is used as it is."""
+
+import atexit
+import os
+import shutil
+import tempfile
+
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    _cache = tempfile.mkdtemp(prefix="dear_jax_tests_jax_cache_")
+    atexit.register(shutil.rmtree, _cache, ignore_errors=True)
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
 
 SLOWEST_FIRST = (
     "test_sharding.py",

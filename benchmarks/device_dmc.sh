@@ -1,0 +1,16 @@
+#!/usr/bin/env bash
+# The DMC tasks read their XML models from dm_control's `suite/` folder (envs/dmc.py). The lent
+# GPU machine has no dm_control, and its wheel (56 MB) does not fit beside the other wheels in
+# what a device call may carry (64 MiB). This copies the installed package's suite models (XMLs
+# and common assets, ~0.2 MB) into .dmc/dm_control/ (git-ignored), a package that
+# `importlib.util.find_spec("dm_control")` finds: carry ".dmc" and put $PWD/.dmc on PYTHONPATH.
+set -euo pipefail
+cd "$(git rev-parse --show-toplevel)"
+src=$(python3 -c "import importlib.util as u; print(u.find_spec('dm_control').submodule_search_locations[0])")
+rm -rf .dmc && mkdir -p .dmc/dm_control/suite
+cp "$src"/suite/*.xml .dmc/dm_control/suite/
+cp -r "$src"/suite/common .dmc/dm_control/suite/
+find .dmc \( -name '*.py' -o -name __pycache__ \) -prune -exec rm -rf {} +
+touch .dmc/dm_control/__init__.py
+grep -qx '/.dmc/' .git/info/exclude 2>/dev/null || echo '/.dmc/' >> .git/info/exclude
+du -sh .dmc

@@ -89,3 +89,28 @@ def test_returns_against_the_published_median(run, tmp_path):
     assert r["rows"][0]["published_median"] == pytest.approx(150.0)
     assert r["rows"][1]["median"] == 800.0
     assert r["rows"][1]["published_median"] == pytest.approx(225.0)
+
+
+def test_a_run_ending_on_a_mark_lists_that_frame_once(run, tmp_path):
+    for s in (0, 1):
+        rows = [(0, 20, 9.0), (100_000, 300, 15.0), (200_000, 900, 10.0)]
+        _csv(run / f"seed_{s}" / "eval.csv", ["frame", "episode_return", "eval_s"], rows)
+    ref = tmp_path / "ref.csv"
+    ref.write_text("# published\nframe,seed_1,median\n0,0,0\n200000,400,400\n")
+    r = learning_check.compare(run, ref)
+    assert [row["frame"] for row in r["rows"]] == [100_000, 200_000]
+
+
+def test_a_run_evaluating_beside_every_row_has_no_ratio_unless_told(run, capsys):
+    log = run / "log.txt"
+    # an evaluation over the whole run: every row overlaps it
+    log.write_text(log.read_text() + _line(99, "eval @ 150,000 frames: x") + "\n")
+    for s in (0, 1):
+        rows = [(0, 20, 9.0), (100_000, 300, 15.0), (150_000, 900, 99.0)]
+        _csv(run / f"seed_{s}" / "eval.csv", ["frame", "episode_return", "eval_s"], rows)
+    learning_check.main([str(run)])
+    assert (
+        "Training alone: unknown (no log row ran without an evaluation)" in capsys.readouterr().out
+    )
+    learning_check.main([str(run), "--alone-fps", "30"])
+    assert "Training alone (measured apart): 30, so the run took" in capsys.readouterr().out

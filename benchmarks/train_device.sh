@@ -67,7 +67,10 @@
 #   finish N  wait up to N seconds for the training runs to end by themselves (a run that
 #             reaches total_frames evaluates, saves and writes its summary), then `stop` what
 #             is left and `collect`: the last call of a lease, timed to end before its 30 min
-# Results land in $OUT (or /tmp/out).
+# Results land in $OUT (or /tmp/out). On the lent machine, carry .dmc too (benchmarks/device_dmc.sh:
+# dm_control's suite models) and put $PWD/.dmc on PYTHONPATH. A JAX_COMPILATION_CACHE_DIR exported
+# before `paper` is the runs' cache: filled by a short run in one lease and carried into the next,
+# it spares a learning run its compilations (benchmarks/RESULTS.md, thirteenth session).
 set -u
 out=${OUT:-/tmp/out}
 runs=/tmp/runs

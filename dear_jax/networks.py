@@ -20,7 +20,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from dear_jax import augment, wgrad, wideconv
+from dear_jax import augment, losses, wgrad, wideconv
 
 LINEAR_INIT = nn.initializers.orthogonal(1.0)
 # A conv kernel [kh, kw, in, out] flattened to [kh*kw*in, out] is the transpose of PyTorch's
@@ -364,11 +364,11 @@ def _pallas_trunk(obs: jax.Array, modules, dtype, crops) -> jax.Array | None:
     return y.reshape(*lead, *y.shape[1:])
 
 
-def _pallas_decoder(x: jax.Array, modules, last, dtype, phases: bool) -> jax.Array | None:
+def _pallas_decoder(x: jax.Array, modules, last, dtype, phases: bool, target=None):
     """Stride-1 transposed 3x3 layers with ReLU (pad 2 each), then the last transposed layer
     (strided, no ReLU) as the dense 2x2 convolution of its output phases, as one
-    `wideconv.conv_stack`, interleaved unless `phases`; None where that does not take the
-    shapes."""
+    `wideconv.conv_stack`, interleaved unless `phases`; with `target` (see `PoolDecoder`), the
+    mask loss, from `wideconv.conv_stack_bce`. None where that does not take the shapes."""
     *lead, n, _, c = x.shape
     *weights, (kernel, bias) = _weights([*modules, last], (n, n, c), dtype)
     n_last = n + 2 * len(modules)
@@ -384,7 +384,16 @@ def _pallas_decoder(x: jax.Array, modules, last, dtype, phases: bool) -> jax.Arr
     flat = x.reshape(-1, n, n, c)
     if per_phase - n_last != taps - 1 or not wideconv.supported(flat, layers, pads):
         return None
-    y = wideconv.conv_stack(flat, layers, pads, False, jnp.dtype(dtype))[..., :features]
+    dtype = jnp.dtype(dtype)
+    if target is not None:
+        _check_phases(size, last.stride)
+        mask, crops = _flat_target(target)
+        shift, offsets = (crops.pad, crops.offsets) if crops else (0, None)
+        total = wideconv.conv_stack_bce(
+            flat, layers, mask, pads, dtype, last.stride, shift, offsets
+        )
+        return total / flat.shape[0]
+    y = wideconv.conv_stack(flat, layers, pads, False, dtype)[..., :features]
     if phases:
         _check_phases(size, last.stride)
     else:
@@ -542,13 +551,19 @@ class PoolDecoder(nn.Module):
     With `phases`, the output is returned as the last layer computes it, its 2x2 phases
     [..., 42, 42, 4 * out_channels]: `decoder_phases` of the image. A loss summed over pixels
     is the same on either; on phases, neither the output nor its gradient is interleaved.
+
+    With `target` = (mask, crops): {0, 1} masks [..., 84, 84, out_channels] and the random
+    shift's `augment.Crops` (or None: the masks as they are), the mask decoder's loss instead,
+    `losses.mask_loss` of the logits against the cropped masks, averaged over all the leading
+    axes. With Pallas stacks, the last layer's kernel computes it and its gradient as it
+    computes the logits (`wideconv.conv_stack_bce`), and no other pass reads the logits.
     """
 
     out_channels: int
     dtype: Any = jnp.float32
 
     @nn.compact
-    def __call__(self, z: jax.Array, phases: bool = False) -> jax.Array:
+    def __call__(self, z: jax.Array, phases: bool = False, target=None) -> jax.Array:
         dt = self.dtype
         x = nn.relu(_dense(16 * 8 * 8, dtype=dt)(z))
         x = x.reshape(*x.shape[:-1], 8, 8, 16)
@@ -558,12 +573,25 @@ class PoolDecoder(nn.Module):
             self.out_channels, 3, stride=DECODER_STRIDE, output_padding=1, dtype=dt
         )
         if _CONV.get().stack == "pallas":
-            y = _pallas_decoder(x, layers, last, dt, phases)
+            y = _pallas_decoder(x, layers, last, dt, phases, target)
             if y is not None:
                 return y.astype(jnp.float32)
         for layer in layers:
             x = nn.relu(layer(x))
-        return last(x, phases=phases).astype(jnp.float32)
+        if target is None:
+            return last(x, phases=phases).astype(jnp.float32)
+        logits = last(x, phases=True).astype(jnp.float32)
+        mask, crops = _flat_target(target)
+        mask = decoder_phases(crops.apply(mask) if crops else mask)
+        return losses.mask_loss(logits.reshape(-1, *logits.shape[-3:]), mask)
+
+
+def _flat_target(target):
+    """A decoder's (masks, crops or None) with their leading axes as one."""
+    mask, crops = target
+    if crops is not None:
+        crops = crops._replace(offsets=crops.offsets.reshape(-1, 2))
+    return mask.reshape(-1, *mask.shape[-3:]), crops
 
 
 class TEDClassifier(nn.Module):

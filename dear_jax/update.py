@@ -300,7 +300,6 @@ def learner_loss(
         augment.Crops.sample(k, batch.obs.shape[0], cfg.augment_pad, cfg.shift_impl)
         for k in (k_obs, k_next, k_far)
     )
-    mask = crops.apply(batch.mask) if cfg.uses_mask else None
 
     z = encode(batch.obs, crops)
     z_next = encode(batch.next_obs, next_crops)
@@ -327,8 +326,10 @@ def learner_loss(
     # The decoders' losses are sums over pixels, taken over the decoders' output phases (the
     # targets laid out alike): the same values, and no interleaving of outputs and gradients.
     if cfg.uses_mask:
-        logits = nets.mask_decoder.apply({"params": learner["mask_decoder"]}, z_agent, phases=True)
-        l_mask = losses.mask_loss(logits, networks.decoder_phases(mask))
+        # The decoder takes the loss's target: with Pallas stacks, its last kernel computes the
+        # loss and its gradient with the logits (which are never written).
+        params = {"params": learner["mask_decoder"]}
+        l_mask = nets.mask_decoder.apply(params, z_agent, target=(batch.mask, crops))
         metrics["mask_loss"] = l_mask
         total = total + hp.alpha * l_mask
     if cfg.method == "dear":

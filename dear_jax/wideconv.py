@@ -259,6 +259,44 @@ class _Pixels:
         return load
 
 
+@dataclasses.dataclass(frozen=True)
+class _Labels:
+    """The binary targets of a last layer that computes `phase` x `phase` output pixels per row
+    (its output phases): lane (ry * phase + rx) * channels + c of the row of output (n, i, j)
+    is channel c of pixel (phase * i + ry, phase * j + rx) of image n of the labels ([N, side,
+    side, channels], integers). They may be read through a random shift (as `_Pixels`)."""
+
+    side: int
+    channels: int
+    phase: int
+    out: _Grid  # the last layer's output
+    shift: int = 0
+
+    @property
+    def lanes(self) -> int:
+        return self.phase**2 * self.channels
+
+    def load(self, y_ref, crop_ref, rows, f: int):
+        """([len(rows), f] float32 labels of the output at `rows`, where they are defined: the
+        pixels' rows and the first `lanes` lanes)."""
+        keep, image, i, j = self.out.position(rows)
+        image = jnp.where(keep, image, 0)
+        lanes = jnp.arange(f, dtype=jnp.int32)
+        ok = keep[:, None] & (lanes < self.lanes)[None, :]
+        pixel, channel = jax.lax.div(lanes, self.channels), jax.lax.rem(lanes, self.channels)
+        row = self.phase * i[:, None] + jax.lax.div(pixel, self.phase)[None, :]
+        col = self.phase * j[:, None] + jax.lax.rem(pixel, self.phase)[None, :]
+        if self.shift:
+            last = self.side - 1
+            dy = plt.load(crop_ref.at[2 * image], mask=keep, other=0)
+            dx = plt.load(crop_ref.at[2 * image + 1], mask=keep, other=0)
+            row = jnp.clip(row + dy[:, None] - self.shift, 0, last)
+            col = jnp.clip(col + dx[:, None] - self.shift, 0, last)
+        idx = ((image[:, None] * self.side + row) * self.side + col) * self.channels
+        idx = jnp.where(ok, idx + channel[None, :], 0)
+        return plt.load(y_ref.at[idx], mask=ok, other=0).astype(jnp.float32), ok
+
+
 def _loader(x_ref, crop_ref, rows, layer, c: int, dtype):
     """tap t -> the input of `layer` (a `_Pass` or `_Pixels`) for the output pixels at `rows`,
     [len(rows), c] in `dtype`."""
@@ -267,8 +305,10 @@ def _loader(x_ref, crop_ref, rows, layer, c: int, dtype):
     return layer.loader(x_ref, rows, c, dtype)
 
 
-def _conv_kernel(*refs, layer, relu, has_bias, has_mask):
-    x_ref, *refs, o_ref = refs
+def _conv_kernel(*refs, layer, relu, has_bias, has_mask, labels):
+    x_ref, *refs = refs
+    loss_ref = refs.pop() if labels is not None else None
+    o_ref = refs.pop()
     crop_ref = refs.pop(0) if isinstance(layer, _Pixels) and layer.shift else None
     w_ref = refs.pop(0)
     b_ref = refs.pop(0) if has_bias else None
@@ -287,20 +327,44 @@ def _conv_kernel(*refs, layer, relu, has_bias, has_mask):
     keep = (rows < layer.out.pixels)[:, None]
     if has_mask:
         keep &= m_ref[pl.ds(start, BLOCK), :] > 0
+    if labels is not None:
+        y_ref = refs.pop(0)
+        label_crop_ref = refs.pop(0) if labels.shift else None
+        acc, keep, loss = _bce(acc, *labels.load(y_ref, label_crop_ref, rows, f))
+        loss_ref[pl.program_id(0)] = loss
     o_ref[pl.ds(start, BLOCK), :] = jnp.where(keep, acc, 0.0).astype(o_ref.dtype)
 
 
-def _conv(x, w, layer, *, bias=None, relu=False, mask=None):
+def _bce(logits, y, defined):
+    """(the BCE's gradient for the logits, sigmoid(logits) - y; where it is defined; each
+    lane's sum of BCE(sigmoid(logits), y) = softplus(logits) - logits * y over the defined
+    rows), float32, with exp(-|logits|) the only exponential (no overflow)."""
+    e = jnp.exp(-jnp.abs(logits))
+    sigmoid = jnp.where(logits >= 0, 1.0, e) / (1.0 + e)
+    bce = jnp.maximum(logits, 0.0) + jnp.log1p(e) - logits * y
+    return sigmoid - y, defined, jnp.sum(jnp.where(defined, bce, 0.0), axis=0)
+
+
+def _conv(x, w, layer, *, bias=None, relu=False, mask=None, labels=None):
     """The rows of layer.out: out[q] = sum_t (tap t of x for q) @ w[t] (+ bias, ReLU) in w's
     dtype, zero where `mask` (of the same rows) is not positive (if given) and past the
     pixels. x may be of another dtype (uint8 pixels): each tap is converted to w's. For a
-    `_Pixels` layer x is its input as it is (with a shift, x is (pixels, crop offsets))."""
+    `_Pixels` layer x is its input as it is (with a shift, x is (pixels, crop offsets)).
+
+    With `labels` = (a `_Labels`, its arguments: the labels, and with a shift their crop
+    offsets), the output is instead the BCE's gradient for those logits (sigmoid - labels, zero
+    where no label is defined), returned with each program's per-lane sums of the BCE."""
     args = [*_pixel_args(x, layer), w]
     if bias is not None:
         args.append(bias.astype(jnp.float32))
     if mask is not None:
         args.append(mask)
-    rows = layer.out.rows
+    target, label_args = labels if labels is not None else (None, ())
+    args.extend(label_args)
+    rows, f = layer.out.rows, w.shape[-1]
+    out_shape = jax.ShapeDtypeStruct((rows, f), w.dtype)
+    if target is not None:
+        out_shape = (out_shape, jax.ShapeDtypeStruct((rows // BLOCK, f), jnp.float32))
     return pl.pallas_call(
         functools.partial(
             _conv_kernel,
@@ -308,8 +372,9 @@ def _conv(x, w, layer, *, bias=None, relu=False, mask=None):
             relu=relu,
             has_bias=bias is not None,
             has_mask=mask is not None,
+            labels=target,
         ),
-        out_shape=jax.ShapeDtypeStruct((rows, w.shape[-1]), w.dtype),
+        out_shape=out_shape,
         grid=(rows // BLOCK,),
         interpret=_interpret(),
         # Triton's parameters also pick Pallas' Triton backend (not Mosaic GPU).
@@ -414,7 +479,10 @@ def conv_stack(
     return _forward(x, layers, pads, relu_last, dtype, stride, shift, crops)[0]
 
 
-def _forward(x, layers, pads, relu_last, dtype, stride, shift, crops):
+def _forward(x, layers, pads, relu_last, dtype, stride, shift, crops, labels=None):
+    """(the stack's output, the activations: its input as the kernels read it, then each
+    layer's output). With `labels` (see `_conv`), the last layer's output is instead the BCE's
+    gradient and each program's sums, and the activations end at that layer's input."""
     dtype = dtype or x.dtype
     pads = _pads(pads, len(layers))
     sizes, passes = _plan(x.shape, layers, pads, stride, shift)
@@ -424,38 +492,104 @@ def _forward(x, layers, pads, relu_last, dtype, stride, shift, crops):
         acts = [_Grid(x.shape[0], sizes[0]).flatten(x)]
     for i, ((k, b), layer) in enumerate(zip(layers, passes)):
         w = _taps_of(k, layer).astype(dtype)
-        relu = relu_last or i < len(layers) - 1
-        acts.append(_conv(acts[-1], w, layer, bias=b, relu=relu))
+        last = i == len(layers) - 1
+        if last and labels is not None:
+            return _conv(acts[-1], w, layer, bias=b, labels=labels), acts
+        acts.append(_conv(acts[-1], w, layer, bias=b, relu=relu_last or not last))
     return passes[-1].out.unflatten(acts[-1]), acts
+
+
+def _like(x) -> jax.Array:
+    """An empty array that keeps x's shape (all but its last axis of size 0) and dtype: what the
+    backward pass's plan and its input gradient need of x."""
+    return jnp.zeros((*x.shape, 0), x.dtype)
 
 
 def _conv_stack_fwd(x, layers, pads, relu_last, dtype, stride, shift, crops):
     y, acts = _forward(x, layers, pads, relu_last, dtype, stride, shift, crops)
-    # An empty array of x's image shape and dtype: the backward pass's plan and dx need them.
-    return y, (acts, layers, jnp.zeros((0, *x.shape[1:]), x.dtype))
+    return y, (acts, layers, _like(x))
 
 
 def _conv_stack_bwd(pads, relu_last, dtype, stride, shift, residuals, g):
     acts, layers, x_like = residuals
     pads = _pads(pads, len(layers))
-    _, passes = _plan((g.shape[0], *x_like.shape[1:]), layers, pads, stride, shift)
+    _, passes = _plan(x_like.shape[:-1], layers, pads, stride, shift)
     # The gradient at the last layer's output (its pre-activations, after a ReLU).
     g = passes[-1].out.flatten(g.astype(acts[-1].dtype))
     if relu_last:
         g = jnp.where(acts[-1] > 0, g, 0)
+    dx, grads = _backward(acts, layers, passes, g, x_like)
+    return dx, grads, None
+
+
+def _backward(acts, layers, passes, g, x_like, scale=None):
+    """(the input's gradient, None for integers; each layer's (kernel, bias) gradients) from g,
+    the gradient at the last layer's pre-activations as rows, times `scale` if given (a scalar:
+    applied to the last layer's filter gradients and folded into the weights of its input
+    gradient, whose result carries it down the stack)."""
     grads = []
     for i in reversed(range(len(layers))):
         (k, b), layer = layers[i], passes[i]
         dk, db = _wgrad(acts[i], g, layer)
+        w = _taps_of(k, layer, flip=True)
+        if scale is not None and i == len(layers) - 1:
+            dk, db, w = dk * scale, db * scale, w * scale
         dk = dk[:, : k.shape[1] * k.shape[2]] if isinstance(layer, _Pixels) else dk
         grads.append((dk.reshape(k.shape).astype(k.dtype), db.astype(b.dtype)))
         if i == 0 and not jnp.issubdtype(x_like.dtype, jnp.floating):
-            return None, tuple(reversed(grads)), None
+            return None, tuple(reversed(grads))
         # Input gradient, with the ReLU gradient of the layer below (the stack's input has none).
-        w = _taps_of(k, layer, flip=True).astype(g.dtype)
-        g = _conv(g, w, layer.input_gradient, mask=acts[i] if i else None)
+        g = _conv(g, w.astype(g.dtype), layer.input_gradient, mask=acts[i] if i else None)
     dx = passes[0].input_gradient.out.unflatten(g).astype(x_like.dtype)
-    return dx, tuple(reversed(grads)), None
+    return dx, tuple(reversed(grads))
 
 
 conv_stack.defvjp(_conv_stack_fwd, _conv_stack_bwd)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4, 5, 6))
+def conv_stack_bce(x, layers, labels, pads, dtype=None, phase=1, shift=0, crops=None):
+    """The binary cross-entropy of a stack's output as logits (`conv_stack` with no ReLU after
+    the last layer) against `labels`, summed over every image, pixel and channel: a scalar.
+
+    The last layer's kernel computes the loss and its gradient as it computes the logits, which
+    are never written: its output rows are the gradient, and no pass of XLA reads or writes
+    the logits. The BCE is that of `losses.sigmoid_cross_entropy`, on float32 logits.
+
+    labels: integers (e.g. uint8 {0, 1} masks) [N, S, S, C] with S = phase * H', where H' is
+    the last layer's output side; the output's first phase**2 * C channels are their pixels
+    as `networks.space_to_depth(labels, phase)` lays them out (the rest get no loss). They may
+    be read through a random shift: `augment.shift` with pad `shift` > 0 at each image's
+    offsets in `crops` [N, 2]. x, layers, pads, dtype: as `conv_stack` (stride 1).
+    """
+    return _bce_forward(x, layers, labels, pads, dtype, phase, shift, crops)[0]
+
+
+def _bce_forward(x, layers, labels, pads, dtype, phase, shift, crops):
+    pads = _pads(pads, len(layers))
+    _, passes = _plan(x.shape, layers, pads, 1)
+    out, f = passes[-1].out, layers[-1][0].shape[-1]
+    n, side, _, channels = labels.shape
+    if (n, side) != (out.images, phase * out.size) or phase**2 * channels > f:
+        raise ValueError(
+            f"labels {labels.shape} do not match the stack's output: {out.images} images of "
+            f"{out.size} x {out.size} x {f}, {phase} x {phase} phases per pixel"
+        )
+    if labels.dtype == jnp.bool_:
+        labels = labels.astype(jnp.uint8)
+    target = _Labels(side, channels, phase, out, shift)
+    args = [labels.reshape(-1)]
+    if shift:
+        args.append(crops.reshape(-1).astype(jnp.int32))
+    (grad, sums), acts = _forward(x, layers, pads, False, dtype, 1, 0, None, (target, args))
+    return jnp.sum(sums), (acts, grad, layers, _like(x))
+
+
+def _conv_stack_bce_bwd(pads, dtype, phase, shift, residuals, g):
+    acts, grad, layers, x_like = residuals
+    _, passes = _plan(x_like.shape[:-1], layers, _pads(pads, len(layers)), 1)
+    dx, grads = _backward(acts, layers, passes, grad, x_like, scale=g)
+    return dx, grads, None, None
+
+
+conv_stack_bce.defvjp(_bce_forward, _conv_stack_bce_bwd)

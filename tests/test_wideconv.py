@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dear_jax import augment, networks, update, wideconv
+from dear_jax import augment, losses, networks, update, wideconv
 
 
 def _lax_stack(x, layers, pads, relu_last=True, stride=1):
@@ -105,6 +105,45 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
         assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads))
 
 
+@pytest.mark.parametrize("phase, shift", [(2, 4), (1, 0)])
+def test_conv_stack_bce_is_the_loss_of_the_stacks_logits(monkeypatch, phase, shift):
+    """The fused loss is the summed BCE of conv_stack's logits against the labels laid out as
+    the last layer's phases (read through a random shift, its extreme offsets included), in
+    value and in every gradient; the output's lanes past the labels' get no loss."""
+    monkeypatch.setattr(wideconv, "BLOCK", 16)
+    monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
+    x = jax.random.normal(jax.random.key(0), (2, 5, 5, 16))
+    layers = _layers(jax.random.key(1), (3, 3, 2), (16, 32, 16, 16))
+    pads = (2, 2, 1)  # sides 5 -> 7 -> 9 -> 10
+    side = 10 * phase
+    labels = jax.random.bernoulli(jax.random.key(2), 0.3, (2, side, side, 3)).astype(jnp.uint8)
+    crops = jnp.array([[0, 2 * shift], [shift + 1, 1]]) if shift else None
+    lanes = phase**2 * 3
+
+    def ours(x, ws):
+        return wideconv.conv_stack_bce(x, ws, labels, pads, None, phase, shift, crops)
+
+    def theirs(x, ws):
+        logits = wideconv.conv_stack(x, ws, pads, False)[..., :lanes]
+        y = augment.Crops(crops, shift, "gather").apply(labels) if shift else labels
+        y = networks.space_to_depth(y, phase).astype(jnp.float32)
+        return jnp.sum(losses.sigmoid_cross_entropy(logits, y))
+
+    np.testing.assert_allclose(ours(x, layers), theirs(x, layers), rtol=1e-5)
+    got = jax.grad(ours, (0, 1))(x, layers)
+    want = jax.grad(theirs, (0, 1))(x, layers)
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+        scale = float(jnp.abs(b).max())
+        np.testing.assert_allclose(a / scale, b / scale, atol=1e-5)
+    # the cotangent scales every gradient (it is folded into the last layer's)
+    double = jax.grad(lambda x, ws: 2 * ours(x, ws), (0, 1))(x, layers)
+    for a, b in zip(jax.tree.leaves(double), jax.tree.leaves(got), strict=True):
+        np.testing.assert_allclose(a, 2 * b, rtol=1e-6, atol=1e-6)
+    small = labels[:, 1:, 1:]
+    with pytest.raises(ValueError, match=rf"labels \(2, {side - 1}, .* match.*10 x 10 x 16"):
+        wideconv.conv_stack_bce(x, layers, small, pads, None, phase, shift, crops)
+
+
 def test_conv_stack_under_vmap_is_each_seed_on_its_own():
     """Vmapped over seeds (each with its own weights), bf16 activations: every seed's values and
     gradients equal the same stack run for that seed alone."""
@@ -171,6 +210,18 @@ def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypat
         fn = jax.vmap(jax.value_and_grad(loss, argnums))
         text = jax.jit(fn).trace(x, layers).lower(lowering_platforms=("cuda",)).as_text()
         assert text.count("xla.gpu.triton") == kernel_count
+    # the decoder's stack fused with the mask loss: the same kernels, and no XLA pass of the
+    # logits (a loss of the labels' size would add a reduction over them)
+    labels = jax.ShapeDtypeStruct((2, 8, 84, 84, 3), jnp.uint8)
+    crops = jax.ShapeDtypeStruct((2, 8, 2), jnp.int32)
+
+    def bce(x, ws, labels, crops):
+        return wideconv.conv_stack_bce(x, ws, labels, pads, jnp.bfloat16, 2, 4, crops)
+
+    fn = jax.jit(jax.vmap(jax.value_and_grad(bce, (0, 1))))
+    text = fn.trace(x, layers, labels, crops).lower(lowering_platforms=("cuda",)).as_text()
+    assert text.count("xla.gpu.triton") == 12
+    assert "84x84x3xf32" not in text and "42x42x12" not in text
 
 
 def test_networks_with_pallas_stacks_are_the_same_function(monkeypatch):
@@ -199,6 +250,30 @@ def test_networks_with_pallas_stacks_are_the_same_function(monkeypatch):
         np.testing.assert_array_equal(a, b)
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
+
+
+def test_decoder_with_a_target_is_the_mask_loss_on_either_stack(monkeypatch):
+    """PoolDecoder(target=(mask, crops)) is losses.mask_loss of its logits against the cropped
+    masks; with Pallas stacks (the loss fused into the last kernel) the same value and
+    gradients, for the parameters and the latent."""
+    monkeypatch.setattr(wideconv, "BLOCK", 1024)
+    dec = networks.PoolDecoder(3)
+    z = jax.random.normal(jax.random.key(2), (2, 32))
+    params = dec.init(jax.random.key(0), z)
+    mask = jax.random.bernoulli(jax.random.key(3), 0.2, (2, 84, 84, 3)).astype(jnp.uint8)
+    crops = augment.Crops(jnp.array([[1, 7], [8, 0]]), 4, "gather")
+
+    def loss(p, z):
+        return dec.apply(p, z, target=(mask, crops))
+
+    definition = losses.mask_loss(dec.apply(params, z), crops.apply(mask))
+    want = jax.value_and_grad(loss, (0, 1))(params, z)
+    np.testing.assert_allclose(want[0], definition, rtol=1e-5)
+    with networks.conv_settings(stack="pallas"):
+        got = jax.value_and_grad(loss, (0, 1))(params, z)
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+        scale = float(jnp.abs(b).max())
+        np.testing.assert_allclose(a / scale, b / scale, atol=1e-5)
 
 
 def test_unknown_stack_is_refused():

@@ -44,7 +44,9 @@ class AgentConfig:
     obs_shape: tuple[int, int, int] = (84, 84, 9)
     frame_stack: int = 3
     augment_pad: int = 4
-    compute_dtype: str = "float32"  # "bfloat16": convolutions of encoder and decoders in bf16
+    # "bfloat16": encoder and decoders compute in bf16; the actor's and critic's products read
+    # bf16 operands (float32 results). Parameters, optimiser and losses stay float32.
+    compute_dtype: str = "float32"
     shift_impl: str = "gather"  # how the random shift is computed (augment.SHIFT_IMPLS)
     filter_gradient: str = "cudnn"  # convolutions' filter gradients (networks.FILTER_GRADIENTS)
     conv_stack: str = "auto"  # how the conv stacks run (networks.STACKS; "auto": Pallas on GPUs)
@@ -125,8 +127,8 @@ def make_networks(cfg: AgentConfig) -> Networks:
     dtype = jnp.dtype(cfg.compute_dtype)
     return Networks(
         encoder=networks.encoder_module(cfg.encoder, cfg.latent_dim, dtype),
-        actor=networks.Actor(cfg.action_dim, cfg.feature_dim, cfg.hidden_dim),
-        critic=networks.Critic(cfg.feature_dim, cfg.hidden_dim),
+        actor=networks.Actor(cfg.action_dim, cfg.feature_dim, cfg.hidden_dim, dtype),
+        critic=networks.Critic(cfg.feature_dim, cfg.hidden_dim, dtype),
         mask_decoder=networks.PoolDecoder(cfg.frame_stack, dtype) if cfg.uses_mask else None,
         recon_decoder=(
             networks.PoolDecoder(cfg.obs_shape[-1], dtype) if cfg.method == "sear" else None

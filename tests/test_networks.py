@@ -80,6 +80,36 @@ def test_decoder_and_actor_values():
     np.testing.assert_array_equal(phases[1, 5, 7, 2 * 3 + 0 * 3 + 1], out[1, 11, 14, 1])
 
 
+def test_bf16_products_keep_the_parameters_and_float32_values():
+    """Actor and critic with bf16 products (the bf16 path's): the same parameters, float32
+    outputs near the float32 networks', every product reading bf16 operands into float32."""
+    z = jax.random.normal(jax.random.key(0), (4, 64))
+    a = jax.random.uniform(jax.random.key(1), (4, 6), minval=-1, maxval=1)
+    for make, args in (
+        (lambda **kw: networks.Actor(6, hidden_dim=32, **kw), (z,)),
+        (lambda **kw: networks.Critic(hidden_dim=32, **kw), (z, a)),
+    ):
+        full, mixed = make(), make(products=jnp.bfloat16)
+        params = full.init(jax.random.key(2), *args)
+        same = mixed.init(jax.random.key(2), *args)
+        for x, y in zip(jax.tree.leaves(params), jax.tree.leaves(same), strict=True):
+            np.testing.assert_array_equal(x, y)
+        want, got = full.apply(params, *args), mixed.apply(params, *args)
+        for x, y in zip(jax.tree.leaves(want), jax.tree.leaves(got), strict=True):
+            assert y.dtype == jnp.float32
+            np.testing.assert_allclose(y, x, rtol=3e-2, atol=3e-3)
+            assert not np.array_equal(y, x)  # rounded operands: not the float32 function
+        dots = [
+            e
+            for e in jax.make_jaxpr(mixed.apply)(params, *args).jaxpr.eqns
+            if e.primitive.name == "dot_general"
+        ]
+        assert len(dots) == (4 if len(args) == 1 else 7)  # trunk, then 3 layers (per head)
+        for e in dots:
+            assert [v.aval.dtype for v in e.invars] == [jnp.bfloat16] * 2
+            assert e.outvars[0].aval.dtype == jnp.float32
+
+
 @pytest.mark.parametrize("channels", [1, 8])
 @pytest.mark.parametrize("stride, output_padding", [(1, 0), (2, 1), (4, 3)])
 def test_transposed_convolutions_equal_pytorch_sizes_and_lax(stride, output_padding, channels):

@@ -41,12 +41,11 @@ def conv_transpose_init(key, shape, dtype=jnp.float32):
     return w.reshape(cin, cout, kh, kw).transpose(2, 3, 0, 1)
 
 
-def _dense(
-    features: int, name: str | None = None, dtype=jnp.float32, products=jnp.float32
-) -> nn.Dense:
-    """A Linear layer computing in `dtype`; with `products` of another dtype (bf16), a float32
-    layer whose matrix product reads its operands in that dtype (`mixed_dot_general`)."""
-    dot = None if jnp.dtype(products) == jnp.dtype(dtype) else mixed_dot_general(products)
+def _dense(features: int, name: str | None = None, dtype=jnp.float32, products=None) -> nn.Dense:
+    """A Linear layer computing in `dtype`; with `products` of another dtype (bf16), a layer
+    whose matrix product reads its operands in that dtype (`mixed_dot_general`)."""
+    mixed = products is not None and jnp.dtype(products) != jnp.dtype(dtype)
+    dot = mixed_dot_general(products) if mixed else None
     return nn.Dense(
         features, kernel_init=LINEAR_INIT, bias_init=ZEROS, name=name, dtype=dtype, dot_general=dot
     )
@@ -55,8 +54,8 @@ def _dense(
 def mixed_dot_general(dtype):
     """lax.dot_general on operands rounded to `dtype`, accumulated and returned in float32: the
     actor's and the critic's products in the bf16 path. Their activations, LayerNorm, biases
-    and outputs stay float32; on an H100 this took the 5-seed DEAR update from 3.00 to 2.94 ms
-    per seed and DrQ-v2's (plain encoder, 39200-wide trunk) from 2.14 to 1.96
+    and outputs stay float32. On an H100 this took the 5-seed DEAR update from 2.96 to 2.91 ms
+    per seed and DrQ-v2's (plain encoder, 39200-wide trunk) from 2.14 to 1.93
     (benchmarks/RESULTS.md, fourteenth session). On GPUs float32 products already run in TF32
     (10 mantissa bits; bf16 has 7)."""
 

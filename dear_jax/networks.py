@@ -53,11 +53,12 @@ def _dense(features: int, name: str | None = None, dtype=jnp.float32, products=N
 
 def mixed_dot_general(dtype):
     """lax.dot_general on operands rounded to `dtype`, accumulated and returned in float32: the
-    actor's and the critic's products in the bf16 path. Their activations, LayerNorm, biases
-    and outputs stay float32. On an H100 this took the 5-seed DEAR update from 2.96 to 2.91 ms
-    per seed and DrQ-v2's (plain encoder, 39200-wide trunk) from 2.14 to 1.93
-    (benchmarks/RESULTS.md, fourteenth session). On GPUs float32 products already run in TF32
-    (10 mantissa bits; bf16 has 7)."""
+    actor's and the critic's forward products in the bf16 path. Their activations, LayerNorm,
+    biases and outputs stay float32, and so do their gradients' products (float32 cotangents,
+    which GPUs compute in TF32, as every float32 product: 10 mantissa bits; bf16 has 7). On an
+    H100 this took the 5-seed DEAR update from 2.96 to 2.91 ms per seed, on one machine; DrQ-v2's
+    (plain encoder, 39200-wide trunk) measured 1.93 against 2.14 in other leases
+    (benchmarks/RESULTS.md, fourteenth session)."""
 
     def dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None):
         del precision, preferred_element_type  # float32 accumulation and result
@@ -411,8 +412,9 @@ def _pallas_decoder(x: jax.Array, modules, last, dtype, phases: bool, target=Non
     if per_phase - n_last != taps - 1 or not wideconv.supported(flat, layers, pads):
         return None
     dtype = jnp.dtype(dtype)
-    if target is not None:
+    if phases or target is not None:
         _check_phases(size, last.stride)
+    if target is not None:
         mask, crops = _flat_target(target)
         shift, offsets = (crops.pad, crops.offsets) if crops else (0, None)
         total = wideconv.conv_stack_bce(
@@ -420,9 +422,7 @@ def _pallas_decoder(x: jax.Array, modules, last, dtype, phases: bool, target=Non
         )
         return total / flat.shape[0]
     y = wideconv.conv_stack(flat, layers, pads, False, dtype)[..., :features]
-    if phases:
-        _check_phases(size, last.stride)
-    else:
+    if not phases:
         y = _depth_to_space(y, last.stride)[:, :size, :size]
     return y.reshape(*lead, *y.shape[1:])
 
@@ -569,6 +569,7 @@ class Critic(nn.Module):
 
 
 DECODER_STRIDE = 2  # PoolDecoder's last layer
+DECODER_SIDE = 84  # PoolDecoder's output side
 
 
 def decoder_phases(image: jax.Array) -> jax.Array:
@@ -587,11 +588,14 @@ class PoolDecoder(nn.Module):
     [..., 42, 42, 4 * out_channels]: `decoder_phases` of the image. A loss summed over pixels
     is the same on either; on phases, neither the output nor its gradient is interleaved.
 
-    With `target` = (mask, crops): {0, 1} masks [..., 84, 84, out_channels] and the random
-    shift's `augment.Crops` (or None: the masks as they are), the mask decoder's loss instead,
-    `losses.mask_loss` of the logits against the cropped masks, averaged over all the leading
-    axes. With Pallas stacks, the last layer's kernel computes it and its gradient as it
-    computes the logits (`wideconv.conv_stack_bce`), and no other pass reads the logits.
+    With `target` = (mask, crops): {0, 1} masks [..., 84, 84, out_channels] (the leading axes
+    of z) and the random shift's `augment.Crops` (or None: the masks as they are), the mask
+    decoder's loss instead (`phases` does not matter), `losses.mask_loss` of the logits against
+    the cropped masks, averaged over all the leading axes. With Pallas stacks, the last layer's
+    kernel computes it and its gradient as it computes the logits (`wideconv.conv_stack_bce`),
+    and no other pass reads or writes them; it takes the loss of the float32 logits, where XLA's
+    path takes that of the logits in the decoder's dtype (bf16: both within 1e-4 of the float32
+    loss, relative; benchmarks/mask_loss.py).
     """
 
     out_channels: int
@@ -600,6 +604,10 @@ class PoolDecoder(nn.Module):
     @nn.compact
     def __call__(self, z: jax.Array, phases: bool = False, target=None) -> jax.Array:
         dt = self.dtype
+        if target is not None:
+            want = (*z.shape[:-1], DECODER_SIDE, DECODER_SIDE, self.out_channels)
+            if target[0].shape != want:
+                raise ValueError(f"the decoder's target masks are {target[0].shape}, need {want}")
         x = nn.relu(_dense(16 * 8 * 8, dtype=dt)(z))
         x = x.reshape(*x.shape[:-1], 8, 8, 16)
         x = nn.relu(ConvTranspose(16, 4, stride=4, output_padding=3, dtype=dt)(x))

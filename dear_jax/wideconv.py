@@ -249,8 +249,7 @@ class _Pixels:
 
     def _shifted(self, x_ref, crop_ref, image, y, x, keep, lanes, mask, dtype):
         image = jnp.where(keep, image, 0)
-        dy = plt.load(crop_ref.at[2 * image], mask=keep, other=0)
-        dx = plt.load(crop_ref.at[2 * image + 1], mask=keep, other=0)
+        dy, dx = _crop_offsets(crop_ref, image, keep)
         last = self.side - 1
         # lane l holds channel l % C of the row's pixel l // C
         pixel, channel = jax.lax.div(lanes, self.channels), jax.lax.rem(lanes, self.channels)
@@ -265,12 +264,19 @@ class _Pixels:
         return load
 
 
+def _crop_offsets(crop_ref, image, keep):
+    """(dy, dx): the random-shift offsets of each row's image, from crop_ref (flat [N * 2]);
+    `image` must be a valid index (0) where `keep` is False."""
+    return tuple(plt.load(crop_ref.at[2 * image + axis], mask=keep, other=0) for axis in (0, 1))
+
+
 @dataclasses.dataclass(frozen=True)
 class _Labels:
     """The binary targets of a last layer that computes `phase` x `phase` output pixels per row
     (its output phases): lane (ry * phase + rx) * channels + c of the row of output (n, i, j)
     is channel c of pixel (phase * i + ry, phase * j + rx) of image n of the labels ([N, side,
-    side, channels], integers). They may be read through a random shift (as `_Pixels`)."""
+    side, channels], values in {0, 1} of any numeric dtype). They may be read through a random
+    shift (as `_Pixels`)."""
 
     side: int
     channels: int
@@ -294,8 +300,7 @@ class _Labels:
         col = self.phase * j[:, None] + jax.lax.rem(pixel, self.phase)[None, :]
         if self.shift:
             last = self.side - 1
-            dy = plt.load(crop_ref.at[2 * image], mask=keep, other=0)
-            dx = plt.load(crop_ref.at[2 * image + 1], mask=keep, other=0)
+            dy, dx = _crop_offsets(crop_ref, image, keep)
             row = jnp.clip(row + dy[:, None] - self.shift, 0, last)
             col = jnp.clip(col + dx[:, None] - self.shift, 0, last)
         idx = ((image[:, None] * self.side + row) * self.side + col) * self.channels
@@ -562,11 +567,12 @@ def conv_stack_bce(x, layers, labels, pads, dtype=None, phase=1, shift=0, crops=
     are never written: its output rows are the gradient, and no pass of XLA reads or writes
     the logits. The BCE is that of `losses.sigmoid_cross_entropy`, on float32 logits.
 
-    labels: integers (e.g. uint8 {0, 1} masks) [N, S, S, C] with S = phase * H', where H' is
-    the last layer's output side; the output's first phase**2 * C channels are their pixels
-    as `networks.space_to_depth(labels, phase)` lays them out (the rest get no loss). They may
-    be read through a random shift: `augment.shift` with pad `shift` > 0 at each image's
-    offsets in `crops` [N, 2]. x, layers, pads, dtype: as `conv_stack` (stride 1).
+    labels: {0, 1} values (uint8 masks, bool or float) [N, S, S, C] with S = phase * H',
+    where H' is the last layer's output side; the output's first phase**2 * C channels are
+    their pixels as `networks.space_to_depth(labels, phase)` lays them out (the rest get no
+    loss). They may be read through a random shift: `augment.shift` with pad `shift` > 0 at
+    each image's offsets in `crops` [N, 2]. Labels and crops get no gradient. x, layers, pads,
+    dtype: as `conv_stack` (stride 1).
     """
     return _bce_forward(x, layers, labels, pads, dtype, phase, shift, crops)[0]
 
@@ -575,12 +581,16 @@ def _bce_forward(x, layers, labels, pads, dtype, phase, shift, crops):
     pads = _pads(pads, len(layers))
     _, passes = _plan(x.shape, layers, pads, 1)
     out, f = passes[-1].out, layers[-1][0].shape[-1]
-    n, side, _, channels = labels.shape
-    if (n, side) != (out.images, phase * out.size) or phase**2 * channels > f:
+    n, side, width, channels = labels.shape
+    side_ok = side == width == phase * out.size
+    if n != out.images or not side_ok or phase**2 * channels > f:
         raise ValueError(
             f"labels {labels.shape} do not match the stack's output: {out.images} images of "
             f"{out.size} x {out.size} x {f}, {phase} x {phase} phases per pixel"
         )
+    if shift and (crops is None or crops.shape != (n, 2)):
+        shape = None if crops is None else crops.shape
+        raise ValueError(f"a shift needs crop offsets of shape {(n, 2)}, got {shape}")
     if labels.dtype == jnp.bool_:
         labels = labels.astype(jnp.uint8)
     target = _Labels(side, channels, phase, out, shift)

@@ -82,7 +82,8 @@ def test_decoder_and_actor_values():
 
 def test_bf16_products_keep_the_parameters_and_float32_values():
     """Actor and critic with bf16 products (the bf16 path's): the same parameters, float32
-    outputs near the float32 networks', every product reading bf16 operands into float32."""
+    outputs near the float32 networks', every forward product reading bf16 operands into
+    float32 (their gradients' products stay float32)."""
     z = jax.random.normal(jax.random.key(0), (4, 64))
     a = jax.random.uniform(jax.random.key(1), (4, 6), minval=-1, maxval=1)
     for make, args in (

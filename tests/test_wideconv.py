@@ -1,6 +1,7 @@
 """dear_jax.wideconv: stride-1 conv stacks as Pallas kernels (here in Pallas' interpreter)."""
 
 import json
+import re
 
 import jax
 import jax.numpy as jnp
@@ -142,6 +143,42 @@ def test_conv_stack_bce_is_the_loss_of_the_stacks_logits(monkeypatch, phase, shi
     small = labels[:, 1:, 1:]
     with pytest.raises(ValueError, match=rf"labels \(2, {side - 1}, .* match.*10 x 10 x 16"):
         wideconv.conv_stack_bce(x, layers, small, pads, None, phase, shift, crops)
+    wide = jnp.zeros((2, side, side, 5), jnp.uint8)  # phase**2 * 5 lanes: more than 16 if phased
+    if phase == 2:
+        with pytest.raises(ValueError, match="do not match"):
+            wideconv.conv_stack_bce(x, layers, wide, pads, None, phase, shift, crops)
+    else:
+        with pytest.raises(ValueError, match=r"a shift needs crop offsets of shape \(2, 2\)"):
+            wideconv.conv_stack_bce(x, layers, labels, pads, None, phase, 4, None)
+
+
+def test_conv_stack_bce_under_vmap_is_each_seed_on_its_own(monkeypatch):
+    """Vmapped over seeds, each with its own weights, bool labels, crops and cotangent: every
+    seed's loss and gradients are those of its stack alone, times its cotangent."""
+    monkeypatch.setattr(wideconv, "BLOCK", 16)
+    x = jax.random.normal(jax.random.key(3), (2, 2, 5, 5, 16))
+    layers = _layers(jax.random.key(4), (3, 2), (16, 16, 16), lead=(2,))
+    labels = jax.random.bernoulli(jax.random.key(5), 0.4, (2, 2, 16, 16, 3))
+    crops = jnp.array([[[0, 8], [3, 1]], [[8, 8], [4, 0]]])
+    weights = jnp.array([1.0, 3.0])
+
+    def bce(x, ws, labels, crops):
+        return wideconv.conv_stack_bce(x, ws, labels, (2, 1), None, 2, 4, crops)
+
+    def weighted(x, ws):
+        return jnp.sum(weights * jax.vmap(bce)(x, ws, labels, crops))
+
+    loss, grads = jax.value_and_grad(weighted, (0, 1))(x, layers)
+    alone = [
+        jax.value_and_grad(bce, (0, 1))(
+            x[s], jax.tree.map(lambda a, s=s: a[s], layers), labels[s], crops[s]
+        )
+        for s in range(2)
+    ]
+    np.testing.assert_allclose(loss, sum(w * a[0] for w, a in zip(weights, alone)), rtol=1e-6)
+    for s, w in enumerate(weights):
+        for a, b in zip(jax.tree.leaves(grads), jax.tree.leaves(alone[s][1]), strict=True):
+            np.testing.assert_allclose(a[s], w * b, rtol=1e-5, atol=1e-5)
 
 
 def test_conv_stack_under_vmap_is_each_seed_on_its_own():
@@ -210,8 +247,8 @@ def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypat
         fn = jax.vmap(jax.value_and_grad(loss, argnums))
         text = jax.jit(fn).trace(x, layers).lower(lowering_platforms=("cuda",)).as_text()
         assert text.count("xla.gpu.triton") == kernel_count
-    # the decoder's stack fused with the mask loss: the same kernels, and no XLA pass of the
-    # logits (a loss of the labels' size would add a reduction over them)
+    # the decoder's stack fused with the mask loss: the same kernels, and no XLA op but free
+    # reshapes touches the fused kernel's output (the logits' gradient, as its rows)
     labels = jax.ShapeDtypeStruct((2, 8, 84, 84, 3), jnp.uint8)
     crops = jax.ShapeDtypeStruct((2, 8, 2), jnp.int32)
 
@@ -221,7 +258,10 @@ def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypat
     fn = jax.jit(jax.vmap(jax.value_and_grad(bce, (0, 1))))
     text = fn.trace(x, layers, labels, crops).lower(lowering_platforms=("cuda",)).as_text()
     assert text.count("xla.gpu.triton") == 12
-    assert "84x84x3xf32" not in text and "42x42x12" not in text
+    rows = wideconv._Grid(8, 42).rows
+    touching = [line for line in text.splitlines() if f"x{rows}x16x" in line]
+    ops = {re.search(r"stablehlo\.\w+", line).group() for line in touching}
+    assert ops == {"stablehlo.custom_call", "stablehlo.reshape"}
 
 
 def test_networks_with_pallas_stacks_are_the_same_function(monkeypatch):
@@ -274,6 +314,17 @@ def test_decoder_with_a_target_is_the_mask_loss_on_either_stack(monkeypatch):
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
         scale = float(jnp.abs(b).max())
         np.testing.assert_allclose(a / scale, b / scale, atol=1e-5)
+    # two leading axes, masks taken as they are: the mean over both axes of the loss per image
+    uncropped = lambda p, z: dec.apply(p, z, target=(mask[None], None))  # noqa: E731
+    per_image = [losses.mask_loss(dec.apply(params, z[i : i + 1]), mask[i : i + 1]) for i in (0, 1)]
+    want = jnp.mean(jnp.array(per_image))
+    np.testing.assert_allclose(uncropped(params, z[None]), want, rtol=1e-5)
+    with networks.conv_settings(stack="pallas"):
+        np.testing.assert_allclose(uncropped(params, z[None]), want, rtol=1e-5)
+    with pytest.raises(
+        ValueError, match=r"target masks are \(2, 84, 84, 1\), need \(2, 84, 84, 3\)"
+    ):
+        dec.apply(params, z, target=(mask[..., :1], crops))
 
 
 def test_unknown_stack_is_refused():

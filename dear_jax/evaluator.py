@@ -199,21 +199,10 @@ def _serve(conn, config_bytes: bytes) -> None:
     cores = sorted(os.sched_getaffinity(0))
     if len(cores) >= 4:  # its thread pools (XLA:CPU, render workers) on half the cores
         os.sched_setaffinity(0, cores[len(cores) // 2 :])
-    from dear_jax import lanes, train  # after the platform is set
 
     env = None
     try:
-        env = train.make_env(
-            config,
-            envs_per_seed=config.num_eval_episodes,
-            split="val",
-            seed=config.seed + 1,
-            backend="cpu" if config.env.eval_backend == "cpu" else None,
-            hosts=train.Hosts(None, lanes.num_lanes(config)),
-        )
-        acfg = train.agent_config(config, env.spec.action_dim)
-        programs = train.build_programs(acfg, train.hparams(config), config)
-        step = programs.evaluate_step if on_accelerator else programs.evaluate_step_host
+        env, step, place = build(config, policy_on="accelerator" if on_accelerator else "cpu")
         conn.send(("ok", None, env.host_state()))
         while True:
             try:
@@ -229,7 +218,7 @@ def _serve(conn, config_bytes: bytes) -> None:
                 else:  # evaluate
                     policy, key_data, impl, video = request[1:]
                     key = jax.random.wrap_key_data(jnp.asarray(key_data), impl=impl)
-                    answer = evaluate(env, step, jax.device_put(policy), key, video=video)
+                    answer = evaluate(env, step, place(policy), key, video=video)
                 conn.send(("ok", answer, env.host_state()))
             except Exception:
                 conn.send(("error", traceback.format_exc(), None))
@@ -239,3 +228,35 @@ def _serve(conn, config_bytes: bytes) -> None:
         if env is not None:
             env.close()
         conn.close()
+
+
+def build(config, *, policy_on: str, env_on: str = "default", physics_threads: int = 0):
+    """The evaluation process's env and policy: (env, step, place), `place` putting the policy's
+    parameters where `step` runs them.
+
+    policy_on "accelerator": the training's own policy program (its dtype) on the accelerator;
+    "cpu": the float32 policy on XLA:CPU. env_on: where the env's array work (uploads, frame
+    stack, compositing) runs, the process's default device ("default") or XLA:CPU ("cpu"); on
+    an H100 without a training beside them both took 22.3 ms per evaluation step
+    (benchmarks/evaluation.py). CPU physics steps its envs on `physics_threads` threads (0: as
+    many as the process has cores, up to 8); alone, the physics took 9-10 of those 22.3 ms on
+    one thread.
+    """
+    from dear_jax import lanes, train  # the child imports these after setting its platform
+
+    # Every thread's default device, the env thread's too.
+    jax.config.update("jax_default_device", jax.devices("cpu")[0] if env_on == "cpu" else None)
+    policy_device = jax.devices()[0] if policy_on == "accelerator" else jax.devices("cpu")[0]
+    env = train.make_env(
+        config,
+        envs_per_seed=config.num_eval_episodes,
+        split="val",
+        seed=config.seed + 1,
+        backend="cpu" if config.env.eval_backend == "cpu" else None,
+        hosts=train.Hosts(None, lanes.num_lanes(config)),
+        physics_threads=physics_threads or min(8, len(os.sched_getaffinity(0))),
+    )
+    acfg = train.agent_config(config, env.spec.action_dim)
+    programs = train.build_programs(acfg, train.hparams(config), config)
+    step = programs.evaluate_step if policy_on == "accelerator" else programs.evaluate_step_host
+    return env, step, lambda policy: jax.device_put(policy, policy_device)

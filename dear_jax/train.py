@@ -385,9 +385,11 @@ def make_env(
     backend: str | None = None,
     mesh: Mesh | None = None,
     hosts: Hosts | None = None,
+    physics_threads: int = 1,
 ) -> envs.Env:
     """The batched env of the config (`backend` overrides env.backend; seeds split over `mesh`);
-    with several processes (`hosts`), of this process's lanes on its devices."""
+    with several processes (`hosts`), of this process's lanes on its devices. physics_threads:
+    CPU MuJoCo's threads."""
     e = config.env
     hosts = hosts or Hosts(mesh, lanes.num_lanes(config))
     # Each process draws its own lanes' episode starts and distractions.
@@ -408,6 +410,7 @@ def make_env(
         action_repeat=e.action_repeat,
         episode_frames=e.episode_frames or None,
         sharding=hosts.local,
+        physics_threads=physics_threads,
     )
     return env
 

@@ -160,6 +160,7 @@ class Env:
         solver: SolverSettings | None = None,
         episode_frames: int | None = None,
         sharding: jax.sharding.NamedSharding | None = None,
+        physics_threads: int = 1,
     ):
         render = render or RenderSettings()
         solver = solver or SolverSettings()
@@ -192,6 +193,7 @@ class Env:
             solver=solver,
             control=task.make_control(self._model),
             sharding=sharding,
+            threads=physics_threads,
         )
         h, w = render.height, render.width
         self.spec = EnvSpec(
@@ -388,6 +390,8 @@ class Env:
     def close(self) -> None:
         self._executor.shutdown(wait=True)
         self._pool.close()
+        if hasattr(self.physics, "close"):  # CPU MuJoCo's threads
+            self.physics.close()
 
     def __enter__(self) -> Env:
         return self

@@ -40,6 +40,7 @@ reward reads (kinematics, centre-of-mass, sensors), which is the same state.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import copy
 import dataclasses
@@ -238,7 +239,9 @@ class CpuState:
 
 
 class CpuPhysics:
-    """CPU MuJoCo with dm_control's stepping; a Python loop over the batch."""
+    """CPU MuJoCo with dm_control's stepping: a Python loop over the batch, split over `threads`
+    threads (MuJoCo's calls release the GIL), each with its own MjData. Every env is stepped
+    from its own state alone, so any number of threads gives the same result."""
 
     name = "cpu"
     on_host = True  # steps on the calling thread (the env's render thread), not dispatched
@@ -251,17 +254,26 @@ class CpuPhysics:
         n_sub_steps: int,
         action_repeat: int,
         control=None,
+        threads: int = 1,
     ):
+        if threads < 1:
+            raise ValueError(f"physics threads must be >= 1, got {threads}")
         self.mj_model = model
         self.n_sub_steps = n_sub_steps
         self.action_repeat = action_repeat
         self.control = control
-        self._data = mujoco.MjData(model)
+        self.threads = threads
+        self._datas = [mujoco.MjData(model) for _ in range(threads)]
+        self._pool = (
+            concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="physics")
+            if threads > 1
+            else None
+        )
         self._reward = jax.jit(_vmap2(jax.vmap(reward_fn)))
         self._cpu = jax.local_devices(backend="cpu")[0]
 
-    def _load(self, state: CpuState, idx) -> mujoco.MjData:
-        d = self._data
+    @staticmethod
+    def _load(d: mujoco.MjData, state: CpuState, idx) -> mujoco.MjData:
         d.qpos[:] = state.qpos[idx]
         d.qvel[:] = state.qvel[idx]
         d.act[:] = state.act[idx]
@@ -290,27 +302,40 @@ class CpuPhysics:
                 mujoco.mj_step(m, d, self.n_sub_steps - 1)
         mujoco.mj_step1(m, d)
 
+    def _step_envs(self, d, state, new, action, envs) -> list:
+        """Step the envs [(s, e), ...] one agent step on in `d`, writing their new state into
+        `new`; returns their `action_repeat` reward views each."""
+        views = []
+        for s, e in envs:
+            self._load(d, state, (s, e))
+            # step1 refreshes the position/velocity stage for the loaded state: dm_control's
+            # data sits right after its previous control step's mj_step1.
+            mujoco.mj_step1(self.mj_model, d)
+            d.ctrl[:] = action[s, e]
+            env_views = []
+            for _ in range(self.action_repeat):
+                if self.control is not None:
+                    d.ctrl[:] = self.control(d.qpos, action[s, e], np)
+                self._control_step(d)
+                env_views.append(view_from_mjdata(d))
+            views.append(env_views)
+            for k in new:
+                new[k][s, e] = getattr(d, k)
+        return views
+
     def step(self, state: CpuState, action) -> tuple[CpuState, np.ndarray]:
         action = np.asarray(action, np.float64)
         num_s, num_e = state.qpos.shape[:2]
         new = {k: np.copy(v) for k, v in dataclasses.asdict(state).items()}
-        views = []  # [S*E] lists of `action_repeat` views
-        for s in range(num_s):
-            for e in range(num_e):
-                d = self._load(state, (s, e))
-                # step1 refreshes the position/velocity stage for the loaded state: dm_control's
-                # data sits right after its previous control step's mj_step1.
-                mujoco.mj_step1(self.mj_model, d)
-                d.ctrl[:] = action[s, e]
-                env_views = []
-                for _ in range(self.action_repeat):
-                    if self.control is not None:
-                        d.ctrl[:] = self.control(d.qpos, action[s, e], np)
-                    self._control_step(d)
-                    env_views.append(view_from_mjdata(d))
-                views.append(env_views)
-                for k in new:
-                    new[k][s, e] = getattr(d, k)
+        envs = list(np.ndindex(num_s, num_e))
+        if self._pool is None:
+            views = self._step_envs(self._datas[0], state, new, action, envs)
+        else:  # contiguous blocks of envs, one per thread, so the views stay in env order
+            blocks = np.array_split(envs, self.threads)
+            parts = self._pool.map(
+                lambda d, block: self._step_envs(d, state, new, action, block), self._datas, blocks
+            )
+            views = [v for part in parts for v in part]
         stacked = jax.tree.map(
             lambda *xs: np.stack(xs).reshape((num_s, num_e, self.action_repeat) + xs[0].shape),
             *[v for env_views in views for v in env_views],
@@ -329,6 +354,10 @@ class CpuPhysics:
 
     def qpos(self, state: CpuState) -> np.ndarray:
         return state.qpos
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
 
 
 jax.tree_util.register_dataclass(
@@ -356,13 +385,14 @@ def make_physics(
     solver: SolverSettings = SolverSettings(),
     control=None,
     sharding: jax.sharding.Sharding | None = None,
+    threads: int = 1,
 ):
     """Build the named backend ("mjx", "cpu" or "auto").
 
     control: None (ctrl = action) or `control(qpos, action, xp) -> ctrl`, evaluated at the start
     of every control step with xp = jax.numpy (MJX) or numpy (CPU), e.g. the kitchen's joint
     velocity -> position target mapping. sharding: where MJX keeps the (S, E) states (None: the
-    default device); CPU MuJoCo's state is on the host.
+    default device); CPU MuJoCo's state is on the host. threads: CPU MuJoCo's threads.
     """
     backend = resolve_backend(backend)
     if backend == "mjx":
@@ -376,5 +406,10 @@ def make_physics(
             sharding=sharding,
         )
     return CpuPhysics(
-        model, reward_fn, n_sub_steps=n_sub_steps, action_repeat=action_repeat, control=control
+        model,
+        reward_fn,
+        n_sub_steps=n_sub_steps,
+        action_repeat=action_repeat,
+        control=control,
+        threads=threads,
     )

@@ -13,11 +13,13 @@ Later divergence is expected: the walker is chaotic once it falls, at any solver
 One MJX compile (~40 s on a CPU): keep this file to one compiled step function.
 """
 
+import dataclasses
+
 import mujoco
 import numpy as np
 import pytest
 
-from envs import dmc
+from envs import dmc, kitchen
 from envs.physics import CpuPhysics, MjxPhysics, SolverSettings, make_physics
 
 T, NUM_ENVS = 25, 4
@@ -80,6 +82,40 @@ def test_mjx_rewards_close_to_cpu(walker_rollouts):
     assert (ret_cpu > 1.0).all()  # rewards are not trivially zero
 
 
+@pytest.mark.parametrize("task", [dmc.TASKS["walker-walk"], kitchen.TASKS["kitchen-kettle"]])
+def test_cpu_threads_step_each_env_as_one_thread_does(task):
+    """Envs split over threads (unequal blocks, 7 envs on 3 threads) step bit for bit as on one
+    thread, rewards and every state field, through an episode restart in some envs; the kitchen
+    runs its joint-velocity control on the threads too."""
+    model = task.physics_model()
+    kwargs = dict(
+        n_sub_steps=task.n_sub_steps(model),
+        action_repeat=2,
+        control=task.make_control(model),
+    )
+    one = CpuPhysics(model, task.make_reward(model), threads=1, **kwargs)
+    three = CpuPhysics(model, task.make_reward(model), threads=3, **kwargs)
+    rng = np.random.RandomState(1)
+    qpos = model.qpos0 + 0.05 * rng.randn(1, 7, model.nq)
+    qvel = 0.1 * rng.randn(1, 7, model.nv)
+    states = [p.init(qpos, qvel) for p in (one, three)]
+    reset = np.zeros((1, 7), bool)
+    reset[0, [1, 4]] = True
+    for t in range(6):
+        action = rng.uniform(-1, 1, (1, 7, model.nu)).astype(np.float32)
+        out = [p.step(s, action) for p, s in zip((one, three), states, strict=True)]
+        (s1, r1), (s3, r3) = out
+        np.testing.assert_array_equal(r3, r1)
+        for a, b in zip(dataclasses.astuple(s3), dataclasses.astuple(s1), strict=True):
+            np.testing.assert_array_equal(a, b)
+        states = [s1, s3]
+        if t == 2:  # two envs start again
+            states = [p.where(reset, p.init(qpos, qvel), s) for p, s in zip((one, three), states)]
+    assert np.abs(states[0].qpos - qpos).max() > 0.01  # the envs moved
+    with pytest.raises(ValueError, match="threads must be >= 1"):
+        CpuPhysics(model, task.make_reward(model), threads=0, **kwargs)
+
+
 def test_solver_settings_reach_the_model():
     task = dmc.TASKS["finger-spin"]
     model = task.physics_model()
@@ -115,8 +151,6 @@ def test_backend_names():
 
 
 def test_env_mjx_backend_matches_cpu_and_resets_per_env():
-    import dataclasses
-
     import jax
     import jax.numpy as jnp
 

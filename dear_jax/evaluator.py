@@ -19,6 +19,11 @@ twice the paper's rate, the DrQ-v2 learning check's loop trained at 786 frames/s
 DrQ-v2 run took 1.19x the time of its training alone with "accelerator" and 1.22x with "cpu"
 (two runs on two machines: "DrQ-v2 to 500k frames", both sections).
 
+With training at ~1,585 frames/s, a 500k-frame DrQ-v2 run's evaluations (21.5 s each) outlasted
+the training between two of them, and the run took 1.27x the time of its training alone
+(benchmarks/RESULTS.md, fifteenth session). Alone, CPU physics took 9 of an evaluation step's
+22 ms on one thread, so the process now steps its env's CPU physics on up to 8 threads (`build`).
+
 Both evaluate one episode in each of the eval env's E envs per seed (`evaluate`), and keep the
 eval env's host state (episode-start RNG, distractions) for checkpoints: an evaluation run in
 either continues the same sequence of episodes.

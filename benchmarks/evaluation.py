@@ -9,7 +9,8 @@ POLICY:ENV (the policy on the accelerator or on XLA:CPU in float32; the env's ar
 uploads, frame stack and compositing, on the process's default device or on XLA:CPU), and runs
 `--reps` evaluations of `num_eval_episodes` episodes per seed, each `--steps` agent steps long.
 Each stage is timed to its end: the policy, the physics, the render workers, the env's array
-work (`post`), and what is left (`other`: the evaluation loop's own array work and Python).
+work (`post`), and what is left (`other`: the evaluation loop's own array work and Python);
+all in ms per agent step, the episode start's picture and the last policy call included.
 
 With `--load`, the evaluations run beside a training run of the same config without evaluation
 in another process (`run.py`, CPU physics), started first and measured on: the evaluation
@@ -24,6 +25,7 @@ import collections
 import os
 import runpy
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -90,6 +92,7 @@ def start_load(args, workdir: str) -> tuple[subprocess.Popen, list]:
     threading.Thread(target=read, daemon=True).start()
     if not ready.wait(args.load_start_s) or proc.poll() is not None:
         proc.kill()
+        proc.wait()
         raise RuntimeError(
             f"the load logged no training rows in {args.load_start_s} s: {' '.join(cmd)}\n"
             + "".join(tail)
@@ -99,10 +102,10 @@ def start_load(args, workdir: str) -> tuple[subprocess.Popen, list]:
 
 def measure(config, placement: str, threads: int, args) -> dict:
     policy_on, env_on = placement.split(":")
-    env, step, place = evaluator.build(
-        config, policy_on=policy_on, env_on=env_on, physics_threads=threads
-    )
+    env = None
     try:
+        config.env.eval_physics_threads = threads
+        env, step, place = evaluator.build(config, policy_on=policy_on, env_on=env_on)
         acfg = train.agent_config(config, env.spec.action_dim)
         keys = jax.random.split(jax.random.key(0), env.shape[0])
         params = jax.jit(update.init_seeds, static_argnums=0)(acfg, keys).params
@@ -127,8 +130,9 @@ def measure(config, placement: str, threads: int, args) -> dict:
         threads = getattr(env.physics, "threads", None)  # MJX physics has none
         return {"placement": placement, "physics_threads": threads, "reps": reps}
     finally:
-        env.close()
-        jax.config.update("jax_default_device", None)
+        if env is not None:
+            env.close()
+        jax.config.update("jax_default_device", None)  # build's, for the next placement
 
 
 def main():
@@ -148,7 +152,7 @@ def main():
         type=int,
         nargs="+",
         default=[0],
-        help="CPU physics threads, each measured with each placement (0: the evaluation's default)",
+        help="env.eval_physics_threads, each measured with each placement (0: the default)",
     )
     p.add_argument("--load", action="store_true", help="beside a training loop (another process)")
     p.add_argument("--load-start-s", type=float, default=300.0)
@@ -163,16 +167,33 @@ def main():
     config.seeds = args.seeds
     config.env.episode_frames = args.steps * config.env.action_repeat
     cores = sorted(os.sched_getaffinity(0))
+    # A SIGTERM (e.g. from `timeout`) unwinds through the `finally` below: the load stops too.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     workdir = tempfile.mkdtemp(prefix="evaluation_load_")
-    load, rows = start_load(args, workdir) if args.load else (None, [])
-    if len(cores) >= 4:  # as the evaluation process: the upper half of the cores
-        os.sched_setaffinity(0, cores[len(cores) // 2 :])
+    load, rows, results = None, [], []
+
+    def write():
+        save_json(
+            {
+                "args": vars(args),
+                "device": jax.devices()[0].device_kind,
+                "episodes_per_seed": config.num_eval_episodes,
+                "seeds": config.seeds,
+                "load_rows": rows,
+                "results": results,
+            },
+            args.out,
+        )
+
     try:
-        results = [
-            measure(config, placement, threads, args)
-            for placement in args.placements
-            for threads in args.physics_threads
-        ]
+        if args.load:
+            load, rows = start_load(args, workdir)
+        if len(cores) >= 4:  # as the evaluation process: the upper half of the cores
+            os.sched_setaffinity(0, cores[len(cores) // 2 :])
+        for placement in args.placements:
+            for threads in args.physics_threads:
+                results.append(measure(config, placement, threads, args))
+                write()  # what is measured survives a later timeout
     finally:
         if load is not None:  # SIGTERM: the run stops its render workers
             load.terminate()
@@ -189,23 +210,12 @@ def main():
             [r["placement"], r["physics_threads"], f"{best['wall_s'] / args.steps * 1e3:.1f}"]
             + [f"{best['ms_per_step'][k]:.1f}" for k in (*STAGES, "other")]
         )
-    episodes = config.num_eval_episodes
     print(
-        f"\nOne evaluation step: {episodes} episodes x {config.seeds} seeds, ms per step "
+        f"\nOne evaluation step: {config.num_eval_episodes} episodes x {config.seeds} seeds, ms per step "
         f"({'beside a training loop' if load else 'alone'}; {jax.devices()[0].device_kind})"
     )
     print(format_table(["policy:env", "physics threads", "step", *STAGES, "other"], table))
-    save_json(
-        {
-            "args": vars(args),
-            "device": jax.devices()[0].device_kind,
-            "episodes_per_seed": episodes,
-            "seeds": config.seeds,
-            "load_rows": rows,
-            "results": results,
-        },
-        args.out,
-    )
+    write()
 
 
 if __name__ == "__main__":

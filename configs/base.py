@@ -63,6 +63,10 @@ def get_config() -> ConfigDict:
     # Physics of the evaluation episodes: "cpu" (CPU MuJoCo, dm_control's own solver and
     # stepping, on CPU cores beside the GPU's training) or "train" (env.backend's).
     c.env.eval_backend = "cpu"
+    # Threads of the evaluation env's CPU physics; 0: one per core the evaluating process may
+    # use, up to 8 (the evaluation process has half the machine's cores). The training env steps
+    # on one thread, overlapped with the updates.
+    c.env.eval_physics_threads = 0
     c.env.distraction = "none"  # "none" | "easy" | "medium" | "hard" (Distracting Control Suite)
     c.env.dynamic = False  # distractions move during the episode
     c.env.background_dir = ""  # DAVIS-2017 root; "" = built-in procedural videos (logged)

@@ -235,32 +235,32 @@ def _serve(conn, config_bytes: bytes) -> None:
         conn.close()
 
 
-def build(config, *, policy_on: str, env_on: str = "default", physics_threads: int = 0):
+def build(config, *, policy_on: str, env_on: str = "default"):
     """The evaluation process's env and policy: (env, step, place), `place` putting the policy's
     parameters where `step` runs them.
 
     policy_on "accelerator": the training's own policy program (its dtype) on the accelerator;
     "cpu": the float32 policy on XLA:CPU. env_on: where the env's array work (uploads, frame
-    stack, compositing) runs, the process's default device ("default") or XLA:CPU ("cpu"); on
+    stack, compositing) runs, the process's default device ("default") or XLA:CPU ("cpu", which
+    sets the process's default device, with CPU physics only); on
     an H100 without a training beside them both took 22.3 ms per evaluation step
-    (benchmarks/evaluation.py). CPU physics steps its envs on `physics_threads` threads (0: as
-    many as the process has cores, up to 8); alone, the physics took 9-10 of those 22.3 ms on
-    one thread.
+    (benchmarks/evaluation.py). The env is `train.make_eval_env`'s: CPU physics on
+    env.eval_physics_threads threads; alone, the physics took 9-10 of those 22.3 ms on one.
     """
     from dear_jax import lanes, train  # the child imports these after setting its platform
 
-    # Every thread's default device, the env thread's too.
-    jax.config.update("jax_default_device", jax.devices("cpu")[0] if env_on == "cpu" else None)
+    if policy_on not in ("accelerator", "cpu") or env_on not in ("default", "cpu"):
+        raise ValueError(
+            f"policy_on={policy_on!r}, env_on={env_on!r}: policy_on is 'accelerator' or 'cpu', "
+            "env_on 'default' or 'cpu'"
+        )
+    if env_on == "cpu":
+        if config.env.eval_backend != "cpu":
+            raise ValueError("env_on='cpu' needs CPU physics in the eval env (env.eval_backend)")
+        # Every thread's default device, the env thread's too: the caller's process is changed.
+        jax.config.update("jax_default_device", jax.devices("cpu")[0])
     policy_device = jax.devices()[0] if policy_on == "accelerator" else jax.devices("cpu")[0]
-    env = train.make_env(
-        config,
-        envs_per_seed=config.num_eval_episodes,
-        split="val",
-        seed=config.seed + 1,
-        backend="cpu" if config.env.eval_backend == "cpu" else None,
-        hosts=train.Hosts(None, lanes.num_lanes(config)),
-        physics_threads=physics_threads or min(8, len(os.sched_getaffinity(0))),
-    )
+    env = train.make_eval_env(config, hosts=train.Hosts(None, lanes.num_lanes(config)))
     acfg = train.agent_config(config, env.spec.action_dim)
     programs = train.build_programs(acfg, train.hparams(config), config)
     step = programs.evaluate_step if policy_on == "accelerator" else programs.evaluate_step_host

@@ -38,6 +38,7 @@ import functools
 import json
 import logging
 import math
+import os
 import pathlib
 import signal
 import sys
@@ -77,6 +78,7 @@ RESUMABLE_CHANGES = (
     "profile.iterations",
     "env.render.num_workers",
     "env.eval_backend",
+    "env.eval_physics_threads",
     "eval_in_background",
     "eval_device",
     "agent.seed_axis",
@@ -299,6 +301,11 @@ def validate(config: ConfigDict) -> None:
     for key in positive:
         if _get(config, key) < 1:
             raise ValueError(f"{key} must be >= 1, got {_get(config, key)}")
+    if config.env.eval_physics_threads < 0:
+        raise ValueError(
+            f"env.eval_physics_threads must be >= 0 (0: one per core, up to 8), got "
+            f"{config.env.eval_physics_threads}"
+        )
     a, r = config.agent, config.replay
     steps = r.seed_frames // config.env.action_repeat  # transitions per seed before updating
     if steps < a.batch_size:
@@ -413,6 +420,25 @@ def make_env(
         physics_threads=physics_threads,
     )
     return env
+
+
+def make_eval_env(
+    config: ConfigDict, *, mesh: Mesh | None = None, hosts: Hosts | None = None
+) -> envs.Env:
+    """The evaluation episodes' env: num_eval_episodes envs per seed of the validation split,
+    its own seed, env.eval_backend's physics; CPU physics on env.eval_physics_threads threads
+    (0: as many as this process may use cores, up to 8)."""
+    threads = config.env.eval_physics_threads or min(8, len(os.sched_getaffinity(0)))
+    return make_env(
+        config,
+        envs_per_seed=config.num_eval_episodes,
+        split="val",
+        seed=config.seed + 1,
+        backend="cpu" if config.env.eval_backend == "cpu" else None,
+        mesh=mesh,
+        hosts=hosts,
+        physics_threads=threads,
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -671,15 +697,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
         if where in OWN_PROCESS:  # starts now, builds while this compiles
             evaluator = EvalProcess(config)
         else:
-            eval_env = make_env(
-                config,
-                envs_per_seed=config.num_eval_episodes,
-                split="val",
-                seed=config.seed + 1,
-                backend="cpu" if config.env.eval_backend == "cpu" else None,
-                mesh=mesh,
-                hosts=hosts,
-            )
+            eval_env = make_eval_env(config, mesh=mesh, hosts=hosts)
             acfg = agent_config(config, spec.action_dim)
             evaluator = LocalEvaluator(
                 eval_env, cached_programs(acfg, config, mesh).evaluate_step, hosts

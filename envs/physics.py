@@ -241,10 +241,12 @@ class CpuState:
 class CpuPhysics:
     """CPU MuJoCo with dm_control's stepping: a Python loop over the batch, split over `threads`
     threads (MuJoCo's calls release the GIL), each with its own MjData. Every env is stepped
-    from its own state alone, so any number of threads gives the same result."""
+    from its own state alone (the `CpuState` fields, loaded before each step), so any number of
+    threads gives the same result; models with state outside them (mocap bodies, user data,
+    plugins) are refused."""
 
     name = "cpu"
-    on_host = True  # steps on the calling thread (the env's render thread), not dispatched
+    on_host = True  # steps on the host (the env's thread and its `threads`), not dispatched
 
     def __init__(
         self,
@@ -258,6 +260,13 @@ class CpuPhysics:
     ):
         if threads < 1:
             raise ValueError(f"physics threads must be >= 1, got {threads}")
+        unloaded = {"mocap bodies": model.nmocap, "user data": model.nuserdata}
+        unloaded["plugins"] = model.nplugin
+        if any(unloaded.values()):
+            raise ValueError(
+                "CPU physics loads each env's qpos, qvel, act, warm start and time only; this "
+                f"model also has state in {', '.join(k for k, n in unloaded.items() if n)}"
+            )
         self.mj_model = model
         self.n_sub_steps = n_sub_steps
         self.action_repeat = action_repeat
@@ -332,10 +341,14 @@ class CpuPhysics:
             views = self._step_envs(self._datas[0], state, new, action, envs)
         else:  # contiguous blocks of envs, one per thread, so the views stay in env order
             blocks = np.array_split(envs, self.threads)
-            parts = self._pool.map(
-                lambda d, block: self._step_envs(d, state, new, action, block), self._datas, blocks
-            )
-            views = [v for part in parts for v in part]
+            parts = [
+                self._pool.submit(self._step_envs, d, state, new, action, block)
+                for d, block in zip(self._datas, blocks, strict=True)
+            ]
+            # Every block ends before any error is raised: no thread still steps its MjData
+            # when the next step hands it new work.
+            concurrent.futures.wait(parts)
+            views = [v for part in parts for v in part.result()]
         stacked = jax.tree.map(
             lambda *xs: np.stack(xs).reshape((num_s, num_e, self.action_repeat) + xs[0].shape),
             *[v for env_views in views for v in env_views],

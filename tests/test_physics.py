@@ -14,6 +14,7 @@ One MJX compile (~40 s on a CPU): keep this file to one compiled step function.
 """
 
 import dataclasses
+import threading
 
 import mujoco
 import numpy as np
@@ -84,9 +85,9 @@ def test_mjx_rewards_close_to_cpu(walker_rollouts):
 
 @pytest.mark.parametrize("task", [dmc.TASKS["walker-walk"], kitchen.TASKS["kitchen-kettle"]])
 def test_cpu_threads_step_each_env_as_one_thread_does(task):
-    """Envs split over threads (unequal blocks, 7 envs on 3 threads) step bit for bit as on one
-    thread, rewards and every state field, through an episode restart in some envs; the kitchen
-    runs its joint-velocity control on the threads too."""
+    """2 seeds x 4 envs split over 3 threads (unequal blocks) step bit for bit as on one thread,
+    rewards and every state field, through an episode restart in some envs; the kitchen runs
+    its joint-velocity control on the threads too."""
     model = task.physics_model()
     kwargs = dict(
         n_sub_steps=task.n_sub_steps(model),
@@ -95,25 +96,47 @@ def test_cpu_threads_step_each_env_as_one_thread_does(task):
     )
     one = CpuPhysics(model, task.make_reward(model), threads=1, **kwargs)
     three = CpuPhysics(model, task.make_reward(model), threads=3, **kwargs)
-    rng = np.random.RandomState(1)
-    qpos = model.qpos0 + 0.05 * rng.randn(1, 7, model.nq)
-    qvel = 0.1 * rng.randn(1, 7, model.nv)
-    states = [p.init(qpos, qvel) for p in (one, three)]
-    reset = np.zeros((1, 7), bool)
-    reset[0, [1, 4]] = True
-    for t in range(6):
-        action = rng.uniform(-1, 1, (1, 7, model.nu)).astype(np.float32)
-        out = [p.step(s, action) for p, s in zip((one, three), states, strict=True)]
-        (s1, r1), (s3, r3) = out
-        np.testing.assert_array_equal(r3, r1)
-        for a, b in zip(dataclasses.astuple(s3), dataclasses.astuple(s1), strict=True):
-            np.testing.assert_array_equal(a, b)
-        states = [s1, s3]
-        if t == 2:  # two envs start again
-            states = [p.where(reset, p.init(qpos, qvel), s) for p, s in zip((one, three), states)]
-    assert np.abs(states[0].qpos - qpos).max() > 0.01  # the envs moved
+    stepped_on = set()  # the threads that ran three's control steps
+    control_step = three._control_step
+    three._control_step = lambda d: (
+        stepped_on.add(threading.current_thread().name),
+        control_step(d),
+    )
+    try:
+        rng = np.random.RandomState(1)
+        shape = (2, 4)
+        qpos = model.qpos0 + 0.05 * rng.randn(*shape, model.nq)
+        qvel = 0.1 * rng.randn(*shape, model.nv)
+        states = [p.init(qpos, qvel) for p in (one, three)]
+        reset = np.zeros(shape, bool)
+        reset[0, 1] = reset[1, 3] = True
+        for t in range(6):
+            action = rng.uniform(-1, 1, (*shape, model.nu)).astype(np.float32)
+            (s1, r1), (s3, r3) = [p.step(s, action) for p, s in zip((one, three), states)]
+            np.testing.assert_array_equal(r3, r1)
+            for a, b in zip(dataclasses.astuple(s3), dataclasses.astuple(s1), strict=True):
+                np.testing.assert_array_equal(a, b)
+            states = [s1, s3]
+            if t == 2:  # two envs start again
+                states = [
+                    p.where(reset, p.init(qpos, qvel), s) for p, s in zip((one, three), states)
+                ]
+        assert np.abs(states[0].qpos - qpos).max() > 0.01  # the envs moved
+        assert len(stepped_on) == 3 and all(n.startswith("physics") for n in stepped_on)
+    finally:
+        one.close()
+        three.close()
+
+
+def test_cpu_physics_refuses_state_it_does_not_load():
+    walker = dmc.TASKS["walker-walk"].physics_model()
     with pytest.raises(ValueError, match="threads must be >= 1"):
-        CpuPhysics(model, task.make_reward(model), threads=0, **kwargs)
+        CpuPhysics(walker, None, n_sub_steps=1, action_repeat=1, threads=0)
+    mocap = mujoco.MjModel.from_xml_string(
+        '<mujoco><worldbody><body mocap="true"><geom size=".1"/></body></worldbody></mujoco>'
+    )
+    with pytest.raises(ValueError, match="state in mocap bodies"):
+        CpuPhysics(mocap, None, n_sub_steps=1, action_repeat=1)
 
 
 def test_solver_settings_reach_the_model():

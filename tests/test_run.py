@@ -402,6 +402,21 @@ def test_bad_values_fail_with_valid_choices(tmp_path):
         train.train(tiny_config(**{"agent.shift_impl": "roll"}), tmp_path)
     with pytest.raises(ValueError, match="eval_device 'gpu'; valid: auto, cpu, accelerator, train"):
         train.train(tiny_config(eval_device="gpu"), tmp_path)
+    with pytest.raises(ValueError, match="env.eval_physics_threads must be >= 0.*got -1"):
+        train.train(tiny_config(**{"env.eval_physics_threads": -1}), tmp_path)
+
+
+def test_eval_env_steps_its_physics_on_the_configured_threads():
+    """env.eval_physics_threads reaches the evaluation env's CPU physics; 0 is one thread per
+    core this process may use, up to 8; the training env keeps one."""
+    cores = min(8, len(os.sched_getaffinity(0)))
+    for setting, threads in ((3, 3), (0, cores)):
+        env = train.make_eval_env(tiny_config(**{"env.eval_physics_threads": setting}))
+        try:
+            assert env.physics.threads == threads
+            assert env.shape[1] == tiny_config().num_eval_episodes
+        finally:
+            env.close()
 
 
 def test_benchmarks_set_any_config_field_typed_and_by_known_name():

@@ -242,10 +242,10 @@ def build(config, *, policy_on: str, env_on: str = "default"):
     policy_on "accelerator": the training's own policy program (its dtype) on the accelerator;
     "cpu": the float32 policy on XLA:CPU. env_on: where the env's array work (uploads, frame
     stack, compositing) runs, the process's default device ("default") or XLA:CPU ("cpu", which
-    sets the process's default device, with CPU physics only); on
-    an H100 without a training beside them both took 22.3 ms per evaluation step
-    (benchmarks/evaluation.py). The env is `train.make_eval_env`'s: CPU physics on
-    env.eval_physics_threads threads; alone, the physics took 9-10 of those 22.3 ms on one.
+    sets the process's default device, with CPU physics only); on an H100 without a training
+    beside them both took 22.3 ms per evaluation step (benchmarks/evaluation.py). The env is
+    `train.make_eval_env`'s: CPU physics on env.eval_physics_threads threads; alone, the physics
+    took 9-10 of those 22.3 ms on one.
     """
     from dear_jax import lanes, train  # the child imports these after setting its platform
 

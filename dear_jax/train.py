@@ -428,7 +428,8 @@ def make_eval_env(
     """The evaluation episodes' env: num_eval_episodes envs per seed of the validation split,
     its own seed, env.eval_backend's physics; CPU physics on env.eval_physics_threads threads
     (0: as many as this process may use cores, up to 8)."""
-    threads = config.env.eval_physics_threads or min(8, len(os.sched_getaffinity(0)))
+    usable = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else range(os.cpu_count())
+    threads = config.env.eval_physics_threads or min(8, len(usable))
     return make_env(
         config,
         envs_per_seed=config.num_eval_episodes,

@@ -53,7 +53,7 @@ def _action_repeat(name) -> int:
     return 1 if name in kitchen.TASKS else 2  # REFERENCE 6 / DMC's 2
 
 
-def bench_physics(task, backend, seeds, num_envs, solver, steps):
+def bench_physics(task, backend, seeds, num_envs, solver, steps, threads=1):
     model = task.physics_model()
     phys = make_physics(
         backend,
@@ -63,6 +63,7 @@ def bench_physics(task, backend, seeds, num_envs, solver, steps):
         action_repeat=_action_repeat(task.name),
         solver=solver,
         control=task.make_control(model),
+        threads=threads,
     )
     shape = (seeds, num_envs)
     qpos, qvel = _initial_states(task, model, seeds * num_envs)
@@ -89,10 +90,13 @@ def bench_physics(task, backend, seeds, num_envs, solver, steps):
     np.asarray(phys.qpos(state))
     chained_ms = (time.perf_counter() - t0) / steps * 1e3
     finite = bool(np.isfinite(np.asarray(phys.qpos(state))).all())
+    if hasattr(phys, "close"):
+        phys.close()
     return dict(
         seeds=seeds,
         envs=num_envs,
         backend=phys.name,
+        threads=getattr(phys, "threads", None),
         solver=dataclasses.asdict(solver),
         compile_s=round(compile_s, 2),
         ms_per_step=round(synced_ms, 3),
@@ -207,6 +211,9 @@ def main(argv=None):
     p.add_argument("--no-euler-damping", action="store_true")
     p.add_argument("--workers", type=int, nargs="+", default=[0])
     p.add_argument("--steps", type=int, default=50)
+    p.add_argument(
+        "--physics-threads", type=int, nargs="+", default=[1], help="CPU MuJoCo's threads"
+    )
     p.add_argument("--calls", type=int, default=50)
     p.add_argument("--distraction", default="none")
     p.add_argument("--label", default="", help="free text stored with the results")
@@ -240,14 +247,23 @@ def main(argv=None):
 
     if "physics" in args.what:
         for n in args.envs:
-            result["physics"].append(
-                bench_physics(task, args.backend, args.seeds, n, solver, args.steps)
-            )
-            save()
+            for threads in args.physics_threads:
+                result["physics"].append(
+                    bench_physics(task, args.backend, args.seeds, n, solver, args.steps, threads)
+                )
+                save()
         _table(
             f"physics {args.task} ({result['device']}, {args.label})",
             result["physics"],
-            ["seeds", "envs", "compile_s", "ms_per_step", "ms_per_step_chained", "finite"],
+            [
+                "seeds",
+                "envs",
+                "threads",
+                "compile_s",
+                "ms_per_step",
+                "ms_per_step_chained",
+                "finite",
+            ],
         )
     if "render" in args.what:
         for w in args.workers:

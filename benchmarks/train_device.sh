@@ -62,8 +62,9 @@
 #             with the physics of $BACKEND (auto, mjx or cpu; default: the config's)
 #   torch     benchmarks/torch_reference.py update (DEAR eager and best, batch 512)
 #   evalcost  benchmarks/evaluation.py: one evaluation step of the DrQ-v2 learning check (3 seeds x
-#             10 episodes), stage by stage, with the env's arrays on the GPU or on XLA:CPU and
-#             CPU physics on 1 or 8 threads; alone, then beside a training run of the same config
+#             10 episodes), stage by stage, with the policy and the env's arrays on the GPU or
+#             on XLA:CPU and CPU physics on 1 or 8 threads, alone
+#   evalload  the same beside a training run of the same config
 #   scaling   benchmarks/scaling.py: DEAR walker-walk, 5 seeds x 8 envs per GPU on 1 and 2 GPUs
 #             (a machine with 2 GPUs)
 #   wait N    sleep N seconds (keeps the call, and so the machine, alive while runs train)
@@ -332,11 +333,13 @@ PY
       $pl --config configs/walker_dear.py --seeds 5 \
         --out "$out/profile_loop_dear_$b.json" > "$out/profile_loop_dear_$b.log" 2>&1
       grep -h -A8 "per iteration" "$out"/profile_loop_*_$b.log ;;
-    evalcost)
-      e="python3 -m benchmarks.evaluation --steps 100 --reps 3 --placements accelerator:default accelerator:cpu --physics-threads 1 8"
-      timeout 200 $e --out "$out/evaluation_alone.json" > "$out/evaluation_alone.log" 2>&1
-      timeout 400 $e --load --out "$out/evaluation_beside_train.json" > "$out/evaluation_beside_train.log" 2>&1
-      tail -n 8 "$out"/evaluation_alone.log "$out"/evaluation_beside_train.log ;;
+    evalcost|evalload)
+      # One call each: alone, then beside a training run (each near a call's 10 minutes).
+      e="python3 -m benchmarks.evaluation --steps 100 --reps 3 --placements accelerator:default accelerator:cpu cpu:cpu --physics-threads 1 8"
+      if [ $stage = evalcost ]; then name=evaluation_alone; load=; t=300
+      else name=evaluation_beside_train; load=--load; t=500; fi
+      timeout $t $e $load --out "$out/$name.json" > "$out/$name.log" 2>&1
+      tail -n 10 "$out/$name.log" ;;
     torch)
       timeout 300 python3 -m benchmarks.torch_reference update --methods dear --batch 512 \
         --iters 20 --variants eager best --out "$out/torch.json" ;;

@@ -65,7 +65,9 @@ class StageTimes:
 def start_load(args, workdir: str) -> tuple[subprocess.Popen, list]:
     """A training run of the config without evaluation (after its first, of one episode per
     seed) in a process of its own, CPU physics; returns once it has logged three rows (the
-    first compiles). `rows` goes on collecting its rows while the evaluations run."""
+    first compiles). `rows` goes on collecting its rows while the evaluations run. Its replay
+    holds 100k transitions per seed: enough to sample from, and it fits beside the evaluations
+    wherever the learning check's own does."""
     cmd = [
         sys.executable, "run.py", "--config", args.config, "--workdir", workdir,
         f"--config.seeds={args.seeds}", "--config.total_frames=100000000",
@@ -73,6 +75,7 @@ def start_load(args, workdir: str) -> tuple[subprocess.Popen, list]:
         "--config.eval_device=train", f"--config.log_every_frames={args.load_log_every}",
         "--config.checkpoint_every_frames=0", "--config.save_video=False",
         "--config.progress=False", "--config.env.backend=cpu", "--config.replay.disk=False",
+        "--config.replay.capacity=100000",
     ]  # fmt: skip
     env = dict(os.environ, XLA_PYTHON_CLIENT_MEM_FRACTION="0.6")
     env.pop("XLA_PYTHON_CLIENT_PREALLOCATE")
@@ -90,12 +93,16 @@ def start_load(args, workdir: str) -> tuple[subprocess.Popen, list]:
                     ready.set()
 
     threading.Thread(target=read, daemon=True).start()
-    if not ready.wait(args.load_start_s) or proc.poll() is not None:
+    deadline = time.monotonic() + args.load_start_s
+    while not ready.wait(1.0) and proc.poll() is None and time.monotonic() < deadline:
+        pass  # a load that fails (e.g. its replay does not fit) is reported at once
+    if not ready.is_set() or proc.poll() is not None:
+        code = proc.poll()
         proc.kill()
         proc.wait()
+        why = f"exited with code {code}" if code is not None else f"ran {args.load_start_s} s"
         raise RuntimeError(
-            f"the load logged no training rows in {args.load_start_s} s: {' '.join(cmd)}\n"
-            + "".join(tail)
+            f"the load {why} without logging 3 training rows: {' '.join(cmd)}\n" + "".join(tail)
         )
     return proc, rows
 

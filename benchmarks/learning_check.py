@@ -84,6 +84,8 @@ def throughput(run, alone_fps: float | None = None) -> dict | None:
     eval.csv) to that line. Rows that no evaluation overlaps are "training alone"; at the paper's
     rate an evaluation on the H100 runs most of the time, so there may be none, and the ratio then
     needs `alone_fps`: training alone measured apart (benchmarks/train.py, same loop).
+    `tail_s`: from the last row to the end of the last evaluation (the closing one), when that
+    ends later; `ratio_with_tail` counts it as run time too.
     """
     run = pathlib.Path(run)
     log = run / "log.txt"
@@ -97,6 +99,7 @@ def throughput(run, alone_fps: float | None = None) -> dict | None:
             for row in csv.DictReader(f):
                 eval_s[int(row["frame"])] = float(row.get("eval_s") or "nan")
     spans, evals, last = [], [], None  # spans: (start s, end s, frames per lane)
+    last_row_t = None
     for line in log.read_text().splitlines():
         stamp = re.match(_STAMP, line)
         if not stamp:
@@ -107,6 +110,7 @@ def throughput(run, alone_fps: float | None = None) -> dict | None:
             if last is not None and frame > last[1]:
                 spans.append((last[0], t, frame - last[1]))
             last = (t, frame)
+            last_row_t = t
         elif m := re.search(r"eval @ ([\d,]+) frames", line):
             took = eval_s.get(int(m.group(1).replace(",", "")), math.nan)
             # Without its eval_s (an older log) the span is unknown: the row it ends in goes.
@@ -124,6 +128,8 @@ def throughput(run, alone_fps: float | None = None) -> dict | None:
 
     alone = [r for r in spans if overlap(r[0], r[1]) == 0.0]
     overall = rate(spans)
+    tail = max([0.0] + [end - last_row_t for _, end in evals])
+    row_s = sum(b - a for a, b, _ in spans)
     alone_rows = rate(alone) if alone else math.nan
     reference = alone_fps if alone_fps else alone_rows
     return dict(
@@ -132,8 +138,10 @@ def throughput(run, alone_fps: float | None = None) -> dict | None:
         alone_from="measured apart" if alone_fps else "rows without an evaluation",
         rows_alone=len(alone),
         rows=len(spans),
-        eval_busy=sum(overlap(a, b) for a, b, _ in spans) / sum(b - a for a, b, _ in spans),
+        eval_busy=sum(overlap(a, b) for a, b, _ in spans) / row_s,
         ratio=reference / overall,
+        tail_s=tail,
+        ratio_with_tail=reference / overall * (row_s + tail) / row_s,
     )
 
 
@@ -205,7 +213,9 @@ def main(argv=None):
         else:
             print(
                 f"Training alone ({tp['alone_from']}): {tp['alone_fps']:.0f}, so the run took "
-                f"{tp['ratio']:.2f}x the time of its training alone"
+                f"{tp['ratio']:.2f}x the time of its training alone over its log rows, "
+                f"{tp['ratio_with_tail']:.2f}x with the {tp['tail_s']:.0f} s after its last row "
+                "(its closing evaluation)"
             )
     if args.out_png:
         plot(result, args.out_png)

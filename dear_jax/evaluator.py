@@ -21,8 +21,11 @@ DrQ-v2 run took 1.19x the time of its training alone with "accelerator" and 1.22
 
 With training at ~1,585 frames/s, a 500k-frame DrQ-v2 run's evaluations (21.5 s each) outlasted
 the training between two of them, and the run took 1.27x the time of its training alone
-(benchmarks/RESULTS.md, fifteenth session). Alone, CPU physics took 9 of an evaluation step's
-22 ms on one thread, so the process now steps its env's CPU physics on up to 8 threads (`build`).
+(benchmarks/RESULTS.md, fifteenth session). Since then the process steps its env's CPU physics on
+up to 8 threads and keeps the env's arrays on XLA:CPU (`build`, env_on="cpu"): beside a training
+run on an H100, an evaluation step of that check took 24.5 ms instead of 34.7
+(benchmarks/evaluation.py, sixteenth session), and the loop lets evaluations queue
+(`train.MAX_PENDING_EVALS`).
 
 Both evaluate one episode in each of the eval env's E envs per seed (`evaluate`), and keep the
 eval env's host state (episode-start RNG, distractions) for checkpoints: an evaluation run in
@@ -207,7 +210,11 @@ def _serve(conn, config_bytes: bytes) -> None:
 
     env = None
     try:
-        env, step, place = build(config, policy_on="accelerator" if on_accelerator else "cpu")
+        env, step, place = build(
+            config,
+            policy_on="accelerator" if on_accelerator else "cpu",
+            env_on="cpu" if config.env.eval_backend == "cpu" else "default",
+        )
         conn.send(("ok", None, env.host_state()))
         while True:
             try:
@@ -242,10 +249,12 @@ def build(config, *, policy_on: str, env_on: str = "default"):
     policy_on "accelerator": the training's own policy program (its dtype) on the accelerator;
     "cpu": the float32 policy on XLA:CPU. env_on: where the env's array work (uploads, frame
     stack, compositing) runs, the process's default device ("default") or XLA:CPU ("cpu", which
-    sets the process's default device, with CPU physics only); on an H100 without a training
-    beside them both took 22.3 ms per evaluation step (benchmarks/evaluation.py). The env is
-    `train.make_eval_env`'s: CPU physics on env.eval_physics_threads threads; alone, the physics
-    took 9-10 of those 22.3 ms on one.
+    sets the process's default device, with CPU physics only; the evaluation process's choice
+    with CPU physics). The env is `train.make_eval_env`'s: CPU physics on
+    env.eval_physics_threads threads. On an H100 beside a training run, ms per evaluation step
+    of the DrQ-v2 learning check (benchmarks/evaluation.py --load): policy on the accelerator
+    with the env "default" 34.7 (1 physics thread) / 30.9 (8), "cpu" 28.9 / 24.5; policy and env
+    on XLA:CPU 42.0 / 36.4.
     """
     from dear_jax import lanes, train  # the child imports these after setting its platform
 

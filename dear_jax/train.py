@@ -7,7 +7,8 @@ update_every_steps updates per seed while the env thread renders the new observa
 workers -> add the new timestep to each seed's replay. The main thread waits on the accelerator
 only once per episode or log interval (a few scalars for the logs) and, while an evaluation runs
 in the background, for each update before dispatching the next (`_Run._step`); the env thread
-waits for the actions (CPU physics) or the physics state (MJX) it needs.
+waits for the actions (CPU physics) or the physics state (MJX) it needs. Evaluations in the
+background queue up to MAX_PENDING_EVALS deep (`_Run._evaluate_if_due`).
 
 `train(config, workdir)` runs (or resumes) a whole experiment and returns its summary. A resume
 continues exactly where the checkpoint left off (`_Run` says what a checkpoint holds; the replay
@@ -31,6 +32,7 @@ values all processes agree on (`Hosts.agree`), so all run the same programs in t
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures
 import contextlib
 import dataclasses
@@ -110,6 +112,11 @@ HOST_SEED_STRIDE = 1_000_033
 
 EVAL_DEVICES = ("auto", "cpu", "accelerator", "train")
 OWN_PROCESS = ("cpu", "accelerator")  # eval_device values that evaluate in a child process
+# Background evaluations started and not yet logged before the loop waits for the oldest: two
+# absorb one that outlasts the training between two (on an H100 an evaluation of the DrQ-v2
+# learning check takes about as long as that training, benchmarks/RESULTS.md), and a stop still
+# waits for at most two evaluations before its checkpoint.
+MAX_PENDING_EVALS = 2
 
 
 def _get(config: ConfigDict, dotted: str):
@@ -922,7 +929,8 @@ class _Run:
         self.metric_sum = None  # train metrics summed since the last log row
         self.episode_returns = []  # [2, S] per step: returns summed and count of ended episodes
         self.last_eval_return = None
-        self._pending_eval = None  # the evaluation in flight (see _evaluate_if_due)
+        # Evaluations started and not yet logged, oldest first (see _evaluate_if_due).
+        self._pending_evals: collections.deque[dict] = collections.deque()
         # Several processes must issue their programs in the same order: no second thread.
         self._eval_thread = (
             concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="eval")
@@ -1013,7 +1021,7 @@ class _Run:
         # The loop saves before starting an evaluation due at this frame (see `loop`), so an
         # evaluation in flight here started earlier: its row and eval-env state belong to this
         # checkpoint.
-        self._finish_evaluation(wait=True)
+        self._finish_evaluations(keep=0)
         self.counters["wall_s"] = wall_s
         if self.store is not None:
             self.store.save_partial(self.buffer, self.counters["rows"])
@@ -1137,7 +1145,7 @@ class _Run:
             # dispatched only once the one before it has finished, so they wait for one update,
             # not for all. (An evaluation in a process of its own queues nothing here.)
             short_queue = (
-                self._pending_eval is not None
+                bool(self._pending_evals)
                 and self._eval_thread is not None
                 and isinstance(self.evaluator, LocalEvaluator)
             )
@@ -1226,13 +1234,18 @@ class _Run:
     def _evaluate_if_due(self, wall_s, stop) -> None:
         """Start the evaluation due at this frame, if any: in a background thread on a copy of
         the parameters (`eval_in_background`, the default) while training goes on, or now. Its
-        row is logged by `_finish_evaluation`, with the frame and wall time of its start."""
-        self._finish_evaluation(wait=False)
+        row is logged by `_finish_evaluations`, with the frame and wall time of its start.
+
+        Background evaluations run one at a time, in order, and queue: the loop waits only when
+        MAX_PENDING_EVALS are already started and not logged, so one evaluation that outlasts
+        the training between two of them does not stall the loop. Each still evaluates the
+        parameters of its own frame, on the eval env's next episodes, as it would unqueued."""
+        self._finish_evaluations()
         config, lv, frame = self.config, self.lv, self.counters["frame"]
         if not self.eval_due() or stop:
             return
-        self._finish_evaluation(wait=True)  # one evaluation at a time, in order
         background = self._eval_thread is not None
+        self._finish_evaluations(keep=MAX_PENDING_EVALS - 1 if background else 0)
         # A copy: the loop donates the agent's buffers to its next update.
         params = jax.tree.map(jnp.copy, self.agent.params) if background else self.agent.params
         key = self._env_key(jax.random.fold_in(self.eval_root, frame))
@@ -1248,12 +1261,10 @@ class _Run:
             )
             return metrics, clips, time.perf_counter() - t0
 
-        pending = {
-            "frame": frame,
-            "wall_s": wall_s,
-            "env_state": self.evaluator.host_state(),
-            "loop": {k: lv[k] for k in ("last_eval_frame", "next_eval")},
-        }
+        pending = {"frame": frame, "wall_s": wall_s}
+        if not background:  # what an aborted evaluation restores (the queue is empty here)
+            pending["env_state"] = self.evaluator.host_state()
+            pending["loop"] = {k: lv[k] for k in ("last_eval_frame", "next_eval")}
         lv["last_eval_frame"] = frame
         lv["next_eval"] = (frame // config.eval_every_frames + 1) * config.eval_every_frames
         if background:
@@ -1264,15 +1275,17 @@ class _Run:
                 future.set_result(run())
             except EvalAborted as e:
                 future.set_exception(e)
-        self._pending_eval = pending
-        self._finish_evaluation(wait=not background)
+        self._pending_evals.append(pending)
+        self._finish_evaluations(keep=None if background else 0)
 
-    def _finish_evaluation(self, *, wait: bool) -> None:
-        """Log the evaluation in flight once it has ended (`wait`: block until it has)."""
-        pending = self._pending_eval
-        if pending is None or not (wait or pending["future"].done()):
-            return
-        self._pending_eval = None
+    def _finish_evaluations(self, *, keep: int | None = None) -> None:
+        """Log the evaluations that have ended, oldest first; with `keep`, first wait until at
+        most `keep` are left unlogged."""
+        queue = self._pending_evals
+        while queue and (queue[0]["future"].done() or (keep is not None and len(queue) > keep)):
+            self._log_evaluation(queue.popleft())
+
+    def _log_evaluation(self, pending: dict) -> None:
         lv, frame = self.lv, pending["frame"]
         try:
             metrics, clips, eval_s = pending["future"].result()
@@ -1341,7 +1354,7 @@ class _Run:
             if self.ckpt.latest_step() != counters["frame"]:
                 self.save(wall())
             self._evaluate_if_due(wall(), stop)  # the closing evaluation (none when stopped)
-            self._finish_evaluation(wait=True)
+            self._finish_evaluations(keep=0)
             counters["wall_s"] = wall()
         finally:
             if self._eval_thread is not None:

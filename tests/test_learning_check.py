@@ -61,6 +61,19 @@ def test_rows_an_evaluation_overlaps_are_not_training_alone(run):
     assert tp["alone_from"] == "rows without an evaluation"
     assert tp["eval_busy"] == pytest.approx((15 + 10) / 67)
     assert tp["ratio"] == pytest.approx((400 / 18) / (1000 / 67))
+    assert tp["tail_s"] == 0.0 and tp["ratio_with_tail"] == pytest.approx(tp["ratio"])
+
+
+def test_the_closing_evaluation_after_the_last_row_counts_in_the_whole_run(run):
+    log = run / "log.txt"
+    log.write_text(log.read_text() + _line(110, "eval @ 200,000 frames: x") + "\n")
+    for s in (0, 1):
+        rows = [(0, 20, 9.0), (100_000, 300, 15.0), (150_000, 900, 10.0), (200_000, 950, 9.0)]
+        _csv(run / f"seed_{s}" / "eval.csv", ["frame", "episode_return", "eval_s"], rows)
+    tp = learning_check.throughput(run, alone_fps=30.0)
+    # it runs from 101 s to 110 s, after the last row (98 s): 12 s more than the rows' 67
+    assert tp["tail_s"] == pytest.approx(12.0) and tp["rows"] == 5
+    assert tp["ratio_with_tail"] == pytest.approx(30.0 / (1000 / 79))
 
 
 def test_training_alone_measured_apart(run):

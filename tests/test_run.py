@@ -7,6 +7,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import types
 
@@ -17,7 +18,7 @@ import numpy as np
 import pytest
 
 from configs import smoke
-from dear_jax import replay_disk, report, train, update
+from dear_jax import evaluator, replay_disk, report, train, update
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.config import resolve_config_path
 from dear_jax.logger import read_csv
@@ -218,6 +219,33 @@ def test_evaluating_in_the_foreground_and_tracing_change_nothing_but_timing(run,
     assert_same_run(run[-1], workdir, 280)
     assert len(read_csv(workdir / "seed_0" / "eval.csv")["frame"]) >= 3
     assert len(list((workdir / "profile").rglob("*.xplane.pb"))) == 1
+
+
+def test_background_evaluations_queue_without_holding_up_the_loop(run, tmp_path, monkeypatch):
+    """The evaluation at frame 0 is held until the loop has passed frame 120: the loop starts the
+    one at 120 beside it instead of waiting, never has more than MAX_PENDING_EVALS started and
+    unlogged, and the run, rows included, is the uninterrupted fixture run's."""
+    frame_0_may_end, held, pending = threading.Event(), [], []
+    evaluate, step = evaluator.LocalEvaluator.evaluate, train._Run._step
+
+    def held_evaluate(self, params, key, **kwargs):
+        if not held:  # the first evaluation, at frame 0 (a loop that waits for it times out)
+            held.append(frame_0_may_end.wait(timeout=60))
+        return evaluate(self, params, key, **kwargs)
+
+    def watched_step(self, pbar):
+        step(self, pbar)
+        pending.append(len(self._pending_evals))
+        if self.counters["frame"] > 120:
+            frame_0_may_end.set()
+
+    monkeypatch.setattr(evaluator.LocalEvaluator, "evaluate", held_evaluate)
+    monkeypatch.setattr(train._Run, "_step", watched_step)
+    # No checkpoint at 120: a checkpoint waits for every evaluation in flight.
+    config = tiny_config(total_frames=280, eval_device="train", checkpoint_every_frames=0)
+    train.train(config, tmp_path)
+    assert held == [True] and max(pending) == train.MAX_PENDING_EVALS == 2
+    assert_same_run(run[-1], tmp_path, 280)
 
 
 def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):

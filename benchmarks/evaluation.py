@@ -9,8 +9,10 @@ POLICY:ENV (the policy on the accelerator or on XLA:CPU in float32; the env's ar
 uploads, frame stack and compositing, on the process's default device or on XLA:CPU), and runs
 `--reps` evaluations of `num_eval_episodes` episodes per seed, each `--steps` agent steps long.
 Each stage is timed to its end: the policy, the physics, the render workers, the env's array
-work (`post`), and what is left (`other`: the evaluation loop's own array work and Python);
-all in ms per agent step, the episode start's picture and the last policy call included.
+work (`post`), with `--video` the writing of each seed's mp4 (`video`; the run's evaluations
+write them, `save_video`), and what is left (`other`: the evaluation loop's own array work and
+Python, the videos' frames put side by side); all in ms per agent step, the episode start's
+picture and the last policy call included, and the whole evaluation in seconds.
 
 With `--load`, the evaluations run beside a training run of the same config without evaluation
 in another process (`run.py`, CPU physics), started first and measured on: the evaluation
@@ -43,7 +45,7 @@ from benchmarks.common import save_json  # noqa: E402
 from dear_jax import evaluator, train, update  # noqa: E402
 from dear_jax.logger import format_table  # noqa: E402
 
-STAGES = ("policy", "physics", "render", "post")
+STAGES = ("policy", "physics", "render", "post", "video")
 
 
 class StageTimes:
@@ -127,9 +129,13 @@ def measure(config, placement: str, threads: int, args) -> dict:
             env._pool.render = times.wrap("render", render)
             env._post = times.wrap("post", post)
             t = time.perf_counter()
-            evaluator.evaluate(
-                env, times.wrap("policy", step), policy, jax.random.key(rep), video=False
+            _, clips = evaluator.evaluate(
+                env, times.wrap("policy", step), policy, jax.random.key(rep), video=args.video
             )
+            if args.video:
+                with tempfile.TemporaryDirectory() as folder:
+                    write = times.wrap("video", evaluator.write_videos)
+                    write(clips, [f"{folder}/{s}.mp4" for s in clips])
             wall = time.perf_counter() - t
             ms = {k: v / args.steps * 1e3 for k, v in times.total.items()}
             ms["other"] = wall / args.steps * 1e3 - sum(ms.values())
@@ -162,6 +168,11 @@ def main():
         help="env.eval_physics_threads, each measured with each placement (0: the default)",
     )
     p.add_argument("--load", action="store_true", help="beside a training loop (another process)")
+    p.add_argument(
+        "--video",
+        action="store_true",
+        help="record and write each seed's video, as a run does (save_video)",
+    )
     p.add_argument("--load-start-s", type=float, default=300.0)
     p.add_argument("--load-log-every", type=int, default=2500, help="the load's frames per row")
     p.add_argument("--out", default=None)
@@ -214,14 +225,19 @@ def main():
         best = min(r["reps"][1:] or r["reps"], key=lambda x: x["wall_s"])
         r["best"] = best
         table.append(
-            [r["placement"], r["physics_threads"], f"{best['wall_s'] / args.steps * 1e3:.1f}"]
+            [r["placement"], r["physics_threads"], f"{best['wall_s']:.2f}"]
+            + [f"{best['wall_s'] / args.steps * 1e3:.1f}"]
             + [f"{best['ms_per_step'][k]:.1f}" for k in (*STAGES, "other")]
         )
     print(
         f"\nOne evaluation step: {config.num_eval_episodes} episodes x {config.seeds} seeds, ms per step "
         f"({'beside a training loop' if load else 'alone'}; {jax.devices()[0].device_kind})"
     )
-    print(format_table(["policy:env", "physics threads", "step", *STAGES, "other"], table))
+    print(
+        format_table(
+            ["policy:env", "physics threads", "evaluation s", "step", *STAGES, "other"], table
+        )
+    )
     write()
 
 

@@ -37,7 +37,7 @@ def load_reference(path) -> tuple[np.ndarray, np.ndarray]:
     return table[:, 0], table[:, seeds]
 
 
-def compare(run, reference=REFERENCE, alone_fps=None) -> dict:
+def compare(run, reference=REFERENCE, alone_fps=None, upto=None) -> dict:
     (curve,) = load_curves(run, "episode_return")
     both = ~np.isnan(curve.y).any(0)  # frames every seed has evaluated
     frames, returns = curve.x[both], curve.y[:, both]
@@ -67,14 +67,14 @@ def compare(run, reference=REFERENCE, alone_fps=None) -> dict:
         ref_frames=ref_frames.tolist(),
         ref_median=ref_median.tolist(),
         ref_quartiles=np.percentile(ref, [25, 75], axis=1).tolist(),
-        throughput=throughput(run, alone_fps),
+        throughput=throughput(run, alone_fps, upto),
     )
 
 
 _STAMP = r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+) "
 
 
-def throughput(run, alone_fps: float | None = None) -> dict | None:
+def throughput(run, alone_fps: float | None = None, upto: int | None = None) -> dict | None:
     """Frames/s in all of a run, from its log.txt's timestamped rows, and how much of its
     training time had an evaluation running beside it; None without such a log.
 
@@ -85,7 +85,8 @@ def throughput(run, alone_fps: float | None = None) -> dict | None:
     rate an evaluation on the H100 runs most of the time, so there may be none, and the ratio then
     needs `alone_fps`: training alone measured apart (benchmarks/train.py, same loop).
     `tail_s`: from the last row to the end of the last evaluation (the closing one), when that
-    ends later; `ratio_with_tail` counts it as run time too.
+    ends later; `ratio_with_tail` counts it as run time too. `upto`: only the rows up to that
+    frame per seed (a run's first part, against a shorter run; no tail).
     """
     run = pathlib.Path(run)
     log = run / "log.txt"
@@ -107,6 +108,8 @@ def throughput(run, alone_fps: float | None = None) -> dict | None:
         t = datetime.datetime.strptime(stamp.group(1), "%Y-%m-%d %H:%M:%S,%f").timestamp()
         if m := re.search(r"frame (\d+) per seed: \d+ frames/s in all", line):
             frame = int(m.group(1))
+            if upto is not None and frame > upto:
+                break
             if last is not None and frame > last[1]:
                 spans.append((last[0], t, frame - last[1]))
             last = (t, frame)
@@ -128,7 +131,7 @@ def throughput(run, alone_fps: float | None = None) -> dict | None:
 
     alone = [r for r in spans if overlap(r[0], r[1]) == 0.0]
     overall = rate(spans)
-    tail = max([0.0] + [end - last_row_t for _, end in evals])
+    tail = 0.0 if upto is not None else max([0.0] + [end - last_row_t for _, end in evals])
     row_s = sum(b - a for a, b, _ in spans)
     alone_rows = rate(alone) if alone else math.nan
     reference = alone_fps if alone_fps else alone_rows
@@ -193,8 +196,14 @@ def main(argv=None):
         default=None,
         help="frames/s of the same loop without evaluation, measured apart (benchmarks/train.py)",
     )
+    p.add_argument(
+        "--upto",
+        type=int,
+        default=None,
+        help="frames per seed: the run's throughput over its log rows up to there only",
+    )
     args = p.parse_args(argv)
-    result = compare(args.run, args.reference, args.alone_fps)
+    result = compare(args.run, args.reference, args.alone_fps, args.upto)
     print("| frames per seed | return per seed | median | published median |\n|---:|---|---:|---:|")
     for r in result["rows"]:
         seeds = ", ".join(f"{v:.0f}" for v in r["seeds"])

@@ -65,6 +65,7 @@
 #             10 episodes), stage by stage, with the policy and the env's arrays on the GPU or
 #             on XLA:CPU and CPU physics on 1 or 8 threads, alone
 #   evalload  the same beside a training run of the same config
+#   evalrun   one whole evaluation as a run's evaluation process runs it (videos written), alone
 #   scaling   benchmarks/scaling.py: DEAR walker-walk, 5 seeds x 8 envs per GPU on 1 and 2 GPUs
 #             (a machine with 2 GPUs)
 #   wait N    sleep N seconds (keeps the call, and so the machine, alive while runs train)
@@ -340,6 +341,12 @@ PY
       else name=evaluation_beside_train; load=--load; t=500; fi
       timeout $t $e $load --out "$out/$name.json" > "$out/$name.log" 2>&1
       tail -n 10 "$out/$name.log" ;;
+    evalrun)
+      # One evaluation of the learning check as a run's evaluation process runs it: the policy on
+      # the GPU, the env's arrays on XLA:CPU, 8 physics threads, whole episodes, videos written.
+      timeout 200 python3 -m benchmarks.evaluation --steps 500 --reps 2 --placements accelerator:cpu \
+        --physics-threads 8 --video --out "$out/evaluation_run.json" > "$out/evaluation_run.log" 2>&1
+      tail -n 5 "$out/evaluation_run.log" ;;
     torch)
       timeout 300 python3 -m benchmarks.torch_reference update --methods dear --batch 512 \
         --iters 20 --variants eager best --out "$out/torch.json" ;;

@@ -27,9 +27,11 @@ run on an H100, an evaluation step of that check took 24.5 ms instead of 34.7
 (benchmarks/evaluation.py, sixteenth session), and the loop lets evaluations queue
 (`train.MAX_PENDING_EVALS`).
 
-Both evaluate one episode in each of the eval env's E envs per seed (`evaluate`), and keep the
-eval env's host state (episode-start RNG, distractions) for checkpoints: an evaluation run in
-either continues the same sequence of episodes.
+Both evaluate one episode in each of the eval env's E envs per seed (`evaluate`), write its videos
+where they run (the evaluation's thread or process, never the training loop's: assembling and
+encoding three 500-frame videos takes seconds of CPU), and keep the eval env's host state
+(episode-start RNG, distractions) for checkpoints: an evaluation run in either continues the same
+sequence of episodes.
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dear_jax.video import side_by_side
+from dear_jax.video import side_by_side, write_video
 
 # The parameters an evaluation reads (the critic's and the TED classifier's are not sent).
 POLICY_PARAMS = ("encoder", "actor", "mask_decoder")
@@ -103,6 +105,13 @@ def evaluate(env, step, params, key, *, video: bool, stop=lambda: False, hosts=N
     return metrics, clips
 
 
+def write_videos(clips: dict, paths) -> None:
+    """Each seed's clip (`evaluate`'s) to its path, paths[seed] (a .mp4 path or None: not written)."""
+    for s, clip in clips.items():
+        if paths[s] is not None:
+            write_video(paths[s], clip, fps=30)
+
+
 class LocalEvaluator:
     """Evaluations in this process: `env` (on the training's devices) and the training's
     `Programs.evaluate_step`."""
@@ -116,8 +125,13 @@ class LocalEvaluator:
     def set_host_state(self, state: dict) -> None:
         self.env.set_host_state(state)
 
-    def evaluate(self, params, key, *, video: bool, stop=lambda: False):
-        return evaluate(self.env, self.step, params, key, video=video, stop=stop, hosts=self.hosts)
+    def evaluate(self, params, key, *, videos=None, stop=lambda: False) -> dict:
+        """Per-seed metrics; with `videos` (a path or None per seed), writes those videos."""
+        metrics, clips = evaluate(
+            self.env, self.step, params, key, video=videos is not None, stop=stop, hosts=self.hosts
+        )
+        write_videos(clips, videos)
+        return metrics
 
     def close(self) -> None:
         self.env.close()
@@ -167,12 +181,14 @@ class EvalProcess:
         self._ready()
         self._call("set_host_state", state)
 
-    def evaluate(self, params, key, *, video: bool, stop=lambda: False):
+    def evaluate(self, params, key, *, videos=None, stop=lambda: False) -> dict:
+        """As LocalEvaluator.evaluate; the child writes the videos."""
         self._ready()
         policy = {k: params[k] for k in POLICY_PARAMS if k in params}
         policy = jax.tree.map(np.asarray, policy)  # waits here for the parameters, not the loop
         key_data = np.asarray(jax.random.key_data(key))
-        return self._call("evaluate", policy, key_data, str(jax.random.key_impl(key)), video)
+        videos = None if videos is None else [None if p is None else str(p) for p in videos]
+        return self._call("evaluate", policy, key_data, str(jax.random.key_impl(key)), videos)
 
     def close(self) -> None:
         if self._proc.is_alive():
@@ -228,9 +244,12 @@ def _serve(conn, config_bytes: bytes) -> None:
                     env.set_host_state(request[1])
                     answer = None
                 else:  # evaluate
-                    policy, key_data, impl, video = request[1:]
+                    policy, key_data, impl, videos = request[1:]
                     key = jax.random.wrap_key_data(jnp.asarray(key_data), impl=impl)
-                    answer = evaluate(env, step, place(policy), key, video=video)
+                    answer, clips = evaluate(
+                        env, step, place(policy), key, video=videos is not None
+                    )
+                    write_videos(clips, videos)
                 conn.send(("ok", answer, env.host_state()))
             except Exception:
                 conn.send(("error", traceback.format_exc(), None))

@@ -60,7 +60,6 @@ from dear_jax.evaluator import EvalAborted, EvalProcess, LocalEvaluator
 from dear_jax.lock import WorkdirLock
 from dear_jax.logger import RunLogger, format_table, read_csv, write_text_atomic
 from dear_jax.signals import Stopped, StopRequest
-from dear_jax.video import write_video
 
 log = logging.getLogger("dear_jax")
 
@@ -1249,6 +1248,8 @@ class _Run:
         # A copy: the loop donates the agent's buffers to its next update.
         params = jax.tree.map(jnp.copy, self.agent.params) if background else self.agent.params
         key = self._env_key(jax.random.fold_in(self.eval_root, frame))
+        folder = self._workdir / "videos"
+        videos = [folder / f"eval_{frame}_{lane.name}.mp4" for lane in self.mine]
 
         def run():
             t0 = time.perf_counter()
@@ -1256,10 +1257,10 @@ class _Run:
             # (or in its own process) runs to its end first, so the checkpoint after it holds
             # its row.
             abort = (lambda: False) if background else (lambda: bool(stop))
-            metrics, clips = self.evaluator.evaluate(
-                params, key, video=config.save_video, stop=abort
+            metrics = self.evaluator.evaluate(
+                params, key, videos=videos if config.save_video else None, stop=abort
             )
-            return metrics, clips, time.perf_counter() - t0
+            return metrics, time.perf_counter() - t0
 
         pending = {"frame": frame, "wall_s": wall_s}
         if not background:  # what an aborted evaluation restores (the queue is empty here)
@@ -1288,7 +1289,7 @@ class _Run:
     def _log_evaluation(self, pending: dict) -> None:
         lv, frame = self.lv, pending["frame"]
         try:
-            metrics, clips, eval_s = pending["future"].result()
+            metrics, eval_s = pending["future"].result()
         except EvalAborted:  # the resumed run evaluates from here again
             self.evaluator.set_host_state(pending["env_state"])
             lv.update(pending["loop"])
@@ -1301,9 +1302,6 @@ class _Run:
             sec_per_1000_frames=1000.0 / fps_per_seed,
         )
         self._logger.write("eval", frame, metrics)
-        for s, clip in clips.items():
-            name = self.mine[s].name
-            write_video(self._workdir / "videos" / f"eval_{frame}_{name}.mp4", clip, fps=30)
         self.last_eval_return = float(np.mean(metrics["episode_return"]))
         log.info(
             "eval @ %s frames: return per seed %s%s",

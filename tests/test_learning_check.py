@@ -82,6 +82,13 @@ def test_training_alone_measured_apart(run):
     assert tp["ratio"] == pytest.approx(30.0 / (1000 / 67))
 
 
+def test_a_runs_first_part_alone(run):
+    tp = learning_check.throughput(run, alone_fps=30.0, upto=400)
+    # rows 1-3 (to frame 400): 300 frames x 2 seeds in 40 s; row 2 overlaps an evaluation
+    assert tp["rows"] == 3 and tp["overall_fps"] == pytest.approx(600 / 40)
+    assert tp["tail_s"] == 0.0 and tp["ratio"] == pytest.approx(30.0 / 15.0)
+
+
 def test_an_evaluation_without_its_duration_drops_the_row_it_ends_in(run):
     for s in (0, 1):
         rows = [(0, 20), (100_000, 300), (150_000, 900)]

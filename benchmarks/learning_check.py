@@ -109,7 +109,7 @@ def throughput(run, alone_fps: float | None = None, upto: int | None = None) -> 
         if m := re.search(r"frame (\d+) per seed: \d+ frames/s in all", line):
             frame = int(m.group(1))
             if upto is not None and frame > upto:
-                break
+                continue  # later rows left out; evaluations logged after them still count
             if last is not None and frame > last[1]:
                 spans.append((last[0], t, frame - last[1]))
             last = (t, frame)

@@ -143,7 +143,8 @@ class EvalProcess:
 
     The child builds the config's eval env and the policy, then serves requests until
     this side closes the pipe (or exits, even by SIGKILL). It ignores SIGINT and SIGTERM: the
-    training process handles those, and lets an evaluation in flight end before it checkpoints.
+    training process handles those, and lets the evaluations in flight or queued end before it
+    checkpoints.
     An evaluation here always runs to its end (`stop` is not read)."""
 
     def __init__(self, config):

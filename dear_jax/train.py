@@ -930,6 +930,7 @@ class _Run:
         self.last_eval_return = None
         # Evaluations started and not yet logged, oldest first (see _evaluate_if_due).
         self._pending_evals: collections.deque[dict] = collections.deque()
+        self._closing = False  # the loop has ended: evaluations still in this process abort
         # Several processes must issue their programs in the same order: no second thread.
         self._eval_thread = (
             concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="eval")
@@ -1017,9 +1018,9 @@ class _Run:
         }
 
     def save(self, wall_s: float) -> None:
-        # The loop saves before starting an evaluation due at this frame (see `loop`), so an
-        # evaluation in flight here started earlier: its row and eval-env state belong to this
-        # checkpoint.
+        # The loop saves before starting an evaluation due at this frame (see `loop`), so the
+        # evaluations in flight or queued here started earlier: their rows and eval-env state
+        # belong to this checkpoint.
         self._finish_evaluations(keep=0)
         self.counters["wall_s"] = wall_s
         if self.store is not None:
@@ -1248,15 +1249,15 @@ class _Run:
         # A copy: the loop donates the agent's buffers to its next update.
         params = jax.tree.map(jnp.copy, self.agent.params) if background else self.agent.params
         key = self._env_key(jax.random.fold_in(self.eval_root, frame))
-        folder = self._workdir / "videos"
+        folder = self._workdir.resolve() / "videos"  # the evaluation process's too
         videos = [folder / f"eval_{frame}_{lane.name}.mp4" for lane in self.mine]
 
         def run():
             t0 = time.perf_counter()
-            # A stop cuts short an evaluation that holds up the loop; one in the background
-            # (or in its own process) runs to its end first, so the checkpoint after it holds
-            # its row.
-            abort = (lambda: False) if background else (lambda: bool(stop))
+            # A stop cuts short an evaluation that holds up the loop; those in the background
+            # (or in their own process) run to their end first, so the checkpoint after them
+            # holds their rows. A loop that fails ends those in this process (`_closing`).
+            abort = (lambda: self._closing) if background else (lambda: bool(stop))
             metrics = self.evaluator.evaluate(
                 params, key, videos=videos if config.save_video else None, stop=abort
             )
@@ -1356,7 +1357,12 @@ class _Run:
             counters["wall_s"] = wall()
         finally:
             if self._eval_thread is not None:
-                self._eval_thread.shutdown(wait=False, cancel_futures=True)
+                # After a failure, no evaluation in this process is left running on the env
+                # the run closes next: it aborts at its next step. (The evaluation process's
+                # `close` waits for the child instead.)
+                self._closing = True
+                local = isinstance(self.evaluator, LocalEvaluator)
+                self._eval_thread.shutdown(wait=local, cancel_futures=True)
             if pbar is not None:
                 pbar.close()
             trace.stop()  # a failing run's trace, without waiting on its arrays

@@ -83,10 +83,17 @@ def test_training_alone_measured_apart(run):
 
 
 def test_a_runs_first_part_alone(run):
-    tp = learning_check.throughput(run, alone_fps=30.0, upto=400)
-    # rows 1-3 (to frame 400): 300 frames x 2 seeds in 40 s; row 2 overlaps an evaluation
-    assert tp["rows"] == 3 and tp["overall_fps"] == pytest.approx(600 / 40)
-    assert tp["tail_s"] == 0.0 and tp["ratio"] == pytest.approx(30.0 / 15.0)
+    tp = learning_check.throughput(run, alone_fps=30.0, upto=300)
+    # rows 1-2 (to frame 300): 200 frames x 2 seeds in 30 s; row 2 overlaps an evaluation
+    assert tp["rows"] == 2 and tp["overall_fps"] == pytest.approx(400 / 30)
+    assert tp["tail_s"] == 0.0 and tp["ratio"] == pytest.approx(30.0 / (400 / 30))
+    # 20 s long, the evaluation logged at 45 s, after row 3 (frame 400), overlaps row 2 too
+    for s in (0, 1):
+        rows = [(0, 20, 9.0), (100_000, 300, 15.0), (150_000, 900, 20.0)]
+        _csv(run / f"seed_{s}" / "eval.csv", ["frame", "episode_return", "eval_s"], rows)
+    tp = learning_check.throughput(run, upto=300)
+    assert tp["rows"] == 2 and tp["rows_alone"] == 1
+    assert tp["eval_busy"] == pytest.approx((15 + 5) / 30)
 
 
 def test_an_evaluation_without_its_duration_drops_the_row_it_ends_in(run):

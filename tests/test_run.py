@@ -222,29 +222,30 @@ def test_evaluating_in_the_foreground_and_tracing_change_nothing_but_timing(run,
 
 
 def test_background_evaluations_queue_without_holding_up_the_loop(run, tmp_path, monkeypatch):
-    """The evaluation at frame 0 is held until the loop has passed frame 120: the loop starts the
-    one at 120 beside it instead of waiting, never has more than MAX_PENDING_EVALS started and
-    unlogged, and the run, rows included, is the uninterrupted fixture run's."""
-    frame_0_may_end, held, pending = threading.Event(), [], []
-    evaluate, step = evaluator.LocalEvaluator.evaluate, train._Run._step
+    """The evaluation at frame 0 is held until the loop first waits for an evaluation: the loop
+    starts the one at 120 beside it, and waits only at 240, with MAX_PENDING_EVALS (2) started
+    and unlogged. The run, rows included, is the uninterrupted fixture run's."""
+    loop_waits, held, waited = threading.Event(), [], []
+    evaluate, finish = evaluator.LocalEvaluator.evaluate, train._Run._finish_evaluations
 
     def held_evaluate(self, params, key, **kwargs):
-        if not held:  # the first evaluation, at frame 0 (a loop that waits for it times out)
-            held.append(frame_0_may_end.wait(timeout=60))
+        if not held:  # the first evaluation, at frame 0
+            held.append(loop_waits.wait(timeout=600))
         return evaluate(self, params, key, **kwargs)
 
-    def watched_step(self, pbar):
-        step(self, pbar)
-        pending.append(len(self._pending_evals))
-        if self.counters["frame"] > 120:
-            frame_0_may_end.set()
+    def watched_finish(self, *, keep=None):
+        if keep is not None and len(self._pending_evals) > keep and not waited:
+            waited.append((self.counters["frame"], len(self._pending_evals)))
+            loop_waits.set()
+        finish(self, keep=keep)
 
     monkeypatch.setattr(evaluator.LocalEvaluator, "evaluate", held_evaluate)
-    monkeypatch.setattr(train._Run, "_step", watched_step)
+    monkeypatch.setattr(train._Run, "_finish_evaluations", watched_finish)
     # No checkpoint at 120: a checkpoint waits for every evaluation in flight.
     config = tiny_config(total_frames=280, eval_device="train", checkpoint_every_frames=0)
     train.train(config, tmp_path)
-    assert held == [True] and max(pending) == train.MAX_PENDING_EVALS == 2
+    assert train.MAX_PENDING_EVALS == 2
+    assert held == [True] and waited == [(240, 2)]
     assert_same_run(run[-1], tmp_path, 280)
 
 

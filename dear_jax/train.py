@@ -497,7 +497,14 @@ def build_programs(
         """`fn` of a block of seeds ([S / N, ...] arguments), run where the block lives."""
         if mesh is None:
             return fn
-        return jax.shard_map(fn, mesh=mesh, in_specs=P("seeds"), out_specs=P("seeds"))
+        # check_vma=False: the bodies hold no collectives (each device runs its own seeds), so
+        # there is nothing for shard_map's varying-axes types to check, and every output varies
+        # over "seeds" by construction. With the check on, each pallas_call (wideconv, wgrad)
+        # would have to state its outputs' varying axes in its out_shape, a jax-version-specific
+        # annotation kernels meant for one device do not carry; without it, tracing fails.
+        return jax.shard_map(
+            fn, mesh=mesh, in_specs=P("seeds"), out_specs=P("seeds"), check_vma=False
+        )
 
     # Acting, updating and evaluating run their seeds as agent.seed_axis says (sampling is always
     # vmapped: integer work, gathers and element-wise sums, the same for any number of seeds).

@@ -105,13 +105,71 @@ def _child(root: pathlib.Path) -> None:
     (root / "placements.json").write_text(json.dumps({"runs": placements, "mjx": mjx}))
 
 
+def _pallas_child(root: pathlib.Path) -> None:
+    """act, add, learn and the evaluation step with the Pallas conv stacks and filter gradients
+    (in Pallas' interpreter here) on one device, and with the 2 seeds split over 2 devices;
+    writes each one's outputs and parameters to root/pallas_<devices>.npz."""
+    import jax
+    import jax.numpy as jnp
+
+    from dear_jax import replay, train, update
+    from envs.base import TimeStep
+
+    pallas = {"agent.conv_stack": "pallas", "agent.filter_gradient": "pallas"}
+    seeds, envs, action_dim, rows = 2, 2, 6, 12
+    c = config(seeds=seeds, **pallas)
+    acfg, hp = train.agent_config(c, action_dim), train.hparams(c)
+    rng = np.random.default_rng(0)
+    shape = (rows, seeds, envs)
+    obs = rng.integers(0, 256, (seeds, envs, 84, 84, 9), np.uint8)
+    steps = [
+        TimeStep(
+            obs=obs,
+            frame=rng.integers(0, 256, (*shape[1:], 84, 84, 3), np.uint8),
+            mask=rng.integers(0, 2, (*shape[1:], 84, 84), np.uint8),
+            true_mask=None,
+            reward=rng.uniform(0, 1, shape[1:]).astype(np.float32),
+            discount=np.ones(shape[1:], np.float32),
+            first=np.full(shape[1:], r == 0),
+            last=None,
+            success=None,
+        )
+        for r in range(rows)
+    ]
+    actions = rng.uniform(-1, 1, (*shape, action_dim)).astype(np.float32)
+    for n in (1, 2):
+        mesh = train.seed_mesh(config(seeds=seeds, devices=n, **pallas))
+        sharding = train.seed_sharding(mesh)
+        put = (lambda x: x) if mesh is None else (lambda x, s=sharding: jax.device_put(x, s))
+        programs = train.build_programs(acfg, hp, c, mesh)
+        agent = put(update.init_seeds(acfg, jax.random.split(jax.random.key(0), seeds)))
+        buffer = put(replay.init(100, envs, (84, 84, 3), action_dim, leading=(seeds,)))
+        for ts, action in zip(steps, actions):
+            buffer = programs.add(buffer, put(ts), put(action))
+        acted, agent = programs.act(agent, put(obs), jax.random.key(1), put(np.ones(shape[1:], bool)))
+        agent, metrics = programs.learn(agent, buffer, jax.random.key(2))
+        evaluated, cos, pred = programs.evaluate_step(agent.params, put(obs))
+        out = {"act": acted, "evaluate": evaluated, "pred": pred, **cos, **metrics}
+        for path, x in jax.tree_util.tree_leaves_with_path(agent.params):
+            out[jax.tree_util.keystr(path)] = x
+        where = sorted({len(x.sharding.device_set) for x in jax.tree.leaves(out)})
+        np.savez(root / f"pallas_{n}.npz", where=where, **{k: np.asarray(v) for k, v in out.items()})
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("sharding")
+    _run_child("runs", root)
+    return root, json.loads((root / "placements.json").read_text())
+
+
+def _run_child(what: str, root: pathlib.Path) -> None:
+    """This file as a script in a process with 4 CPU devices: `_child` ("runs") or
+    `_pallas_child` ("pallas")."""
     env = dict(os.environ, XLA_FLAGS=FLAGS, JAX_PLATFORMS="cpu", MUJOCO_GL="egl")
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(ROOT / "tests")])
     out = subprocess.run(
-        [sys.executable, __file__, str(root)],
+        [sys.executable, __file__, what, str(root)],
         cwd=ROOT,
         env=env,
         capture_output=True,
@@ -119,7 +177,27 @@ def runs(tmp_path_factory):
         timeout=900,
     )
     assert out.returncode == 0, out.stderr[-5000:]
-    return root, json.loads((root / "placements.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def pallas_programs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pallas")
+    _run_child("pallas", root)
+    return [np.load(root / f"pallas_{n}.npz") for n in (1, 2)]
+
+
+def test_pallas_stacks_run_split_over_devices(pallas_programs):
+    """The Pallas conv stacks and filter gradients inside the sharded programs: act, add, learn
+    (the fused mask loss included) and the evaluation step trace and run with the seeds split
+    over 2 devices, their outputs stay split, and they give one device's numbers bit for bit."""
+    one, split = pallas_programs
+    assert list(one["where"]) == [1] and list(split["where"]) == [2]
+    names = [k for k in one.files if k != "where"]
+    assert sorted(names) == sorted(k for k in split.files if k != "where")
+    assert {"act", "evaluate", "pred", "critic_loss", "mask_loss"} <= set(names)
+    assert np.all(np.isfinite(one["mask_loss"])) and np.all(one["mask_loss"] > 0)
+    for name in names:
+        assert one[name].tobytes() == split[name].tobytes(), name
 
 
 def test_a_split_run_is_the_same_run(runs):
@@ -206,4 +284,4 @@ def test_devices_may_change_on_resume():
 
 
 if __name__ == "__main__":
-    _child(pathlib.Path(sys.argv[1]))
+    {"runs": _child, "pallas": _pallas_child}[sys.argv[1]](pathlib.Path(sys.argv[2]))

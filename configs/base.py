@@ -63,11 +63,16 @@ def get_config() -> ConfigDict:
     # Physics of the evaluation episodes: "cpu" (CPU MuJoCo, dm_control's own solver and
     # stepping, on CPU cores beside the GPU's training) or "train" (env.backend's).
     c.env.eval_backend = "cpu"
+    # Threads of the training env's CPU physics (the same numbers on any count); 0: one per
+    # device the process trains on (one device: one thread, overlapped with the updates).
+    c.env.physics_threads = 0
     # Threads of the evaluation env's CPU physics; 0: one per core the evaluating process may
-    # use, up to 8 (the evaluation process has half the machine's cores). The training env steps
-    # on one thread, overlapped with the updates.
+    # use, up to 8 (the evaluation process has half the machine's cores).
     c.env.eval_physics_threads = 0
     c.env.distraction = "none"  # "none" | "easy" | "medium" | "hard" (Distracting Control Suite)
+    # Which distractions, comma-separated: any of background, color, camera, or "all" (the full
+    # suite). The paper's setting (configs/paper.py) is "background".
+    c.env.distraction_types = "all"
     c.env.dynamic = False  # distractions move during the episode
     c.env.background_dir = ""  # DAVIS-2017 root; "" = built-in procedural videos (logged)
     c.env.mask = "true"  # training mask: "true" | "noisy" | "approximate" (ablations)

@@ -3,10 +3,12 @@
     python run.py --config configs/paper.py:TASK,METHOD[,DIFFICULTY[,MASK]]
 
 TASK: walker, cup, finger (Distracting Control Suite) or light, kettle (Franka Kitchen);
-METHOD: drqv2, dear, sear, ted; DIFFICULTY (DMC only): none, easy, medium (default), hard;
-MASK: true (default), noisy (each agent pixel dropped with p = 0.8), approximate (REFERENCE 4).
-E.g. `paper.py:cup,sear,hard` or `paper.py:walker,dear,medium,noisy`. The default workdir is
-runs/paper_<the parts joined by _>. The weight ablations are sweeps in one run:
+METHOD: drqv2, dear, sear, ted; DIFFICULTY (DMC only): none, easy, medium (default), hard:
+the paper's setting, background videos only, static, a new video each episode; with "-full"
+(e.g. medium-full) the full Distracting Control Suite: background, colours and camera;
+MASK: true (default), noisy (each agent pixel dropped with p = 0.8), approximate.
+E.g. `paper.py:cup,sear,hard` or `paper.py:walker,dear,medium-full,noisy`. The default workdir
+is runs/paper_<the parts joined by _>. The weight ablations are sweeps in one run:
 walker_dear_beta_sweep.py and walker_dear_loss_ablation.py.
 """
 
@@ -15,7 +17,8 @@ from ml_collections import ConfigDict
 from configs import base, kitchen
 
 METHODS = ("drqv2", "dear", "sear", "ted")
-DIFFICULTIES = ("none", "easy", "medium", "hard")
+LEVELS = ("easy", "medium", "hard")
+DIFFICULTIES = ("none", *LEVELS, *(f"{d}-full" for d in LEVELS))
 MASKS = ("true", "noisy", "approximate")
 
 
@@ -38,6 +41,8 @@ def get_config(spec: str = "walker,dear,medium") -> ConfigDict:
             raise ValueError(f"{spec!r}: the kitchen has no distraction; give {task},{method}")
         c = kitchen.make(task, method)
     else:
-        c = base.make(task, method, difficulty)
+        level, full = difficulty.removesuffix("-full"), difficulty.endswith("-full")
+        c = base.make(task, method, level)
+        c.env.distraction_types = "all" if full else "background"
     c.env.mask = mask
     return c

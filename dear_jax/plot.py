@@ -19,6 +19,7 @@ import numpy as np
 
 from dear_jax import lanes
 from dear_jax.logger import read_csv
+from envs import distractions
 
 BANDS = ("minmax", "std")
 _BAND_TEXT = {"minmax": "shaded: min..max over seeds", "std": "shaded: mean ± std over seeds"}
@@ -43,12 +44,15 @@ class Curve:
 
 
 def task_name(config: dict) -> str:
-    """A run's task as figures and tables name it: the DMC task with its distraction, if any."""
+    """A run's task as figures and tables name it: the DMC task with its distraction, if any
+    ("walker-walk, distracting medium background", "..., distracting medium full suite")."""
     env = config.get("env", {})
     task, difficulty = env.get("task", "?"), env.get("distraction", "none")
     if difficulty == "none":
         return task
-    return f"{task}, distracting {difficulty}" + (" dynamic" if env.get("dynamic") else "")
+    types = distractions.parse_types(env.get("distraction_types", "all"))  # "all" before the field
+    kinds = "full suite" if types == distractions.DISTRACTION_TYPES else "+".join(types)
+    return f"{task}, distracting {difficulty} {kinds}" + (" dynamic" if env.get("dynamic") else "")
 
 
 def load_curves(workdir: str | os.PathLike, metric: str, x: str = "frame") -> list[Curve]:

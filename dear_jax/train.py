@@ -59,7 +59,9 @@ from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.evaluator import EvalAborted, EvalProcess, LocalEvaluator
 from dear_jax.lock import WorkdirLock
 from dear_jax.logger import RunLogger, format_table, read_csv, write_text_atomic
+from dear_jax.provenance import provenance
 from dear_jax.signals import Stopped, StopRequest
+from envs import distractions
 
 log = logging.getLogger("dear_jax")
 
@@ -79,6 +81,7 @@ RESUMABLE_CHANGES = (
     "profile.iterations",
     "env.render.num_workers",
     "env.eval_backend",
+    "env.physics_threads",
     "env.eval_physics_threads",
     "eval_in_background",
     "eval_device",
@@ -200,6 +203,11 @@ class Hosts:
     def multi(self) -> bool:
         return self.count > 1
 
+    @property
+    def num_devices(self) -> int:
+        """The devices this process trains on."""
+        return 1 if self.local is None else len(self.local.device_set)
+
     def _shards(self, x) -> list:
         """x's shards on this process's devices, in mesh order."""
         by_device = {s.device: s.data for s in x.addressable_shards}
@@ -293,6 +301,10 @@ def validate(config: ConfigDict) -> None:
     for key, valid in choices.items():
         if _get(config, key) not in valid:
             raise ValueError(f"unknown {key} {_get(config, key)!r}; valid: {', '.join(valid)}")
+    try:
+        distractions.parse_types(config.env.distraction_types)
+    except ValueError as e:
+        raise ValueError(f"env.distraction_types: {e}") from None
     positive = (
         "seeds",
         "envs_per_seed",
@@ -307,11 +319,12 @@ def validate(config: ConfigDict) -> None:
     for key in positive:
         if _get(config, key) < 1:
             raise ValueError(f"{key} must be >= 1, got {_get(config, key)}")
-    if config.env.eval_physics_threads < 0:
-        raise ValueError(
-            f"env.eval_physics_threads must be >= 0 (0: one per core, up to 8), got "
-            f"{config.env.eval_physics_threads}"
-        )
+    for key, auto in [
+        ("env.physics_threads", "one per device"),
+        ("env.eval_physics_threads", "one per core, up to 8"),
+    ]:
+        if _get(config, key) < 0:
+            raise ValueError(f"{key} must be >= 0 (0: {auto}), got {_get(config, key)}")
     a, r = config.agent, config.replay
     steps = r.seed_frames // config.env.action_repeat  # transitions per seed before updating
     if steps < a.batch_size:
@@ -413,6 +426,7 @@ def make_env(
         envs_per_seed=envs_per_seed,
         backend=backend or e.backend,
         distraction=e.distraction,
+        distraction_types=e.distraction_types,
         dynamic=e.dynamic,
         background_dir=e.background_dir or None,
         split=split,
@@ -688,6 +702,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 seed=config.seed,
                 mesh=mesh,
                 hosts=hosts,
+                physics_threads=config.env.physics_threads or hosts.num_devices,
             )
         )
         spec = env.spec
@@ -1448,8 +1463,11 @@ def write_summary(
         "render_quality": config.env.render.quality,
         "eval_device": evaluated_on,
         "distraction": config.env.distraction,
+        "distraction_types": list(spec.distraction_types),
+        "backgrounds": spec.backgrounds,
         "stopped": stopped,
         "per_seed": per_seed,
+        "provenance": provenance(),
     }
     unit = "lane" if runs[0].settings else "seed"
     columns = [unit, "final eval return", "best eval return", "abs cos(z_A, z_E)"]
@@ -1462,7 +1480,8 @@ def write_summary(
         f"{wall:.0f} s of training ({fps:.0f} frames/s in all) on {summary['device']} "
         f"({spec.backend} physics, {summary['conv_stack']} conv stacks, evaluations on "
         f"{summary['eval_device']}); render "
-        f"settings {summary['render']}\n\n{table}\n"
+        f"settings {summary['render']}; commit {summary['provenance']['commit']}, jax "
+        f"{summary['provenance']['jax']}\n\n{table}\n"
     )
     write_text_atomic(workdir / "summary.md", text)
     write_text_atomic(workdir / "summary.json", json.dumps(summary, indent=1))

@@ -66,6 +66,8 @@ class EnvSpec:
     envs_per_seed: int = 1
     backend: str = "cpu"
     distraction: str = "none"
+    distraction_types: tuple[str, ...] = ()  # of distractions.DISTRACTION_TYPES; () without
+    backgrounds: str = "none"  # "DAVIS-2017 (<folder>)", "built-in procedural videos", "none"
     dynamic: bool = False
     mask: str = "true"
     physics_steps_per_agent_step: int = 1
@@ -149,6 +151,7 @@ class Env:
         envs_per_seed: int = 1,
         backend: str = "auto",
         distraction: str = "none",
+        distraction_types: str | tuple = distractions.DISTRACTION_TYPES,
         dynamic: bool = False,
         background_dir=None,
         split: str = "train",
@@ -167,6 +170,14 @@ class Env:
         if mask not in MASK_KINDS:
             raise ValueError(f"unknown mask {mask!r}; valid: {', '.join(MASK_KINDS)}")
         distractions.check_difficulty(distraction)
+        types = distractions.parse_types(distraction_types) if distraction != "none" else ()
+        with_videos = "background" in types
+        if not with_videos:
+            backgrounds = "none"
+        elif background_dir:
+            backgrounds = f"DAVIS-2017 ({background_dir})"
+        else:
+            backgrounds = "built-in procedural videos"
         if num_seeds < 1 or envs_per_seed < 1 or action_repeat < 1:
             raise ValueError(
                 f"num_seeds, envs_per_seed and action_repeat must be >= 1, got "
@@ -208,6 +219,8 @@ class Env:
             envs_per_seed=envs_per_seed,
             backend=backend,
             distraction=distraction,
+            distraction_types=types,
+            backgrounds=backgrounds,
             dynamic=dynamic,
             mask=mask,
             physics_steps_per_agent_step=n_sub * action_repeat,
@@ -215,7 +228,7 @@ class Env:
         self.render_settings = render
 
         render_model = task.render_model()
-        if distraction == "none":
+        if not with_videos:
             videos = np.zeros((1, 1, h, w, 3), np.uint8)
             num_videos, num_frames = 0, 1
         else:
@@ -242,6 +255,9 @@ class Env:
             num_videos=num_videos,
             num_frames=num_frames,
             seed=seed,
+            color="color" in types,
+            camera_motion="camera" in types,
+            background=with_videos,
         )
         self._post = jax.jit(
             functools.partial(
@@ -249,7 +265,7 @@ class Env:
                 floor_alpha=task.floor_alpha,
                 mask_kind=mask,
                 drop_prob=mask_drop_prob,
-                composite=distraction != "none",
+                composite=with_videos,
                 frame_stack=self.spec.frame_stack,
             ),
             **({} if sharding is None else {"out_shardings": sharding}),

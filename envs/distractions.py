@@ -60,6 +60,9 @@ from envs.render import (
 log = logging.getLogger(__name__)
 
 DIFFICULTIES = ("none", "easy", "medium", "hard")
+# The kinds of distraction, any subset: the paper's setting is background only (REFERENCE 5);
+# all three are the full Distracting Control Suite.
+DISTRACTION_TYPES = ("background", "color", "camera")
 DIFFICULTY_SCALE = {"none": 0.0, "easy": 0.1, "medium": 0.2, "hard": 0.3}
 DIFFICULTY_VIDEOS = {"none": 0, "easy": 4, "medium": 8, "hard": None}  # None: every video
 SPLITS = ("train", "val")
@@ -73,6 +76,22 @@ DAVIS_LAYOUT = (
 def check_difficulty(difficulty: str) -> None:
     if difficulty not in DIFFICULTIES:
         raise ValueError(f"unknown distraction {difficulty!r}; valid: {DIFFICULTIES}")
+
+
+def parse_types(types: str | tuple | list) -> tuple[str, ...]:
+    """Distraction types from "background,color" (or a sequence), in DISTRACTION_TYPES' order;
+    "all" is every type. Refused: an unknown or repeated type, or none."""
+    names = [t.strip() for t in types.split(",")] if isinstance(types, str) else list(types)
+    if names == ["all"]:
+        return DISTRACTION_TYPES
+    unknown = [t for t in names if t not in DISTRACTION_TYPES]
+    if unknown or not names or len(set(names)) != len(names):
+        what = f"unknown {', '.join(map(repr, unknown))} in" if unknown else "bad"
+        raise ValueError(
+            f"{what} distraction types {types!r}: give one or more of "
+            f"{', '.join(DISTRACTION_TYPES)} separated by commas, each once, or 'all'"
+        )
+    return tuple(t for t in DISTRACTION_TYPES if t in names)
 
 
 def difficulty_videos(difficulty: str) -> int | None:

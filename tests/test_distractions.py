@@ -256,3 +256,59 @@ def test_colour_and_camera_perturbation_on_rendered_frames(walker_frames):
     r_ratio = p["cam_sphere"][:, 0] / dis.cam_default[0]
     assert (area > 0).all()
     assert (area < 2.0 / r_ratio**2).all() and (area > 0.3 / r_ratio**2).all(), (area, r_ratio)
+
+
+def test_distraction_types_pick_what_an_env_perturbs(caplog):
+    """env distraction_types: background only (the paper's setting) composites videos and
+    leaves the agent's colours and the camera alone; colour + camera perturb without videos; the
+    spec says which, and where the videos come from. The agent's pixels of the background-only
+    env equal the undistracted env's on the same episode starts."""
+    import envs
+
+    def make(**kwargs):
+        settings = envs.RenderSettings(num_workers=1, quality="fast")
+        return envs.make(
+            "walker-walk",
+            num_seeds=1,
+            envs_per_seed=2,
+            backend="cpu",
+            render=settings,
+            seed=5,
+            **kwargs,
+        )
+
+    frames = {}
+    for name, kwargs in {
+        "plain": {},
+        "background": {"distraction": "medium", "distraction_types": "background"},
+        "color,camera": {"distraction": "medium", "distraction_types": ("camera", "color")},
+    }.items():
+        env = make(**kwargs)
+        try:
+            _, ts = env.reset(jax.random.key(0))
+            frames[name] = (np.asarray(ts.frame), np.asarray(ts.true_mask), env)
+            perturbed = set(env._distractor.perturb())
+        finally:
+            env.close()
+        if name == "background":
+            assert env.spec.distraction_types == ("background",)
+            assert env.spec.backgrounds == "built-in procedural videos"
+            assert perturbed == set()
+        elif name == "color,camera":
+            assert env.spec.distraction_types == ("color", "camera")
+            assert env.spec.backgrounds == "none"
+            assert {"mat_rgb", "cam_sphere"} <= perturbed
+        else:
+            assert env.spec.distraction_types == () and env.spec.backgrounds == "none"
+    plain, plain_mask, _ = frames["plain"]
+    background, mask, _ = frames["background"]
+    np.testing.assert_array_equal(mask, plain_mask)
+    agent = mask.astype(bool)
+    assert agent.any()
+    np.testing.assert_array_equal(background[agent], plain[agent])
+    assert (background[~agent] != plain[~agent]).any(-1).mean() > 0.5
+    with pytest.raises(ValueError, match="'sky'.*one or more of background, color, camera"):
+        D.parse_types("background,sky")
+    with pytest.raises(ValueError, match="each once"):
+        D.parse_types("color,color")
+    assert D.parse_types("all") == D.DISTRACTION_TYPES

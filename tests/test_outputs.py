@@ -448,9 +448,12 @@ def test_table_ii_reads_logs_older_than_a_column_and_marks_mixed_frames():
 def test_task_name_says_the_distraction():
     assert plot.task_name({"env": {"task": "walker-walk", "distraction": "none"}}) == "walker-walk"
     medium = {"env": {"task": "finger-spin", "distraction": "medium"}}
-    assert plot.task_name(medium) == "finger-spin, distracting medium"
-    medium["env"]["dynamic"] = True
-    assert plot.task_name(medium) == "finger-spin, distracting medium dynamic"
+    # Runs logged before distraction_types existed ran the full suite.
+    assert plot.task_name(medium) == "finger-spin, distracting medium full suite"
+    medium["env"]["distraction_types"] = "background"
+    assert plot.task_name(medium) == "finger-spin, distracting medium background"
+    medium["env"] |= {"distraction_types": "camera,color", "dynamic": True}
+    assert plot.task_name(medium) == "finger-spin, distracting medium color+camera dynamic"
 
 
 def test_plot_labels():

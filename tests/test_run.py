@@ -398,7 +398,11 @@ def test_every_experiment_of_the_paper_has_a_config():
     for task, method, difficulty in grid:
         c = paper.get_config(f"{task},{method},{difficulty}")
         train.validate(c)
-        assert (c.agent.method, c.env.distraction) == (method, difficulty)
+        level = difficulty.removesuffix("-full")
+        assert (c.agent.method, c.env.distraction) == (method, level)
+        # The paper's setting: background videos only; "-full": the whole suite.
+        full = difficulty.endswith("-full")
+        assert c.env.distraction_types == ("all" if full else "background")
     for mask in paper.MASKS:
         assert paper.get_config(f"walker,dear,medium,{mask}").env.mask == mask
     assert paper.get_config("kettle,sear").env.task == "kitchen-kettle"
@@ -409,6 +413,8 @@ def test_every_experiment_of_the_paper_has_a_config():
     assert len(lanes.lanes(walker_dear_loss_ablation.get_config())) == 12
     with pytest.raises(ValueError, match="unknown difficulty 'extreme'.*none, easy, medium, hard"):
         paper.get_config("walker,dear,extreme")
+    with pytest.raises(ValueError, match="unknown difficulty 'medium-fll'.*, medium-full, "):
+        paper.get_config("walker,dear,medium-fll")
     out = subprocess.run(
         [sys.executable, str(ROOT / "run.py"), "--config", "paper.py:walker,dreamer"],
         capture_output=True,
@@ -431,8 +437,15 @@ def test_bad_values_fail_with_valid_choices(tmp_path):
         train.train(tiny_config(**{"agent.shift_impl": "roll"}), tmp_path)
     with pytest.raises(ValueError, match="eval_device 'gpu'; valid: auto, cpu, accelerator, train"):
         train.train(tiny_config(eval_device="gpu"), tmp_path)
+    with pytest.raises(
+        ValueError,
+        match="distraction_types: unknown 'sky' in distraction types 'sky': give one or more of ",
+    ):
+        train.train(tiny_config(**{"env.distraction_types": "sky"}), tmp_path)
     with pytest.raises(ValueError, match="env.eval_physics_threads must be >= 0.*got -1"):
         train.train(tiny_config(**{"env.eval_physics_threads": -1}), tmp_path)
+    with pytest.raises(ValueError, match=r"env.physics_threads must be >= 0 \(0: one per device"):
+        train.train(tiny_config(**{"env.physics_threads": -2}), tmp_path)
 
 
 def test_eval_env_steps_its_physics_on_the_configured_threads():

@@ -52,6 +52,7 @@ def _placements(run) -> dict:
         "env": _where(run.state),
         "timestep": _where(run.ts),
         "returns": _where(run.returns),
+        "physics_threads": run.env.physics.threads,
         "key": sorted({(str(run.key.sharding.spec), len(run.key.sharding.device_set))})
         if run.mesh is not None
         else [],
@@ -110,7 +111,6 @@ def _pallas_child(root: pathlib.Path) -> None:
     (in Pallas' interpreter here) on one device, and with the 2 seeds split over 2 devices;
     writes each one's outputs and parameters to root/pallas_<devices>.npz."""
     import jax
-    import jax.numpy as jnp
 
     from dear_jax import replay, train, update
     from envs.base import TimeStep
@@ -146,14 +146,18 @@ def _pallas_child(root: pathlib.Path) -> None:
         buffer = put(replay.init(100, envs, (84, 84, 3), action_dim, leading=(seeds,)))
         for ts, action in zip(steps, actions):
             buffer = programs.add(buffer, put(ts), put(action))
-        acted, agent = programs.act(agent, put(obs), jax.random.key(1), put(np.ones(shape[1:], bool)))
+        acted, agent = programs.act(
+            agent, put(obs), jax.random.key(1), put(np.ones(shape[1:], bool))
+        )
         agent, metrics = programs.learn(agent, buffer, jax.random.key(2))
         evaluated, cos, pred = programs.evaluate_step(agent.params, put(obs))
         out = {"act": acted, "evaluate": evaluated, "pred": pred, **cos, **metrics}
         for path, x in jax.tree_util.tree_leaves_with_path(agent.params):
             out[jax.tree_util.keystr(path)] = x
         where = sorted({len(x.sharding.device_set) for x in jax.tree.leaves(out)})
-        np.savez(root / f"pallas_{n}.npz", where=where, **{k: np.asarray(v) for k, v in out.items()})
+        np.savez(
+            root / f"pallas_{n}.npz", where=where, **{k: np.asarray(v) for k, v in out.items()}
+        )
 
 
 @pytest.fixture(scope="module")
@@ -251,8 +255,10 @@ def test_arrays_live_split_over_the_devices(runs):
         for group in ("agent", "replay", "env", "timestep", "returns"):
             assert p[group] == [[seeds, n]], (group, p)
         assert p["key"] == [[everywhere, n]]
+        assert p["physics_threads"] == n  # env.physics_threads=0: one per device
     single = [p for p in placements["runs"] if p["devices"] == 1]
     assert single and all(p["agent"] == [["None", 1]] for p in single)
+    assert all(p["physics_threads"] == 1 for p in single)
     for name in ("state", "reward"):
         assert placements["mjx"][name] == [[seeds, 4]], name
 

@@ -1,0 +1,79 @@
+#!/usr/bin/env bash
+# Measurements and long runs on a GPU machine without network access, in stages:
+#
+#   bash benchmarks/device.sh STAGE [ARGS] [STAGE [ARGS]]...
+#
+#   scaling N...        benchmarks/scaling.py on N... GPUs (DEAR walker-walk, 1 and 3 seeds per
+#                       GPU, bf16, 16 envs per seed, the Pallas conv stacks) -> $OUT/scaling.json
+#   multihost           benchmarks/multihost.py: 2 processes on GPUs 0 and 1 (jax.distributed,
+#                       a local coordinator), stopped by SIGTERM and resumed, against one
+#                       process on both GPUs -> $OUT/multihost.json
+#   start NAME GPU ARGS  a detached `run.py ARGS --workdir runs/NAME` on GPU number GPU ("all":
+#                       every GPU), its console in runs/NAME.out; it outlives this call
+#   wait S              sleep up to S seconds while runs train, printing their last log lines;
+#                       returns early once none is running
+#   stop                SIGTERM every run (each saves a checkpoint and its summary), wait for them
+#   collect             the runs' logs and summaries (no checkpoints, replay or videos) ->
+#                       $OUT/runs.tar.gz
+#
+# What the machine must be given (it has CUDA jax, flax, optax, orbax, opencv, matplotlib):
+# wheels in .whl/ and EGL loaders in .gl/ (any folder of wheels `pip install --no-index` takes),
+# dm_control's suite models in .dmc/ (benchmarks/device_dmc.sh). The tree sent there has no
+# .git: export DEAR_JAX_COMMIT=<commit> so JSON and summaries name the code's commit. JAX's
+# compilation cache is $JAX_COMPILATION_CACHE_DIR (default /tmp/jax_cache).
+set -uo pipefail
+cd "$(dirname "$0")/.."
+out=${OUT:-/tmp/out}
+mkdir -p "$out" runs
+
+if [ -d .gl ]; then for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; fi
+if [ -d .whl ] && [ ! -d /tmp/site ]; then
+  python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl || exit 1
+fi
+export PYTHONPATH=/tmp/site:$PWD/.dmc:$PWD MUJOCO_GL=egl PYTHONUNBUFFERED=1
+export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-/tmp/jax_cache}
+nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | sed 's/^/gpu: /'
+
+running() { pgrep -f "python3 run.py" >/dev/null; }
+
+while [ $# -gt 0 ]; do
+  stage=$1; shift
+  case $stage in
+    scaling)
+      devices=()
+      while [ $# -gt 0 ] && [[ $1 =~ ^[0-9]+$ ]]; do devices+=("$1"); shift; done
+      [ ${#devices[@]} -gt 0 ] || devices=(1 2)
+      python3 -m benchmarks.scaling --devices "${devices[@]}" --out "$out/scaling.json"
+      ;;
+    multihost)
+      python3 -m benchmarks.multihost --out "$out/multihost.json"
+      ;;
+    start)
+      name=$1 gpu=$2; shift 2
+      args=()
+      while [ $# -gt 0 ] && [[ $1 == --* ]]; do args+=("$1"); shift; done
+      visible=$([ "$gpu" = all ] && nvidia-smi --query-gpu=index --format=csv,noheader | paste -sd, || echo "$gpu")
+      CUDA_VISIBLE_DEVICES=$visible setsid nohup python3 run.py "${args[@]}" --workdir "runs/$name" \
+        >"runs/$name.out" 2>&1 </dev/null &
+      echo "started runs/$name on GPU $visible: run.py ${args[*]}"
+      ;;
+    wait)
+      end=$((SECONDS + $1)); shift
+      while running && [ $SECONDS -lt $end ]; do sleep 30; done
+      for f in runs/*.out; do [ -f "$f" ] && echo "$f: $(tail -n 1 "$f")"; done
+      ;;
+    stop)
+      pkill -TERM -f "python3 run.py"
+      for _ in $(seq 120); do running || break; sleep 1; done
+      ;;
+    collect)
+      tar -czf "$out/runs.tar.gz" --exclude='checkpoints*' --exclude=replay --exclude=videos \
+        --exclude='*.lock' runs
+      ls -la "$out"
+      ;;
+    *)
+      echo "unknown stage '$stage'; valid: scaling multihost start wait stop collect" >&2
+      exit 2
+      ;;
+  esac
+done

@@ -1,0 +1,60 @@
+"""Where a run or a figure comes from: the code's commit, the date, the machine's accelerator and
+the versions of the libraries that computed it. Written into every run's summary and every
+benchmark's JSON.
+
+The commit is git's (`git rev-parse HEAD`, with "+dirty" when tracked files differ from it) or,
+where the code is a copy without its `.git` (a tree sent to another machine), `DEAR_JAX_COMMIT`
+from the environment; "unknown" otherwise.
+"""
+
+from __future__ import annotations
+
+import datetime
+import functools
+import os
+import pathlib
+import platform
+import subprocess
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+@functools.cache
+def commit() -> str:
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, timeout=10
+        )
+        if head.returncode == 0:
+            dirty = subprocess.run(
+                ["git", "status", "--porcelain", "--untracked-files=no"],
+                cwd=ROOT,
+                capture_output=True,
+                text=True,
+                timeout=10,
+            ).stdout.strip()
+            return head.stdout.strip() + ("+dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return os.environ.get("DEAR_JAX_COMMIT", "unknown")
+
+
+def provenance() -> dict:
+    """commit, date (UTC), the devices JAX sees and the versions of python, jax, flax, mujoco."""
+    import flax
+    import jax
+    import mujoco
+
+    device = jax.devices()[0]
+    return dict(
+        commit=commit(),
+        date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        platform=device.platform,
+        device_kind=device.device_kind,
+        device_count=jax.device_count(),
+        process_count=jax.process_count(),
+        python=platform.python_version(),
+        jax=jax.__version__,
+        flax=flax.__version__,
+        mujoco=mujoco.__version__,
+    )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import pathlib
+import sys
 import time
 
 import jax
@@ -23,15 +24,24 @@ def timed_calls(call, iters: int) -> tuple[float, float]:
 
 
 def save_json(result: dict, out: str | None, default: str | None = None) -> pathlib.Path | None:
-    """Write `result` to `out` (or `default`), creating folders; prints and returns the path.
-
-    Nothing is written when neither is given.
+    """Write `result` to `out` (or `default`), creating folders, with the command that made it
+    and its provenance (commit, date, devices, versions: `dear_jax.provenance`) first; prints
+    and returns the path. Nothing is written when neither is given.
     """
     path = out or default
     if not path:
         return None
+    from dear_jax.provenance import provenance
+
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(result, indent=1))
+    head = {"command": " ".join(["python -m", _module(), *sys.argv[1:]]), **provenance()}
+    path.write_text(json.dumps({**head, **result}, indent=1))
     print(f"wrote {path}")
     return path
+
+
+def _module() -> str:
+    """The running benchmark as `python -m` names it (benchmarks.<name>)."""
+    main = pathlib.Path(sys.argv[0])
+    return f"{main.parent.name}.{main.stem}" if main.parent.name == "benchmarks" else str(main)

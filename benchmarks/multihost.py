@@ -140,10 +140,7 @@ def main():
     p.add_argument("--out", default=None)
     args = p.parse_args()
 
-    from dear_jax.provenance import provenance
-
     result = dict(
-        **provenance(),
         config=args.config,
         processes=args.processes,
         seeds_per_process=args.seeds_per_process,
@@ -152,7 +149,10 @@ def main():
         warmup_frames=args.warmup_frames,
         frames_per_seed=args.frames,
     )
-    out_default = f"benchmarks/results/multihost_{result['platform']}.json"
+    import jax
+
+    platform = jax.devices()[0].platform
+    out_default = f"benchmarks/results/multihost_{platform}.json"
     with tempfile.TemporaryDirectory() as tmp:
         workdir = pathlib.Path(tmp) / "multihost"
         workdir.mkdir()
@@ -200,7 +200,7 @@ def main():
             flags.append(f"--config.devices={args.processes}")
             env = dict(os.environ, CUDA_VISIBLE_DEVICES=",".join(map(str, range(args.processes))))
             env.pop("JAX_COORDINATOR_ADDRESS", None)
-            if result["platform"] == "cpu":
+            if platform == "cpu":
                 env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={args.processes}"
             subprocess.run(
                 [sys.executable, "run.py", *flags, f"--workdir={single}"],

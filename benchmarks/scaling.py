@@ -32,7 +32,7 @@ from benchmarks.common import save_json
 from benchmarks.train import add_run_arguments, bench_config, throughput
 from dear_jax import networks
 from dear_jax.logger import format_table
-from dear_jax.provenance import provenance
+from dear_jax.provenance import commit
 
 
 def main():
@@ -50,7 +50,6 @@ def main():
     device = jax.devices()[0]
     args.seeds = args.seeds_per_device[0]
     result = dict(
-        **provenance(),
         config=args.config,
         conv_stack=networks.stack_for(bench_config(args).agent.conv_stack),
         dtype=args.dtype,
@@ -87,7 +86,7 @@ def main():
     print(
         f"\nScaling over {device.device_kind} devices: {config.agent.method} on "
         f"{config.env.task}, {args.envs} envs per seed, {args.dtype}, {result['conv_stack']} "
-        f"conv stacks (commit {result['commit']})"
+        f"conv stacks (commit {commit()})"
     )
     columns = ["devices", "seeds per device", "seeds", "env frames/s", "per device", "efficiency"]
     print(format_table(columns, rows))

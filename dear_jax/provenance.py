@@ -2,9 +2,9 @@
 the versions of the libraries that computed it. Written into every run's summary and every
 benchmark's JSON.
 
-The commit is git's (`git rev-parse HEAD`, with "+dirty" when tracked files differ from it) or,
-where the code is a copy without its `.git` (a tree sent to another machine), `DEAR_JAX_COMMIT`
-from the environment; "unknown" otherwise.
+The commit is `DEAR_JAX_COMMIT` from the environment when set (a copy of the tree sent to another
+machine, whose `.git`, if any, need not match it), else git's (`git rev-parse HEAD`, with
+"+dirty" when tracked files differ from it), else "unknown".
 """
 
 from __future__ import annotations
@@ -21,6 +21,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 @functools.cache
 def commit() -> str:
+    if os.environ.get("DEAR_JAX_COMMIT"):
+        return os.environ["DEAR_JAX_COMMIT"]
     try:
         head = subprocess.run(
             ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, timeout=10
@@ -36,7 +38,7 @@ def commit() -> str:
             return head.stdout.strip() + ("+dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
         pass
-    return os.environ.get("DEAR_JAX_COMMIT", "unknown")
+    return "unknown"
 
 
 def provenance() -> dict:

@@ -1395,6 +1395,17 @@ def _best(values: np.ndarray) -> float:
     return float(np.nanmax(values)) if np.isfinite(values).any() else math.nan
 
 
+def _distraction_line(spec: envs.EnvSpec) -> str:
+    """What the run's frames were distracted by, as the summary says it."""
+    if spec.distraction == "none":
+        return "no distraction"
+    kinds = ", ".join(spec.distraction_types)
+    return (
+        f"distraction {spec.distraction} ({kinds}; {'dynamic' if spec.dynamic else 'static'}; "
+        f"backgrounds: {spec.backgrounds})"
+    )
+
+
 def write_summary(
     workdir,
     config,
@@ -1479,7 +1490,7 @@ def write_summary(
         f"{until}{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, "
         f"{wall:.0f} s of training ({fps:.0f} frames/s in all) on {summary['device']} "
         f"({spec.backend} physics, {summary['conv_stack']} conv stacks, evaluations on "
-        f"{summary['eval_device']}); render "
+        f"{summary['eval_device']}); {_distraction_line(spec)}; render "
         f"settings {summary['render']}; commit {summary['provenance']['commit']}, jax "
         f"{summary['provenance']['jax']}\n\n{table}\n"
     )

@@ -137,9 +137,19 @@ def test_outputs_exist_and_parse(run):
     cap = cv2.VideoCapture(str(video))
     ok, frame = cap.read()
     assert ok and frame.shape[1] >= 3 * frame.shape[0]  # RGB | true mask | predicted mask
-    assert (workdir / "summary.md").read_text().startswith("# dear on walker-walk")
+    text = (workdir / "summary.md").read_text()
+    assert text.startswith("# dear on walker-walk") and "; no distraction;" in text
     summary = json.loads((workdir / "summary.json").read_text())  # rewritten by the resume
     assert summary["frames_per_seed"] == 280 and len(summary["per_seed"]) == 2
+    assert (summary["distraction_types"], summary["backgrounds"]) == ([], "none")
+    # Where the run comes from: this checkout's commit, the device, the library versions.
+    import jax
+
+    from dear_jax.provenance import commit
+
+    provenance = summary["provenance"]
+    assert provenance["commit"] == commit() != "unknown"
+    assert (provenance["jax"], provenance["platform"]) == (jax.__version__, "cpu")
     assert summary["stopped"] is None
     assert summary["eval_device"] == "cpu"  # "auto", resolved on this CPU-only machine
     assert first["frames_per_seed"] == 240

@@ -145,3 +145,63 @@ def groups(workdir: str | pathlib.Path) -> dict[str, list[pathlib.Path]]:
     for lane in lanes(config):
         out.setdefault(lane.label, []).append(workdir / lane.name)
     return out
+
+
+@dataclasses.dataclass
+class Pool:
+    """The seeds of one experiment's setting, pooled over the run workdirs that trained them
+    (other machines, other days): `seeds` holds (workdir, lane folder) per seed, in the order
+    the workdirs were given."""
+
+    config: dict  # the first workdir's config.json
+    label: str  # the setting ("" without a sweep)
+    seeds: list[tuple[pathlib.Path, pathlib.Path]]
+
+    @property
+    def workdirs(self) -> list[pathlib.Path]:
+        return list(dict.fromkeys(w for w, _ in self.seeds))
+
+
+def pools(workdirs, defaults: dict, ignored: tuple[str, ...]) -> list[Pool]:
+    """The workdirs' lanes pooled by experiment: two workdirs hold seeds of the same experiment
+    when their config.json agree on every field but `ignored` (the seeds, and what a run may
+    change without changing what it learns), a field a config lacks read from `defaults` (the
+    trainer's config of today, flattened, so runs logged before a field existed keep its
+    default); lanes pool by setting. A seed is (config.seed, lane seed): the same seed in two
+    workdirs is refused, since it would be counted twice."""
+    found: dict[tuple[str, str], Pool] = {}
+    origin: dict[tuple[str, str, tuple[int, int]], pathlib.Path] = {}
+    for workdir in map(pathlib.Path, workdirs):
+        by_setting = groups(workdir)
+        config = json.loads((workdir / "config.json").read_text())
+        fields = {**defaults, **flatten(config)}
+        key = json.dumps(
+            {k: v for k, v in fields.items() if k not in ignored and k != "seed"},
+            sort_keys=True,
+            default=str,
+        )
+        seed_of = {lane.name: lane.seed for lane in lanes(ConfigDict(config))}
+        for label, dirs in by_setting.items():
+            pool = found.setdefault((key, label), Pool(config, label, []))
+            for lane_dir in dirs:
+                seed = (config.get("seed", 0), seed_of[lane_dir.name])
+                first = origin.setdefault((key, label, seed), workdir)
+                if first != workdir:
+                    raise ValueError(
+                        f"{first} and {workdir} both trained seed {seed[1]} of config.seed="
+                        f"{seed[0]} of the same experiment: the same seed twice. Give each run "
+                        "of an experiment its own --config.seed"
+                    )
+                pool.seeds.append((workdir, lane_dir))
+    return list(found.values())
+
+
+def flatten(tree: dict, prefix: str = "") -> dict:
+    """{"a": {"b": 1}} -> {"a.b": 1}."""
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out

@@ -2,14 +2,15 @@
 
 Reads WORKDIR/config.json (agent.method, env.task, the sweep) and its lanes' eval.csv, and draws
 the mean over seeds of one eval metric against frames, with a shaded band (min..max over seeds, or
-mean ± std), one line per workdir (per setting of a sweep: `dear_jax/lanes.py`) and one subplot
-per task. `python -m dear_jax.report curves` draws the same figure.
+mean ± std), one line per experiment (per setting of a sweep: `dear_jax/lanes.py`) and one
+subplot per task. Workdirs that ran seeds of the same experiment (the same config but for its
+seeds: other machines, other days) make one line with all their seeds. `python -m
+dear_jax.report curves` draws the same figure.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import pathlib
 import warnings
@@ -41,6 +42,7 @@ class Curve:
         self.x = x  # [N] sorted union of the seeds' x values
         self.y = y  # [S, N], NaN where a seed has no row at that x
         self.label = f"{method} {setting}".strip()
+        self.workdirs = [workdir]  # the runs its seeds come from
 
 
 def task_name(config: dict) -> str:
@@ -55,24 +57,39 @@ def task_name(config: dict) -> str:
     return f"{task}, distracting {difficulty} {kinds}" + (" dynamic" if env.get("dynamic") else "")
 
 
+def pools(workdirs: Sequence[str | os.PathLike]) -> list[lanes.Pool]:
+    """The workdirs' seeds pooled by experiment and setting (`lanes.pools`): runs of the same
+    config (but for its seeds and the fields a run may change without changing what it learns)
+    are one experiment, wherever and whenever they ran."""
+    from dear_jax.train import RESUMABLE_CHANGES
+
+    try:
+        from configs.base import get_config
+    except ImportError:  # the package without the repository's configs/: no defaults to fill
+        defaults = {}
+    else:
+        defaults = lanes.flatten(get_config().to_dict())
+    return lanes.pools(workdirs, defaults, ignored=(*RESUMABLE_CHANGES, "seeds"))
+
+
+def pool_curve(pool: lanes.Pool, metric: str, x: str = "frame") -> Curve:
+    """One pooled setting's metric per seed."""
+    paths = [d / "eval.csv" for _, d in pool.seeds if (d / "eval.csv").is_file()]
+    if not paths:
+        raise FileNotFoundError(
+            f"no eval logs in {pool.workdirs[0]}: expected {pool.seeds[0][1] / 'eval.csv'} "
+            "(written after the first evaluation)"
+        )
+    x_grid, y = _series(paths, metric, x)
+    method = pool.config.get("agent", {}).get("method", "?")
+    curve = Curve(pool.workdirs[0], task_name(pool.config), method, x_grid, y, pool.label)
+    curve.workdirs = pool.workdirs
+    return curve
+
+
 def load_curves(workdir: str | os.PathLike, metric: str, x: str = "frame") -> list[Curve]:
-    """The curves of a workdir: one, or one per setting of its sweep."""
-    workdir = pathlib.Path(workdir)
-    groups = lanes.groups(workdir)
-    config = json.loads((workdir / "config.json").read_text())
-    method = config.get("agent", {}).get("method", "?")
-    task = task_name(config)
-    curves = []
-    for setting, dirs in groups.items():
-        paths = [d / "eval.csv" for d in dirs if (d / "eval.csv").is_file()]
-        if not paths:
-            raise FileNotFoundError(
-                f"no eval logs in {workdir}: expected {dirs[0] / 'eval.csv'} "
-                "(written after the first evaluation)"
-            )
-        x_grid, y = _series(paths, metric, x)
-        curves.append(Curve(workdir, task, method, x_grid, y, setting))
-    return curves
+    """The curves of one workdir: one, or one per setting of its sweep."""
+    return [pool_curve(p, metric, x) for p in pools([workdir])]
 
 
 def _series(paths: list[pathlib.Path], metric: str, x: str) -> tuple[np.ndarray, np.ndarray]:
@@ -112,7 +129,8 @@ def plot(
     x: str = "frame",
     band: str = "minmax",
 ) -> pathlib.Path:
-    """Draw the curves of `workdirs` into a PNG; returns its path."""
+    """Draw the curves of `workdirs` (seeds of one experiment pooled) into a PNG; returns its
+    path."""
     if not workdirs:
         raise ValueError("give at least one workdir")
     if band not in BANDS:
@@ -122,7 +140,7 @@ def plot(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    curves = [c for w in workdirs for c in load_curves(w, metric, x)]
+    curves = [pool_curve(p, metric, x) for p in pools(workdirs)]
     _set_labels(curves)
     if out is None:
         out = pathlib.Path(workdirs[0]) / "curves.png" if len(workdirs) == 1 else "curves.png"
@@ -147,7 +165,9 @@ def plot(
             name = c.label.removeprefix(f"{c.task} ")  # the panel's title names the task
             col = colour[name]
             marker = "o" if len(c.x) <= 40 else None
-            ax.plot(c.x, mean, color=col, marker=marker, ms=3, label=f"{name} (n={c.y.shape[0]})")
+            runs = f", {len(c.workdirs)} runs" if len(c.workdirs) > 1 else ""
+            label = f"{name} (n={c.y.shape[0]}{runs})"
+            ax.plot(c.x, mean, color=col, marker=marker, ms=3, label=label)
             ax.fill_between(c.x, lo, hi, color=col, alpha=0.2, linewidth=0)
         ax.set_title(task)
         ax.set_xlabel(f"{x}s per seed" if x == "frame" else x)

@@ -8,7 +8,10 @@
 shapes only (jax.eval_shape), so it is instant and allocates nothing.
 
 `table` is the paper's Table II for the given run workdirs (what `run.py` writes), one row per
-run, beside the paper's figures (REFERENCE.md section 3, walker on a 1080Ti/3080):
+experiment, beside the paper's figures (REFERENCE.md section 3, walker on a 1080Ti/3080). Runs of
+the same config but for their seeds (other machines, other days: give each its own
+--config.seed) are one experiment, their seeds pooled; the row names the runs and their commits
+and devices (`sources` in the CSV):
   params (M)          the run's agent (encoder, actor, critic and its method's heads)
   s / 1000 frames     wall-clock seconds per 1000 frames of one seed, amortised over the seeds
                       trained together (the paper runs one seed per process): "training" from
@@ -24,11 +27,11 @@ run, beside the paper's figures (REFERENCE.md section 3, walker on a 1080Ti/3080
   frames to T         first evaluated frame at which a seed's return reaches --threshold (the
                       median over the seeds that reach it; "k/S" says how many did)
 It prints Markdown and, with --out PREFIX, writes PREFIX.md and PREFIX.csv. A sweep's run
-(`dear_jax/lanes.py`) gives one row per setting, its seeds pooled.
+(`dear_jax/lanes.py`) gives one row per setting.
 
 `curves` is the paper's learning-curve figure (`dear_jax/plot.py`): one panel per task, one line
-per method (per setting of a sweep: the beta-sweep figure from the sweep's run), the mean over
-seeds with the spread shaded.
+per experiment (per setting of a sweep: the beta-sweep figure from the sweep's run), the mean
+over its pooled seeds with the spread shaded.
 """
 
 from __future__ import annotations
@@ -104,6 +107,7 @@ TABLE_COLUMNS = (
     "eval frame",
     "final return",
     "frames to threshold",
+    "commit, device",
 )
 
 
@@ -131,41 +135,72 @@ def _until(evals: dict, frames: int | None, path: pathlib.Path) -> dict:
     return {name: column[keep] for name, column in evals.items()}
 
 
-def run_rows(workdir, threshold: float, at: int | None = None) -> list[dict]:
-    """Table II's numbers for one run workdir (config.json, summary.json, its lanes' CSVs): one
-    row, or one per setting of a sweep (`dear_jax/lanes.py`). With `at`, the returns, cosines
-    and frames to the threshold are those of the evaluations up to `at` frames per seed (runs
-    stopped at different points compare at the same frame)."""
-    workdir = pathlib.Path(workdir)
+def _run_files(workdir: pathlib.Path) -> tuple[dict, dict]:
+    """A run workdir's config.json and summary.json."""
     for name in ("config.json", "summary.json"):
         if not (workdir / name).is_file():
             raise FileNotFoundError(
                 f"{workdir / name} not found: give the workdir of a run (run.py writes "
                 "summary.json at its end, or when it is stopped)"
             )
-    config = json.loads((workdir / "config.json").read_text())
-    summary = json.loads((workdir / "summary.json").read_text())
-    agent = config["agent"]
-    cfg = AgentConfig(
-        action_dim=_action_dim(summary, config["env"]["task"]),
-        method=agent["method"],
-        encoder=agent["encoder"],
-        latent_dim=agent["latent_dim"],
-        feature_dim=agent["feature_dim"],
-        hidden_dim=agent["hidden_dim"],
-    )
-    params_m = sum(param_counts(cfg).values()) / 1e6
-    groups = lanes.groups(workdir)
-    # Rates are of all lanes together (each log row's fps; the run's wall clock).
-    fps = read_csv(next(iter(groups.values()))[0] / "train.csv")["fps"]
-    fps = fps[np.isfinite(fps)]
-    frames = summary["frames_per_seed"] * sum(map(len, groups.values()))
-    # A run stopped before its end (summary "stopped") is reported as far as it got.
-    stopped = (
-        f" (stopped at {summary['frames_per_seed']:,} frames)" if summary.get("stopped") else ""
-    )
+    return tuple(json.loads((workdir / n).read_text()) for n in ("config.json", "summary.json"))
+
+
+def _source(workdir: pathlib.Path, summary: dict, seeds: int) -> dict:
+    """Where a pooled row's seeds come from: the workdir, and the code and machine that ran it."""
+    made = summary.get("provenance", {})
+    return {
+        "workdir": str(workdir),
+        "seeds": seeds,
+        "frames_per_seed": summary["frames_per_seed"],
+        "stopped": summary.get("stopped"),
+        "commit": made.get("commit", "?"),
+        "device": made.get("device_kind", summary.get("device", "?")),
+        "jax": made.get("jax", "?"),
+    }
+
+
+def run_rows(workdir, threshold: float, at: int | None = None) -> list[dict]:
+    """Table II's rows for one run workdir: one, or one per setting of a sweep."""
+    return pooled_rows([workdir], threshold, at)
+
+
+def pooled_rows(workdirs, threshold: float, at: int | None = None) -> list[dict]:
+    """Table II's numbers for run workdirs (config.json, summary.json, their lanes' CSVs): one
+    row per experiment and setting, its seeds pooled over the workdirs that ran them
+    (`plot.pools`); `sources` says which workdir gave how many seeds, with its commit, device
+    and jax version. With `at`, the returns, cosines and frames to the threshold are those of
+    the evaluations up to `at` frames per seed (runs stopped at different points compare at the
+    same frame)."""
+    workdirs = [pathlib.Path(w) for w in workdirs]
+    files = {w: _run_files(w) for w in workdirs}
     rows = []
-    for label, dirs in groups.items():
+    for pool in plot.pools(workdirs):
+        config = pool.config
+        agent = config["agent"]
+        first = files[pool.workdirs[0]][1]
+        cfg = AgentConfig(
+            action_dim=_action_dim(first, config["env"]["task"]),
+            method=agent["method"],
+            encoder=agent["encoder"],
+            latent_dim=agent["latent_dim"],
+            feature_dim=agent["feature_dim"],
+            hidden_dim=agent["hidden_dim"],
+        )
+        training, walls, frames, sources = [], 0.0, 0, []
+        for workdir in pool.workdirs:
+            summary = files[workdir][1]
+            groups = lanes.groups(workdir)
+            # Rates are of all of a run's lanes together (each log row's fps; its wall clock).
+            fps = read_csv(next(iter(groups.values()))[0] / "train.csv")["fps"]
+            fps = fps[np.isfinite(fps)]
+            if fps.size:
+                training.append(1000.0 / np.median(fps))
+            walls += summary["wall_s"]
+            frames += summary["frames_per_seed"] * sum(map(len, groups.values()))
+            mine = sum(w == workdir for w, _ in pool.seeds)
+            sources.append(_source(workdir, summary, mine))
+        dirs = [d for _, d in pool.seeds]
         evals = [_until(read_csv(d / "eval.csv"), at, d / "eval.csv") for d in dirs]
         finals = np.array([e["episode_return"][-1] for e in evals])
         reached = []
@@ -173,15 +208,22 @@ def run_rows(workdir, threshold: float, at: int | None = None) -> list[dict]:
             hit = np.nonzero(e["episode_return"] >= threshold)[0]
             if hit.size:
                 reached.append(e["frame"][hit[0]])
+        # A run stopped before its end (summary "stopped") is reported as far as it got.
+        names = [
+            f"{s['workdir'].rsplit('/', 1)[-1]}"
+            + (f" ({s['seeds']})" if len(sources) > 1 else "")
+            + (f" (stopped at {s['frames_per_seed']:,} frames)" if s["stopped"] else "")
+            for s in sources
+        ]
         rows.append(
             {
-                "run": f"{workdir.name} {label}".strip() + stopped,
+                "run": f"{' + '.join(names)} {pool.label}".strip(),
                 "method": agent["method"],
                 "task": plot.task_name(config),
                 "seeds": len(dirs),
-                "params_m": params_m,
-                "s_per_1000_training": 1000.0 / np.median(fps) if fps.size else math.nan,
-                "s_per_1000_with_eval": 1000.0 * summary["wall_s"] / frames if frames else math.nan,
+                "params_m": sum(param_counts(cfg).values()) / 1e6,
+                "s_per_1000_training": float(np.median(training)) if training else math.nan,
+                "s_per_1000_with_eval": 1000.0 * walls / frames if frames else math.nan,
                 "cos": _last_mean(evals, "cos_agent_env"),
                 "abs_cos": _last_mean(evals, "abs_cos_agent_env"),
                 "eval_frame_min": int(min(e["frame"][-1] for e in evals)),
@@ -191,6 +233,10 @@ def run_rows(workdir, threshold: float, at: int | None = None) -> list[dict]:
                 "frames_to_threshold": float(np.median(reached)) if reached else math.nan,
                 "seeds_reaching_threshold": len(reached),
                 "threshold": threshold,
+                "code": ", ".join(
+                    dict.fromkeys(f"{s['commit'][:7]} {s['device']}" for s in sources)
+                ),
+                "sources": json.dumps(sources),
             }
         )
     return rows
@@ -216,6 +262,7 @@ def _cells(r: dict) -> list:
         _frames(r["eval_frame_min"], r["eval_frame"]),
         f"{r['final_return_mean']:.1f} ± {r['final_return_std']:.1f}",
         f"{fmt(r['frames_to_threshold'], ',.0f')} ({reached})",
+        r["code"],
     ]
 
 
@@ -227,10 +274,11 @@ def runs_table(
     workdirs, threshold: float, out: str | None = None, at: int | None = None
 ) -> tuple[list[dict], str]:
     """Rows and the Markdown text of Table II; with `out`, also writes out.md and out.csv."""
-    rows = [row for w in workdirs for row in run_rows(w, threshold, at)]
+    rows = pooled_rows(workdirs, threshold, at)
     when = "the last evaluation" if at is None else f"the last evaluation up to {at:,} frames"
     text = (
-        f"Table II: {len(rows)} run(s); s / 1000 frames per seed amortised over the seeds "
+        f"Table II: {len(rows)} experiment(s), each with its seeds pooled over the runs named; "
+        "s / 1000 frames per seed amortised over the seeds "
         f"trained together; returns and cosines of {when}; frames to a return of "
         f"{threshold:g}\n\n" + format_table(TABLE_COLUMNS, [_cells(r) for r in rows]) + "\n"
     )

@@ -390,12 +390,12 @@ def test_video_errors(tmp_path, monkeypatch):
 # ---------------------------------------------------------------- plots
 
 
-def _fake_workdir(root, name, method, task="walker-walk", offset=0.0, sweep=None):
+def _fake_workdir(root, name, method, task="walker-walk", offset=0.0, sweep=None, **fields):
     """A workdir as the trainer leaves it: config.json, and eval logs of 3 seeds per setting
     (seed s of setting i returns offset + 100 i + frame / 100 + (0, 10, 50)[s])."""
     workdir = root / name
     workdir.mkdir()
-    config = {"seeds": 3, "agent": {"method": method}, "env": {"task": task}}
+    config = {"seeds": 3, "agent": {"method": method}, "env": {"task": task}, **fields}
     config["sweep"] = sweep or {}
     (workdir / "config.json").write_text(json.dumps(config))
     names = [lane.name for lane in lanes.lanes(ConfigDict(config))]
@@ -404,6 +404,7 @@ def _fake_workdir(root, name, method, task="walker-walk", offset=0.0, sweep=None
             returns = offset + frame / 100 + np.array([0.0, 10.0, 50.0] * (len(names) // 3))
             returns += np.repeat(100.0 * np.arange(len(names) // 3), 3)
             log.write("eval", frame, {"episode_return": returns, "cos_agent_env": 0.01})
+            log.write("train", frame, {"fps": 900.0 + offset})
     return workdir
 
 
@@ -420,6 +421,61 @@ def test_plot_two_workdirs(tmp_path):
     # One workdir: the PNG goes into it by default.
     assert plot.plot([dear], band="std") == dear / "curves.png"
     assert (dear / "curves.png").stat().st_size > 1000
+
+
+def test_seeds_of_one_experiment_pool_over_workdirs(tmp_path):
+    """Runs of the same config with other config.seed values (other machines, other days) are
+    one experiment: one curve holding all their seeds, one Table II row naming where its seeds
+    come from. Another method, or another learning setting, stays apart; the same seed twice is
+    refused."""
+    from configs import base
+
+    def full(name, method, seed, changes=()):
+        c = base.make("walker", method)
+        c.seeds, c.seed = 3, seed
+        for dotted, value in changes:
+            *parents, key = dotted.split(".")
+            node = c
+            for part in parents:
+                node = node[part]
+            node[key] = value
+        workdir = _fake_workdir(tmp_path, name, method, offset=seed, **c.to_dict())
+        summary = {"frames_per_seed": 30_000, "wall_s": 100.0 + seed, "action_dim": 6}
+        summary["provenance"] = {"commit": f"{seed}" * 40, "device_kind": "H100", "jax": "0.11"}
+        (workdir / "summary.json").write_text(json.dumps(summary))
+        return workdir
+
+    # A field a run may change without changing what it learns does not split an experiment.
+    a, b = full("a", "dear", 0), full("b", "dear", 7, [("num_eval_episodes", 5)])
+    other = full("c", "dear", 1, [("agent.beta", 10.0)])
+    drq = full("d", "drqv2", 0)
+    pools = plot.pools([a, drq, b, other])
+    assert [len(p.seeds) for p in pools] == [6, 3, 3]
+    assert pools[0].workdirs == [a, b]
+    (curve,) = [plot.pool_curve(p, "episode_return") for p in pools[:1]]
+    np.testing.assert_array_equal(curve.y[:, 0], [100, 110, 150, 107, 117, 157])
+    rows = report.pooled_rows([a, b, drq], threshold=150.0)
+    assert [(r["method"], r["seeds"]) for r in rows] == [("dear", 6), ("drqv2", 3)]
+    row = rows[0]
+    assert row["run"] == "a (3) + b (3)"
+    finals = np.array([300, 310, 350, 307, 317, 357])
+    assert row["final_return_mean"] == pytest.approx(finals.mean())
+    assert row["final_return_std"] == pytest.approx(finals.std())
+    # Returns of 150 reached at 10k by seeds 2 of both runs (150, 157), at 20k by the others.
+    assert row["seeds_reaching_threshold"] == 6 and row["frames_to_threshold"] == 20_000
+    assert row["s_per_1000_training"] == pytest.approx(np.median([1000 / 900, 1000 / 907]))
+    assert row["s_per_1000_with_eval"] == pytest.approx(1000 * 207 / (2 * 3 * 30_000))
+    sources = json.loads(row["sources"])
+    assert [(s["workdir"], s["seeds"], s["commit"][:2]) for s in sources] == [
+        (str(a), 3, "00"),
+        (str(b), 3, "77"),
+    ]
+    assert row["code"] == "0000000 H100, 7777777 H100"
+    out = report.main(["curves", str(a), str(b), str(drq), "--out", str(tmp_path / "p.png")])
+    assert cv2.imread(str(out)).std() > 0
+    twice = full("a_again", "dear", 0)
+    with pytest.raises(ValueError, match="both trained seed 0 of config.seed=0 .* the same seed"):
+        plot.pools([a, twice])
 
 
 def test_plot_draws_a_line_per_setting_of_a_sweep(tmp_path):

@@ -10,6 +10,8 @@ workdir resumes from its latest checkpoint. SIGTERM or Ctrl-C checkpoints, then 
 Several hosts: start the same command on each with `--multihost` (README, "Several hosts").
 """
 
+import contextlib
+import io
 import logging
 import os
 import pathlib
@@ -75,6 +77,23 @@ def _start_processes() -> int:
     return jax.process_index()
 
 
+def _check(config) -> None:
+    """The trainer's checks of a config, and its background videos' folder, before the run
+    writes anything."""
+    root = logging.getLogger()
+    level = root.level
+    root.setLevel(logging.WARNING)  # libraries' notes (imports, backends) are for the log
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            from dear_jax.train import validate
+            from envs.distractions import check_background_dir
+
+            validate(config)
+            check_background_dir(config.env)
+    finally:
+        root.setLevel(level)
+
+
 def main(argv):
     del argv
     from dear_jax import console
@@ -84,10 +103,18 @@ def main(argv):
     name = "_".join([pathlib.Path(path).stem, *filter(None, map(str.strip, spec.split(",")))])
     workdir = _WORKDIR.value or str(pathlib.Path("runs") / name)
     process = _start_processes()
+    new = not pathlib.Path(workdir).exists()
     try:
         lock = WorkdirLock(workdir, process)
         lock.acquire()  # before the slow imports: a second run on a workdir fails at once
     except WorkdirLocked as e:
+        sys.exit(f"error: {e}")
+    try:
+        _check(_CONFIG.value)
+    except (ValueError, FileNotFoundError) as e:  # bad input: one line, nothing left behind
+        lock.release()
+        if new:
+            pathlib.Path(workdir).rmdir()  # it holds nothing but the lock this run took
         sys.exit(f"error: {e}")
     console.setup(workdir, verbose=_VERBOSE.value, process=process)
     from dear_jax.checkpoint import IncompatibleCheckpointError

@@ -312,3 +312,22 @@ def test_distraction_types_pick_what_an_env_perturbs(caplog):
     with pytest.raises(ValueError, match="each once"):
         D.parse_types("color,color")
     assert D.parse_types("all") == D.DISTRACTION_TYPES
+
+
+def test_background_dir_is_checked_only_where_backgrounds_are_shown(davis, tmp_path):
+    from ml_collections import ConfigDict
+
+    def env(folder, types="all", distraction="medium"):
+        return ConfigDict(
+            {"background_dir": str(folder), "distraction": distraction, "distraction_types": types}
+        )
+
+    D.check_background_dir(env(davis))  # the layout of DAVIS-2017
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="ImageSets/2017/train.txt is missing"):
+        D.check_background_dir(env(tmp_path / "empty"))
+    (davis / "JPEGImages" / "480p" / "v3").rename(davis / "moved")
+    with pytest.raises(FileNotFoundError, match="video folder .*v3 is missing"):
+        D.check_background_dir(env(davis))
+    D.check_background_dir(env(tmp_path / "nope", types="color,camera"))  # no videos shown
+    D.check_background_dir(env(tmp_path / "nope", distraction="none"))

@@ -371,6 +371,32 @@ def test_fingerprint_is_every_field_but_the_resumable_ones():
     assert train.fingerprint(relaxed) == train.fingerprint(tiny_config())
 
 
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--config.total_frames=-5"], "error: total_frames must be >= 1, got -5"),
+        (
+            ["--config.env.distraction=medium", "--config.env.background_dir=/nope"],
+            "error: env.background_dir '/nope' is not a folder; give a DAVIS-2017 root",
+        ),
+    ],
+)
+def test_bad_input_says_one_line_and_leaves_nothing(tmp_path, flags, message):
+    """A config the trainer refuses: run.py prints one line naming the problem (no traceback,
+    no libraries' notes) and leaves no workdir behind."""
+    workdir = tmp_path / "run"
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "run.py"), "--config=smoke", *flags, f"--workdir={workdir}"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 1
+    assert out.stderr.strip().splitlines() == [out.stderr.strip()]
+    assert out.stderr.startswith(message) and not out.stdout
+    assert not workdir.exists()
+
+
 def test_config_by_bare_name_and_unknown_names():
     """`--config walker_dear.py` (or `smoke`) is looked up in configs/; an unknown name lists them."""
     out = subprocess.run(

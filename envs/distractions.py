@@ -96,16 +96,16 @@ def parse_types(types: str | tuple | list) -> tuple[str, ...]:
 
 def check_background_dir(env) -> None:
     """An env config's background_dir (when its distraction shows backgrounds) holds DAVIS-2017's
-    layout: the train and val lists, and the first train video's frames."""
+    layout: the train and val lists, and the folder of each list's first video."""
     if not env.background_dir or env.distraction == "none":
         return
     if "background" not in parse_types(env.distraction_types):
         return
     for split in SPLITS:
-        names = davis_video_names(env.background_dir, split)
-    folder = pathlib.Path(env.background_dir) / "JPEGImages" / "480p" / names[0]
-    if not folder.is_dir():
-        raise FileNotFoundError(f"video folder {folder} is missing; expected a {DAVIS_LAYOUT}")
+        first = davis_video_names(env.background_dir, split)[0]
+        folder = pathlib.Path(env.background_dir) / "JPEGImages" / "480p" / first
+        if not folder.is_dir():
+            raise FileNotFoundError(f"video folder {folder} is missing; expected a {DAVIS_LAYOUT}")
 
 
 def difficulty_videos(difficulty: str) -> int | None:

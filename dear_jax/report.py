@@ -8,7 +8,7 @@
 shapes only (jax.eval_shape), so it is instant and allocates nothing.
 
 `table` is the paper's Table II for the given run workdirs (what `run.py` writes), one row per
-run, beside the paper's figures (REFERENCE.md section 3, walker on a 1080Ti/3080):
+run, beside the paper's figures (docs/method.md; walker on a 1080Ti/3080):
   params (M)          the run's agent (encoder, actor, critic and its method's heads)
   s / 1000 frames     wall-clock seconds per 1000 frames of one seed, amortised over the seeds
                       trained together (the paper runs one seed per process): "training" from
@@ -81,7 +81,7 @@ def format_params_table(rows) -> str:
     return "\n".join([fmt(lines[0]), sep, *map(fmt, lines[1:])])
 
 
-# REFERENCE.md section 3 (walker-walk, the paper's 1080Ti/3080) and section 2 (cos).
+# The paper's table (docs/method.md: walker-walk on a 1080Ti/3080, and the cosine metric).
 PAPER = {
     "drqv2": {"params_m": 12.86, "s_per_1000": 12.55},
     "sear": {"params_m": 16.21, "s_per_1000": 18.02, "cos": 0.1},

@@ -50,7 +50,7 @@ def _task(name):
 
 
 def _action_repeat(name) -> int:
-    return 1 if name in kitchen.TASKS else 2  # REFERENCE 6 / DMC's 2
+    return 1 if name in kitchen.TASKS else 2  # docs/method.md: kitchen 1, DMC 2
 
 
 def bench_physics(task, backend, seeds, num_envs, solver, steps, threads=1):

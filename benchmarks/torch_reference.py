@@ -1,6 +1,6 @@
 """The PyTorch reference: DEAR's and DrQ-v2's updates, and a training pipeline of the reference's shape.
 
-Written from REFERENCE.md (the shared notes), not from the DEAR or DrQ-v2 code, so that the JAX
+Written from docs/method.md, not from the DEAR or DrQ-v2 code, so that the JAX
 trainer's speed is measured against the same architecture and losses in PyTorch, on the same GPU,
 in the same session. Nothing in dear_jax imports this file; PyTorch is not a dependency of the
 project (install any torch 2.x to run it).
@@ -74,12 +74,12 @@ from torch import nn
 
 from benchmarks.common import save_json
 
-# REFERENCE.md section 1-2 (walker overrides batch 512 and nstep 1).
+# docs/method.md, Hyperparameters (walker overrides batch 512 and nstep 1).
 LR = 1e-4
 TAU = 0.01
 STDDEV_CLIP = 0.3
 ALPHA = 0.25  # mask loss weight
-BETA = 100.0  # orthogonality loss weight (dear_jax's default; see REFERENCE.md section 2)
+BETA = 100.0  # orthogonality loss weight (dear_jax's default; see docs/method.md)
 AUGMENT_PAD = 4
 FRAME_STACK = 3
 LATENT_DIM = 4096

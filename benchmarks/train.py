@@ -34,7 +34,7 @@ from dear_jax.logger import format_table, read_csv
 from dear_jax.signals import Stopped
 
 PYTORCH_ANCHOR_FPS = (
-    262.0  # DESIGN.md: PyTorch pipeline of the reference's shape, 5 processes, H100
+    262.0  # docs/design.md: PyTorch pipeline of the reference's shape, 5 processes, H100
 )
 
 

@@ -20,7 +20,7 @@ from benchmarks.common import save_json, timed_calls
 from dear_jax import augment, networks, update, wgrad
 from dear_jax.replay import Batch
 
-# DESIGN.md: the PyTorch reference architecture's DEAR update, batch 256, TF32, on an H100.
+# docs/design.md: the PyTorch reference architecture's DEAR update, batch 256, TF32, on an H100.
 PYTORCH_ANCHOR_MS = 12.1
 
 

@@ -1,4 +1,4 @@
-"""Base configuration: DEAR on walker-walk, the hyperparameters of REFERENCE.md.
+"""Base configuration: DEAR on walker-walk, the hyperparameters of docs/method.md.
 
 Experiment files import `get_config` from here and override a few fields; every field can also be
 overridden on the command line: `python run.py --config configs/walker_dear.py --config.seeds=5`.

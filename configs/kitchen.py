@@ -1,6 +1,6 @@
-"""Franka Kitchen experiments (REFERENCE 6): the base hyperparameters with the kitchen's env.
+"""Franka Kitchen experiments (docs/method.md): the base hyperparameters with the kitchen's env.
 
-Everything else stays REFERENCE 1's (batch 256, n-step 3, lr 1e-4, std 1.0 -> 0.1 over 500k
+Everything else stays the base's (docs/method.md: batch 256, n-step 3, lr 1e-4, std 1.0 -> 0.1 over 500k
 agent steps, 4000 seed frames, 2000 uniform steps, eval every 10k frames over 10 episodes). With
 action repeat 1 a frame is an agent step, and an episode is at most 280 frames (it ends on
 success); eval logs and the run summary report the success rate.

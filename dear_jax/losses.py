@@ -2,7 +2,7 @@
 
 Import these into any JAX agent: none needs a config object or a network. Every function works
 under `jax.jit`, `jax.vmap` and `jax.grad`. Shapes: B is the batch, F the latent width,
-H x W the image, K stacked frames. Reductions follow REFERENCE.md and are part of the contract
+H x W the image, K stacked frames. Reductions follow docs/method.md (Losses) and are part of the contract
 (the mask loss is a *sum* over pixels and frames, averaged over the batch).
 """
 

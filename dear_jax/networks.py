@@ -1,4 +1,4 @@
-"""Flax modules of DrQ-v2 and the auxiliary heads of DEAR, SEAR and TED (REFERENCE.md sections 1-3).
+"""Flax modules of DrQ-v2 and the auxiliary heads of DEAR, SEAR and TED (docs/method.md, Architecture).
 
 Every module works on one unbatched-or-batched array with channels last; seeds are added by
 `jax.vmap` at the call site, never here. Initialisation follows DrQ-v2: orthogonal weights (gain 1

@@ -4,7 +4,7 @@ It stores single uint8 frames and masks of E parallel environments in a ring of 
 ([T, E, ...]; a row is one batched environment step), plus the action that led to each frame,
 rewards, discounts and an episode id per entry. Frame stacks, n-step returns and TED's
 same-episode frames are rebuilt at sample time, so memory is that of single frames
-(REFERENCE.md section 1: a stacked 250k buffer would need ~21 GB per seed).
+(docs/method.md, Hyperparameters: a stacked 250k buffer would need ~21 GB per seed).
 
 Conventions (dm_env / DrQ-v2): entry (t, e) holds the timestep returned by the environment; its
 `action` is the action that produced it (zeros on the first step of an episode). The transition

@@ -8,7 +8,7 @@
 shapes only (jax.eval_shape), so it is instant and allocates nothing.
 
 `table` is the paper's Table II for the given run workdirs (what `run.py` writes), one row per
-experiment, beside the paper's figures (REFERENCE.md section 3, walker on a 1080Ti/3080). Runs of
+experiment, beside the paper's figures (docs/method.md; walker on a 1080Ti/3080). Runs of
 the same config but for their seeds (other machines, other days: give each its own
 --config.seed) are one experiment, their seeds pooled; the row names the runs and their commits
 and devices (`sources` in the CSV):
@@ -84,7 +84,7 @@ def format_params_table(rows) -> str:
     return "\n".join([fmt(lines[0]), sep, *map(fmt, lines[1:])])
 
 
-# REFERENCE.md section 3 (walker-walk, the paper's 1080Ti/3080) and section 2 (cos).
+# The paper's table (docs/method.md: walker-walk on a 1080Ti/3080, and the cosine metric).
 PAPER = {
     "drqv2": {"params_m": 12.86, "s_per_1000": 12.55},
     "sear": {"params_m": 16.21, "s_per_1000": 18.02, "cos": 0.1},

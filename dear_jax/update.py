@@ -85,7 +85,7 @@ class AgentConfig:
 
 @struct.dataclass
 class HParams:
-    """Per-seed numbers (vmappable). Defaults: REFERENCE.md sections 1-3."""
+    """Per-seed numbers (vmappable). Defaults: docs/method.md, Hyperparameters."""
 
     alpha: float = 0.25  # mask loss weight (DEAR, SEAR)
     beta: float = 100.0  # orthogonality loss weight (DEAR)

@@ -1,6 +1,6 @@
 """The batched environment: physics + render pool + distractions + masks + frame stack.
 
-`Env` glues the pieces of `envs/` into the interface the trainer uses (notes/env_interface.md):
+`Env` glues the pieces of `envs/` into the interface the trainer uses (docs/design.md):
 - physics (`envs/physics.py`, MJX or CPU MuJoCo) steps S x E envs through one agent step: CPU
   MuJoCo on the env thread below, MJX dispatched by the caller;
 - a background thread (one-thread executor) steps CPU physics, fetches qpos to the host, renders
@@ -136,7 +136,7 @@ def _post(
 
 
 class Env:
-    """S x E envs of one task; see notes/env_interface.md for the interface.
+    """S x E envs of one task; see docs/design.md for the interface.
 
     task: a `DmcTask` (envs/dmc.py) or a `KitchenTask` (envs/kitchen.py); both provide the
     models, the reward, the control mapping, the episode start and the render facts. Tasks with

@@ -1,4 +1,4 @@
-"""Distracting Control Suite: background videos, colour and camera perturbations (REFERENCE 5).
+"""Distracting Control Suite: background videos, colour and camera perturbations (docs/method.md).
 
 This file owns
 - the difficulty table (easy / medium / hard: scale 0.1 / 0.2 / 0.3, videos 4 / 8 / all),
@@ -60,7 +60,7 @@ from envs.render import (
 log = logging.getLogger(__name__)
 
 DIFFICULTIES = ("none", "easy", "medium", "hard")
-# The kinds of distraction, any subset: the paper's setting is background only (REFERENCE 5);
+# The kinds of distraction, any subset: the paper's setting is background only (docs/method.md);
 # all three are the full Distracting Control Suite.
 DISTRACTION_TYPES = ("background", "color", "camera")
 DIFFICULTY_SCALE = {"none": 0.0, "easy": 0.1, "medium": 0.2, "hard": 0.3}

@@ -8,7 +8,7 @@ as dm_control's `initialize_episode`), the reward as a pure `jnp` function of a 
 (equal to dm_control's `get_reward`; `tests/test_envs.py` checks this against dm_control itself),
 and the render facts: camera, floor geoms, floor alpha and the agent geoms.
 
-Agent geoms (REFERENCE section 4). The rule is "the geoms of the bodies the agent actuates":
+Agent geoms (docs/method.md, Masks). The rule is "the geoms of the bodies the agent actuates":
 - walker, cheetah: every geom of the body tree under `torso` (all geoms but the floor).
 - ball_in_cup: the cup's five capsules and the ball (the reference counts the ball).
 - finger: the geoms of the `proximal` and `distal` bodies (including the decoration cylinder at

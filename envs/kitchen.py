@@ -1,4 +1,4 @@
-"""Franka Kitchen (D4RL's scene): light switch and kettle, on MJX or CPU MuJoCo (REFERENCE 6).
+"""Franka Kitchen (D4RL's scene): light switch and kettle, on MJX or CPU MuJoCo (docs/method.md).
 
 This file owns everything task-specific about the kitchen: where the scene comes from, the
 collision model MJX can step, the action -> actuator mapping, the episode start, the sparse

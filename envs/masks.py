@@ -1,4 +1,4 @@
-"""Agent masks from pixel labels, and the two degraded variants of the ablations (REFERENCE 4).
+"""Agent masks from pixel labels, and the two degraded variants of the ablations (docs/method.md, Masks).
 
 All functions are pure jnp on [..., H, W] arrays (any leading dims), so they run on the
 accelerator inside the env step and vmap freely.

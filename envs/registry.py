@@ -40,7 +40,7 @@ def _kitchen_builder(task: kitchen.KitchenTask):
     def build(**kwargs):
         from envs.base import Env
 
-        kwargs.setdefault("action_repeat", 1)  # REFERENCE 6: the kitchen acts every 0.08 s
+        kwargs.setdefault("action_repeat", 1)  # docs/method.md: the kitchen acts every 0.08 s
         return Env(task, **kwargs)
 
     return build

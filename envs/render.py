@@ -6,7 +6,7 @@ EGL context and MuJoCo render context; the kinematics needed to draw a state; th
 Distracting Control Suite applied just before drawing; and the rule that turns MuJoCo's
 segmentation into the four labels BACKGROUND / FLOOR / AGENT / OTHER.
 
-Agent rule (REFERENCE section 4), per segmentation object type:
+Agent rule (docs/method.md, Masks), per segmentation object type:
 - geom: AGENT if its id is one of the task's agent geoms, FLOOR if one of its floor geoms,
   else OTHER.
 - site, tendon: OTHER, always. The mask is exactly "pixels of agent geoms", as the reference
@@ -27,7 +27,7 @@ as mujoco.Renderer draws a frame, so every effect works per picture (one shadow-
 light, one reflection pass, one skybox), and the frame equals mujoco.Renderer's bit for bit; a
 GPU-side copy (resolving the multisamples) then puts it in its place on the sheet, an auxiliary
 buffer. One `mjv_updateScene` per sample serves both pictures, and one readback per sheet reads
-everything (per-frame readback is what limits throughput, DESIGN.md). Results return through one
+everything (per-frame readback is what limits throughput, docs/design.md). Results return through one
 shared-memory block; only the small inputs (qpos, perturbations) are pickled.
 
 The earlier layout drew each picture in place on a sheet-sized buffer (`RenderSettings.in_place`,
@@ -343,7 +343,7 @@ class TileRenderer:
     def _auto_tiles(self) -> int:
         if not self.settings.in_place:
             # The drawing buffer stays one picture whatever the sheet holds, so a big sheet
-            # costs nothing more, on software GL too; fewer readbacks is what counts (DESIGN.md).
+            # costs nothing more, on software GL too; fewer readbacks is what counts (docs/design.md).
             return 64
         # Drawing in place, software rasterisers (Mesa llvmpipe) pay per pixel of the whole
         # buffer, so one sample per sheet was fastest there; on a GPU the readbacks dominated.

@@ -12,7 +12,7 @@ from dear_jax import networks
 from dear_jax.report import param_counts
 from dear_jax.update import AgentConfig, init_params
 
-REFERENCE_COUNTS = {  # REFERENCE.md / issue 2, walker |A| = 6
+REFERENCE_COUNTS = {  # per module (docs/method.md, Architecture), walker |A| = 6
     "encoder": 8_423_072,
     "actor": 1_312_924,
     "critic": 2_422_936,

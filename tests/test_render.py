@@ -36,7 +36,7 @@ def subtree_geoms(model, body_names):
     return ids
 
 
-# task -> (xml, agent bodies, floor geom, camera); REFERENCE section 4's agents.
+# task -> (xml, agent bodies, floor geom, camera); docs/method.md's agents (Masks).
 TASKS = {
     "walker": ("walker.xml", ("torso",), "floor", 0),
     "cup": ("ball_in_cup.xml", ("cup", "ball"), "ground", 0),

@@ -29,7 +29,7 @@ def config(**overrides):
     """test_run's tiny config, evaluating and saving at CUT (where the first runs stop)."""
     from test_run import tiny_config
 
-    # "loop": each seed's program is the same whatever seeds share its device (README).
+    # "loop": each seed's program is the same whatever seeds share its device (docs/design.md).
     overrides = {"agent.seed_axis": "loop", **overrides}
     return tiny_config(eval_every_frames=CUT, checkpoint_every_frames=CUT, **overrides)
 

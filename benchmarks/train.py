@@ -258,7 +258,7 @@ def main():
             f"\nEnd to end ({device.device_kind}): {tp['aggregate_fps']:.0f} env frames/s in all "
             f"({args.seeds} seeds x {args.envs} envs, {config.agent.method}, "
             f"{config.env.task}); {tp['aggregate_fps'] / PYTORCH_ANCHOR_FPS:.1f}x the PyTorch "
-            f"pipeline's {PYTORCH_ANCHOR_FPS:.0f} frames/s (DESIGN.md)"
+            f"pipeline's {PYTORCH_ANCHOR_FPS:.0f} frames/s (docs/design.md)"
         )
         if args.eval_every:
             print(

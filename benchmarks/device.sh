@@ -8,8 +8,14 @@
 #   multihost           benchmarks/multihost.py: 2 processes on GPUs 0 and 1 (jax.distributed,
 #                       a local coordinator), stopped by SIGTERM and resumed, against one
 #                       process on both GPUs -> $OUT/multihost.json
+#   bench NAME ARGS...  `python3 -m benchmarks.NAME ARGS...` (takes the rest of the line: last
+#                       stage), e.g. a figure's command from benchmarks/RESULTS.md with
+#                       `--out $OUT/NAME.json`
 #   start NAME GPU ARGS  a detached `run.py ARGS --workdir runs/NAME` on GPU number GPU ("all":
-#                       every GPU), its console in runs/NAME.out; it outlives this call
+#                       every GPU), its console in runs/NAME.out; it outlives this call. ARGS
+#                       are the words that start with `--` (write `--config=FILE`). Several runs
+#                       on one GPU: give each a share of its memory, e.g.
+#                       `XLA_PYTHON_CLIENT_MEM_FRACTION=0.22 bash benchmarks/device.sh start ...`
 #   wait S              sleep up to S seconds while runs train, printing their last log lines;
 #                       returns early once none is running
 #   stop                SIGTERM every run (each saves a checkpoint and its summary), wait for them
@@ -48,6 +54,11 @@ while [ $# -gt 0 ]; do
     multihost)
       python3 -m benchmarks.multihost --out "$out/multihost.json"
       ;;
+    bench)
+      name=$1; shift
+      python3 -m "benchmarks.$name" "$@"
+      set --
+      ;;
     start)
       name=$1 gpu=$2; shift 2
       args=()
@@ -72,7 +83,7 @@ while [ $# -gt 0 ]; do
       ls -la "$out"
       ;;
     *)
-      echo "unknown stage '$stage'; valid: scaling multihost start wait stop collect" >&2
+      echo "unknown stage '$stage'; valid: scaling multihost bench start wait stop collect" >&2
       exit 2
       ;;
   esac

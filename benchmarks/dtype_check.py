@@ -13,8 +13,9 @@ parameters and first episodes) up to the last evaluation both have (or FRAMES), 
 "Within noise" here means: the mean paired difference is smaller than the spread of the second
 run's per-seed means across seeds (their standard deviation), and the t-test does not reject
 equality (p > 0.05).
-Started on the GPU by `DTYPES="float32 bfloat16" LEARN_CONFIG=... bash benchmarks/train_device.sh
-paper` (both runs side by side).
+The two runs train side by side on one GPU, e.g. `bash benchmarks/device.sh start dear_f32 0
+--config=configs/walker_dear.py --config.agent.compute_dtype=float32 start dear_bf16 0
+--config=configs/walker_dear.py --config.agent.compute_dtype=bfloat16`.
 """
 
 from __future__ import annotations

@@ -2,8 +2,8 @@
 
 Written from docs/method.md, not from the DEAR or DrQ-v2 code, so that the JAX
 trainer's speed is measured against the same architecture and losses in PyTorch, on the same GPU,
-in the same session. Nothing in dear_jax imports this file; PyTorch is not a dependency of the
-project (install any torch 2.x to run it).
+on the same machine. Nothing in dear_jax imports this file; PyTorch is an optional extra of the
+project: `pip install -e ".[torch]"`.
 
     python -m benchmarks.torch_reference update --methods dear drqv2 --batch 512 --iters 20 \
         [--variants eager fp32 channels_last fused bf16 compile best] [--encoders pool plain] \
@@ -68,9 +68,13 @@ import time
 import traceback
 
 import numpy as np
-import torch
-import torch.nn.functional as F
-from torch import nn
+
+try:
+    import torch
+    import torch.nn.functional as F
+    from torch import nn
+except ImportError as e:  # an optional extra, not a dependency
+    raise SystemExit("benchmarks.torch_reference needs PyTorch: pip install -e '.[torch]'") from e
 
 from benchmarks.common import save_json
 

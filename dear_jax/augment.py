@@ -4,7 +4,7 @@
 mask share one shift and the mask target stays aligned with the pixels the encoder sees.
 
 The crop can be computed three ways that give the same pixels (`SHIFT_IMPLS`, the update's
-`agent.shift_impl`); they differ in speed only (`python -m benchmarks.shift`):
+`agent.shift_impl`); they differ in speed only (measured at commit 30f40af; benchmarks/results/shift_h100.json):
 - "pad_slice": edge-pad, then a dynamic slice (vmapped: one gather of whole crops);
 - "gather": no padded copy; take the rows clip(y + dy - pad), then the columns;
 - "one_hot": the same row and column selection as two matrix products with one-hot matrices, in

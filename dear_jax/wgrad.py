@@ -2,10 +2,10 @@
 
 Why: on an H100, cuDNN's filter gradient at the encoder's shapes costs the host 175-200 µs to
 launch, more than the 163 µs it runs, and a DEAR update has 9 per seed
-(benchmarks/results/dispatch_h100.json, `python -m benchmarks.dispatch`). This kernel is one
+(benchmarks/results/dispatch_h100.json, measured at commit 486829d). This kernel is one
 launch that reads the input and the output gradient once.
 
-Measured on an H100 (`python -m benchmarks.wgrad`, benchmarks/results/wgrad_h100.json): the
+Measured on an H100 (commit 5e1603e, benchmarks/results/wgrad_h100.json): the
 encoder's three stride-1 filter gradients for 5 seeds at batch 512 take 2.28 ms (1 image per
 program, 2 warps; the defaults below) against cuDNN's 3.08 ms once per seed, and the host
 launches them in 0.09 ms against 1.41. In the whole update it saves the host 1.2-1.5 ms per call
@@ -90,7 +90,7 @@ def filter_gradient(
 ) -> jax.Array:
     """dW [k, k, C, F] (float32) of `lax.conv_general_dilated(x, W, (1, 1), "VALID", NHWC/HWIO)`
     for x [N, H, W, C] and the output's gradient g [N, H-k+1, W-k+1, F]. Each program takes
-    `images` images and runs on `num_warps` warps (benchmarks/wgrad.py times the choices)."""
+    `images` images and runs on `num_warps` warps (timed at commit 5e1603e, wgrad_h100.json)."""
     n, h, width, c = x.shape
     k = kernel_size
     ho, wo, f = g.shape[1], g.shape[2], g.shape[3]

@@ -21,13 +21,14 @@ per kernel tap for each block of output rows (implicit GEMM without the im2col c
 (n, y, x), the tap adding a constant. A VALID layer's taps never leave its input; the taps that
 can reach a padded layer's padding are masked loads that read zeros there. Its input gradient
 is the convolution of the output gradient padded by k - 1 - p with the kernel flipped and
-transposed. Until the eleventh session on the H100, every activation sat in one layout of the
+transposed. Before commit 0a9beda every activation sat in one layout of the
 stack's largest side, with zeros around smaller ones, so that a tap was a fixed shift of the
 rows; the kernels then also computed those zeros (27% of the rows of a 35 x 35 layer), and the
-bf16 DEAR update took 3.39 instead of 3.11 ms per seed (benchmarks/RESULTS.md).
+bf16 DEAR update took 3.39 instead of 3.11 ms per seed
+(benchmarks/results/update_wideconv_h100_{crops,grid}.json).
 
-The settings below are the fastest of staged sweeps on an H100 (`bash
-benchmarks/train_device.sh wcsweep`; benchmarks/RESULTS.md, ninth and twelfth sessions):
+The settings below are the fastest of staged sweeps on an H100 (the sweep script ran at commits
+3ec3f18 and 91f0f71; benchmarks/results/wideconv_h100_sweep_*.json, benchmarks/RESULTS.md):
 programs of 256 rows with 4 warps, and filter gradients of 32 steps of 64 rows with 2 warps
 and 3 pipeline stages. With them the bf16 DEAR update of 5 seeds at batch 512 took 3.07 ms per
 seed against 4.93 with cuDNN (3.03 with the BCE's own gradient, losses.py). Slower in those
@@ -44,8 +45,8 @@ tests/test_wideconv.py checks values and gradients against lax.conv.
 `conv_stack_bce` is such a stack with a binary cross-entropy of its last layer's output (the
 mask decoder's logits) fused into that layer's kernel. The mask loss had been two XLA passes
 over the logits, 0.54 ms of a 15.2 ms 5-seed update; fused, the kernel's epilogue costs ~0.2 ms,
-and the update went from 3.01 to 2.95 ms per seed on an H100 (benchmarks/RESULTS.md, fourteenth
-session).
+and the update went from 3.01 to 2.95 ms per seed on an H100 (commit 981cf76,
+benchmarks/results/update_bce_fused_ab_h100.json).
 """
 
 from __future__ import annotations

@@ -73,12 +73,3 @@ def test_unknown_shift_impl_is_refused_by_name():
         augment.shift(image, jnp.array([0, 0]), impl="roll")
     with pytest.raises(ValueError, match="uint8 images only"):
         augment.shift(image.astype(jnp.float32), jnp.array([0, 0]), impl="one_hot")
-
-
-def test_the_shift_benchmark_checks_its_ways():
-    from benchmarks import shift
-
-    result = shift.main(["--seeds", "2", "--batch", "8", "--iters", "1"])
-    assert set(result["ways"]) == set(augment.SHIFT_IMPLS)
-    assert all(way["same_as_pad_slice"] for way in result["ways"].values())
-    assert result["fastest"] in augment.SHIFT_IMPLS

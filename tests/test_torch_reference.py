@@ -9,7 +9,9 @@ import jax
 import numpy as np
 import pytest
 
-torch = pytest.importorskip("torch")
+torch = pytest.importorskip(
+    "torch", reason="PyTorch is not installed (optional: pip install -e '.[torch]')"
+)
 
 from benchmarks import torch_reference as T  # noqa: E402
 from dear_jax import networks, update  # noqa: E402

@@ -1,6 +1,5 @@
 """dear_jax.wideconv: stride-1 conv stacks as Pallas kernels (here in Pallas' interpreter)."""
 
-import json
 import re
 
 import jax
@@ -344,35 +343,3 @@ def test_auto_stack_is_pallas_on_gpus_only(monkeypatch):
     assert networks.stack_for("auto") == "pallas"
     with networks.conv_settings(stack="auto"):
         assert networks._CONV.get().stack == "pallas"
-
-
-def test_sweep_grid_and_pick_write_the_fastest_settings(tmp_path):
-    """benchmarks.wideconv: a grid is the product of its settings, an unknown name is refused
-    with the valid ones, and --pick writes the fastest variant's settings (both stacks' times of
-    one pass, summed) into a module's defaults, keeping their comments."""
-    from benchmarks import wideconv as sweep
-
-    assert sweep.parse_grid(["STAGES=2,3", "BLOCK=64"]) == [
-        {"STAGES": 2, "BLOCK": 64},
-        {"STAGES": 3, "BLOCK": 64},
-    ]
-    with pytest.raises(SystemExit, match="NAME one of .*'BLOCK'"):
-        sweep.parse_grid(["BLOKC=64"])
-    module = tmp_path / "settings.py"
-    module.write_text("BLOCK = 64  # rows\nNUM_WARPS = 4\nSTAGES = 3\n")
-    rows = [
-        dict(variant=v, settings=st, pass_=p, stack=s, ms_per_call=ms)
-        for v, st, p, s, ms in [
-            ("pallas_current", {}, "forward", "encoder", 2.0),
-            ("pallas_current", {}, "forward", "decoder", 2.0),
-            ("pallas_a", {"BLOCK": 128, "NUM_WARPS": 2}, "forward", "encoder", 1.5),
-            ("pallas_a", {"BLOCK": 128, "NUM_WARPS": 2}, "forward", "decoder", 2.0),
-            ("pallas_a", {"BLOCK": 128, "NUM_WARPS": 2}, "forward_backward", "encoder", 9.0),
-            ("xla_loop", {}, "forward", "encoder", 0.1),
-        ]
-    ]
-    results = tmp_path / "sweep.json"
-    results.write_text(json.dumps(dict(rows=rows)))
-    assert sweep.pick(str(results), "forward", module) == {"BLOCK": 128, "NUM_WARPS": 2}
-    assert module.read_text() == "BLOCK = 128  # rows\nNUM_WARPS = 2\nSTAGES = 3\n"
-    assert sweep.pick(str(results), "forward_backward", module) == {"BLOCK": 128, "NUM_WARPS": 2}

@@ -213,3 +213,21 @@ def test_env_mjx_backend_matches_cpu_and_resets_per_env():
     obs = np.asarray(ts.obs)
     np.testing.assert_array_equal(obs[0, 0, ..., 0:3], obs[0, 0, ..., 6:9])
     assert not np.array_equal(obs[0, 1, ..., 0:3], obs[0, 1, ..., 6:9])  # env 1 kept stacking
+
+
+def test_mujoco_warnings_go_to_the_log_not_a_file(tmp_path, monkeypatch, caplog):
+    """envs routes MuJoCo's warnings to Python's logging: no MUJOCO_LOG.TXT in the working
+    directory."""
+    import mujoco
+
+    import envs  # noqa: F401  (installs the handler)
+
+    monkeypatch.chdir(tmp_path)
+    model = mujoco.MjModel.from_xml_string(
+        '<mujoco><worldbody><body><joint/><geom size="1"/></body></worldbody></mujoco>'
+    )
+    data = mujoco.MjData(model)
+    data.qpos[:] = float("nan")
+    mujoco.mj_step(model, data)
+    assert "Nan, Inf or huge value in QPOS" in caplog.text
+    assert not list(tmp_path.iterdir())

@@ -2,6 +2,9 @@
 
     python run.py --config configs/paper.py:TASK,METHOD[,DIFFICULTY[,MASK]]
 
+This is the one way to name an experiment of the grid; the other files of configs/ are the
+promised walker_dear.py and smoke.py, DrQ-v2's own walker settings and the two ablations.
+
 TASK: walker, cup, finger (Distracting Control Suite) or light, kettle (Franka Kitchen);
 METHOD: drqv2, dear, sear, ted; DIFFICULTY (DMC only): none, easy, medium (default), hard:
 the paper's setting, background videos only, static, a new video each episode; with "-full"
@@ -43,6 +46,7 @@ def get_config(spec: str = "walker,dear,medium") -> ConfigDict:
     else:
         level, full = difficulty.removesuffix("-full"), difficulty.endswith("-full")
         c = base.make(task, method, level)
-        c.env.distraction_types = "all" if full else "background"
+        if level != "none":
+            c.env.distraction_types = "all" if full else "background"
     c.env.mask = mask
     return c

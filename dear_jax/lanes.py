@@ -3,7 +3,7 @@
 A run trains `seeds` seeds of one setting, or, with a sweep, every combination of the swept
 values crossed with the seeds:
 
-    python run.py --config walker_dear_distracting --config.sweep.beta=-1,0,1,10,100
+    python run.py --config paper.py:walker,dear --config.sweep.beta=-1,0,1,10,100
 
 trains 5 x 3 = 15 lanes. A sweep can only vary the per-seed numbers of the update (the fields of
 `update.HParams`, taken from `config.agent`): they are arrays with a lane axis in the compiled

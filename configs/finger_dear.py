@@ -1,7 +1,0 @@
-"""DEAR on finger-spin, no distraction."""
-
-import functools
-
-from configs.base import make
-
-get_config = functools.partial(make, "finger", "dear", distraction="none")

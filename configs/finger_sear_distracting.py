@@ -1,7 +1,0 @@
-"""SEAR on finger-spin, Distracting Control Suite (medium, static)."""
-
-import functools
-
-from configs.base import make
-
-get_config = functools.partial(make, "finger", "sear", distraction="medium")

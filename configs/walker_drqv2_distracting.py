@@ -1,7 +1,0 @@
-"""DrQ-v2 on walker-walk, Distracting Control Suite (medium, static)."""
-
-import functools
-
-from configs.base import make
-
-get_config = functools.partial(make, "walker", "drqv2", distraction="medium")

@@ -1,7 +1,0 @@
-"""TED on walker-walk, no distraction."""
-
-import functools
-
-from configs.base import make
-
-get_config = functools.partial(make, "walker", "ted", distraction="none")

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dear_jax import losses, update
+from dear_jax import update
 from dear_jax.replay import Batch
 
 # Narrow widths keep CPU compile and init cheap; the structure is the reference's.

@@ -38,6 +38,9 @@ from benchmarks.common import save_json
 from dear_jax.logger import read_csv
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+# The runs' environment: this process's own, before main() keeps jax here from taking the GPUs'
+# memory (it only reads the device kind and writes the JSON).
+RUN_ENV = dict(os.environ)
 
 
 def run_flags(args, seeds: int) -> list[str]:
@@ -65,7 +68,7 @@ def launch(args, workdir: pathlib.Path, port: int) -> list[subprocess.Popen]:
     procs = []
     for i in range(args.processes):
         env = dict(
-            os.environ,
+            RUN_ENV,
             JAX_COORDINATOR_ADDRESS=f"localhost:{port}",
             JAX_NUM_PROCESSES=str(args.processes),
             JAX_PROCESS_ID=str(i),
@@ -149,6 +152,7 @@ def main():
         warmup_frames=args.warmup_frames,
         frames_per_seed=args.frames,
     )
+    os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
     import jax
 
     platform = jax.devices()[0].platform
@@ -198,7 +202,7 @@ def main():
             single = pathlib.Path(tmp) / "single"
             flags = run_flags(args, args.processes * args.seeds_per_process)
             flags.append(f"--config.devices={args.processes}")
-            env = dict(os.environ, CUDA_VISIBLE_DEVICES=",".join(map(str, range(args.processes))))
+            env = dict(RUN_ENV, CUDA_VISIBLE_DEVICES=",".join(map(str, range(args.processes))))
             env.pop("JAX_COORDINATOR_ADDRESS", None)
             if platform == "cpu":
                 env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={args.processes}"

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# The DMC tasks read their XML models from dm_control's `suite/` folder (envs/dmc.py). The lent
-# GPU machine has no dm_control, and its wheel (56 MB) does not fit beside the other wheels in
-# what a device call may carry (64 MiB). This copies the installed package's suite models (XMLs
+# The DMC tasks read their XML models from dm_control's `suite/` folder (envs/dmc.py). For a GPU
+# machine without network access or dm_control, where its wheel (56 MB) is too large to send
+# beside the others, this copies the installed package's suite models (XMLs
 # and common assets, ~0.2 MB) into .dmc/dm_control/ (git-ignored), a package that
 # `importlib.util.find_spec("dm_control")` finds: carry ".dmc" and put $PWD/.dmc on PYTHONPATH.
 set -euo pipefail

@@ -78,8 +78,8 @@ def throughput(run, alone_fps: float | None = None, upto: int | None = None) -> 
     """Frames/s in all of a run, from its log.txt's timestamped rows, and how much of its
     training time had an evaluation running beside it; None without such a log.
 
-    A row is the span between two consecutive "frame N per seed" lines of one session (a stop or
-    a resume starts a new session, whose first row, with its compilation, is left out like the
+    A row is the span between two consecutive "frame N per seed" lines of one process (a stop or
+    a resume starts a new process, whose first row, with its compilation, is left out like the
     run's first). An evaluation runs from its "eval @" line's time less its `eval_s` (seed_0's
     eval.csv) to that line. Rows that no evaluation overlaps are "training alone"; at the paper's
     rate an evaluation on the H100 runs most of the time, so there may be none, and the ratio then

@@ -118,8 +118,8 @@ def get_config() -> ConfigDict:
     # for all seeds, the first layer reading the uint8 frames through the random shift) or
     # "auto": "pallas" on GPUs, "xla" elsewhere (Pallas would run in its interpreter). Same
     # function. On an H100 "pallas" made the bf16 DEAR update of 5 seeds at batch 512 3.03
-    # instead of 5.01 ms per seed (benchmarks/RESULTS.md, twelfth session), and DEAR walker
-    # runs with it learned within the spread of those with cuDNN (tenth session).
+    # instead of 5.01 ms per seed, and DEAR walker runs with it learned within the spread of
+    # those with cuDNN (benchmarks/RESULTS.md).
     c.agent.conv_stack = "auto"
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
     c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)

@@ -57,8 +57,8 @@ def mixed_dot_general(dtype):
     biases and outputs stay float32, and so do their gradients' products (float32 cotangents,
     which GPUs compute in TF32, as every float32 product: 10 mantissa bits; bf16 has 7). On an
     H100 this took the 5-seed DEAR update from 2.96 to 2.91 ms per seed, on one machine; DrQ-v2's
-    (plain encoder, 39200-wide trunk) measured 1.93 against 2.14 in other leases
-    (benchmarks/RESULTS.md, fourteenth session)."""
+    (plain encoder, 39200-wide trunk) measured 1.93 against 2.14 on other machines
+    (benchmarks/RESULTS.md)."""
 
     def dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None):
         del precision, preferred_element_type  # float32 accumulation and result

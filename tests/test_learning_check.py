@@ -24,7 +24,7 @@ def _line(t, msg):
 @pytest.fixture
 def run(tmp_path):
     """Two seeds. Log rows of 100 frames per seed: [0,10] s, [10,30], [30,40], [40,59]; a stop;
-    a resumed session whose first row (its compilation) is left out, then [90,98]. Evaluations:
+    a resumed process whose first row (its compilation) is left out, then [90,98]. Evaluations:
     frame 200 ends at 28 s after 15 s (overlaps row 2 only), frame 400 ends at 45 s after 10 s
     (overlaps rows 3 and 4 by 5 s each)."""
     d = tmp_path / "run"

@@ -7,8 +7,8 @@ actions, 25 agent steps (50 control steps, 500 physics steps):
 - states: max |qpos difference| <= 0.05 over the first 5 agent steps (measured 0.001);
 - rewards: every per-step reward within 0.15 of CPU MuJoCo's (measured 0.027), and each
   env's 25-step return within 5% (measured 0.4%).
-(Measured with the starts of `dmc.episode_start`; before issue 9 the walker's legs started
-straight, and the same check measured 0.01, 0.085 and 2%.)
+(Measured with the starts of `dmc.episode_start`; with the walker's legs started straight the
+same check measured 0.01, 0.085 and 2%.)
 Later divergence is expected: the walker is chaotic once it falls, at any solver setting.
 One MJX compile (~40 s on a CPU): keep this file to one compiled step function.
 """

@@ -194,7 +194,7 @@ def test_every_registered_task_has_a_start_law():
 
 
 def test_required_joints_are_randomised_by_name():
-    # The walker's legs and the finger's joints (issue 9: they once never moved).
+    # The walker's legs and the finger's joints: left out, they would start the same each time.
     assert set(WALKER_LEGS) <= set(LAWS["walker-walk"].uniform)
     assert {"proximal", "distal", "hinge"} <= set(LAWS["finger-spin"].uniform)
 

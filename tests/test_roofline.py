@@ -1,0 +1,48 @@
+"""benchmarks/roofline.py: one layer's FLOPs and bytes worked out by hand; totals add up."""
+
+import pytest
+
+from benchmarks import roofline
+from dear_jax.update import AgentConfig
+
+
+def test_conv_cost_by_hand():
+    # The trunk's second layer: 41x41x32 bf16 -> 39x39x32 bf16, 3x3, stride 1.
+    cost = roofline.conv_cost(41, 32, 32, 3, 1, 2, 2)
+    assert cost["side_out"] == 39
+    assert cost["flops"] == 2 * 39 * 39 * (3 * 3 * 32) * 32 == 28_035_072
+    assert cost["x"] == 41 * 41 * 32 * 2 == 107_584
+    assert cost["y"] == 39 * 39 * 32 * 2 == 97_344
+    assert cost["w"] == (3 * 3 * 32 * 32 + 32) * 4 == 36_992
+    # The first layer reads uint8 frames with stride 2: 84 -> 41.
+    assert roofline.conv_cost(84, 9, 32, 3, 2, 1, 2)["side_out"] == 41
+
+
+def test_layer_rows_by_hand():
+    batch = 4
+    rows = roofline.layers(AgentConfig(action_dim=6, compute_dtype="bfloat16"), batch)
+    conv2 = {r.phase: r for r in rows if r.row.startswith("conv 2 ")}
+    per_image, x, y, w = 28_035_072, 107_584, 97_344, 36_992
+    # forward on obs and next_obs; backward (input and weight gradients) on obs only
+    assert conv2["forward"].flops == 2 * batch * per_image
+    assert conv2["forward"].bytes == 2 * batch * (x + y) + w
+    assert conv2["backward"].flops == 2 * batch * per_image
+    assert conv2["backward"].bytes == 2 * (batch * (x + y) + w)
+    # the first layer has only its weight gradient
+    conv1 = {r.phase: r for r in rows if r.row.startswith("conv 1 ")}
+    assert conv1["backward"].flops == conv1["forward"].flops / 2
+    # the encoder's Linear layer 2048 -> 4096: bf16 input, float32 latent
+    dense = {r.phase: r for r in rows if r.part == "encoder" and r.row.startswith("Dense")}
+    assert dense["forward"].flops == 2 * (2 * batch) * 2048 * 4096
+    assert dense["forward"].bytes == 2 * batch * (2048 * 2 + 4096 * 4) + (2048 * 4096 + 4096) * 4
+
+
+def test_totals_add_up():
+    summary = roofline.summarize(roofline.layers(AgentConfig(action_dim=6), 8))
+    total = summary["total"]
+    for key in ("flops", "bytes", "floor_us"):
+        assert sum(p[key] for p in summary["parts"]) == pytest.approx(total[key])
+        assert sum(r[key] for r in summary["rows"]) == pytest.approx(total[key])
+        assert sum(x[key] for x in summary["layers"]) == pytest.approx(total[key])
+    for x in summary["layers"]:
+        assert x["floor_us"] == pytest.approx(max(x["compute_us"], x["memory_us"]))

@@ -408,11 +408,11 @@ def test_scripted_kettle_push_reaches_the_goal():
 def test_configs_validate(task):
     import importlib
 
-    from dear_jax import train
+    from dear_jax import experiment
 
     for method in ("dear", "drqv2", "sear", "ted"):
         config = importlib.import_module(f"configs.kitchen_{task}_{method}").get_config()
-        train.validate(config)
+        experiment.validate(config)
         assert config.env.task == f"kitchen-{task}" and config.agent.method == method
         assert config.env.action_repeat == 1 and config.env.episode_frames == 0
 

@@ -58,8 +58,9 @@ class StopRequest:
 
 
 class AgreedStop:
-    """A StopRequest as several processes read it: set by the loop's step (`dear_jax/loop.py`) once any process got
-    a signal (`request`: this process's own), on every process at the same step."""
+    """A StopRequest as several processes read it: set by the loop's step (`dear_jax/loop.py`)
+    once any process got a signal (`request`: this process's own), on every process at the same
+    step, so that all checkpoint together."""
 
     def __init__(self, request: StopRequest):
         self.request, self.signum = request, None

@@ -85,7 +85,7 @@ def _check(config) -> None:
     root.setLevel(logging.WARNING)  # libraries' notes (imports, backends) are for the log
     try:
         with contextlib.redirect_stdout(io.StringIO()):
-            from dear_jax.train import validate
+            from dear_jax.experiment import validate
             from envs.distractions import check_background_dir
 
             validate(config)

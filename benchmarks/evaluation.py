@@ -42,7 +42,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 from benchmarks.common import save_json  # noqa: E402
-from dear_jax import evaluator, train, update  # noqa: E402
+from dear_jax import evaluator, experiment, update  # noqa: E402
 from dear_jax.logger import format_table  # noqa: E402
 
 STAGES = ("policy", "physics", "render", "post", "video")
@@ -115,7 +115,7 @@ def measure(config, placement: str, threads: int, args) -> dict:
     try:
         config.env.eval_physics_threads = threads
         env, step, place = evaluator.build(config, policy_on=policy_on, env_on=env_on)
-        acfg = train.agent_config(config, env.spec.action_dim)
+        acfg = experiment.agent_config(config, env.spec.action_dim)
         keys = jax.random.split(jax.random.key(0), env.shape[0])
         params = jax.jit(update.init_seeds, static_argnums=0)(acfg, keys).params
         policy = place(

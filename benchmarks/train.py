@@ -28,9 +28,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.common import save_json
-from dear_jax import replay, train, update
+from dear_jax import experiment, replay, train, update
 from dear_jax.config import check_override_keys
 from dear_jax.logger import format_table, read_csv
+from dear_jax.programs import build_programs
 from dear_jax.signals import Stopped
 
 PYTORCH_ANCHOR_FPS = (
@@ -120,12 +121,12 @@ def _timed(fn, reps):
 def stage_split(config, reps) -> dict:
     """Milliseconds per loop iteration, each stage synchronised on its own."""
     num_seeds, num_envs = config.seeds, config.envs_per_seed
-    env = train.make_env(config, envs_per_seed=num_envs, split="train", seed=0)
+    env = experiment.make_env(config, envs_per_seed=num_envs, split="train", seed=0)
     try:
         spec = env.spec
-        acfg = train.agent_config(config, spec.action_dim)
-        hp = train.hparams(config)
-        programs = train.build_programs(acfg, hp, config)
+        acfg = experiment.agent_config(config, spec.action_dim)
+        hp = experiment.hparams(config)
+        programs = build_programs(acfg, hp, config)
         agent = jax.jit(functools.partial(update.init_seeds, acfg))(
             jax.random.split(jax.random.key(0), num_seeds)
         )

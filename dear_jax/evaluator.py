@@ -21,11 +21,10 @@ DrQ-v2 run took 1.19x the time of its training alone with "accelerator" and 1.22
 
 With training at ~1,585 frames/s, a 500k-frame DrQ-v2 run's evaluations (21.5 s each) outlasted
 the training between two of them, and the run took 1.27x the time of its training alone
-(benchmarks/RESULTS.md, fifteenth session). Since then the process steps its env's CPU physics on
-up to 8 threads and keeps the env's arrays on XLA:CPU (`build`, env_on="cpu"): beside a training
-run on an H100, an evaluation step of that check took 24.5 ms instead of 34.7
-(benchmarks/evaluation.py, sixteenth session), and the loop lets evaluations queue
-(`train.MAX_PENDING_EVALS`).
+(benchmarks/RESULTS.md). The process therefore steps its env's CPU physics on up to 8 threads and
+keeps the env's arrays on XLA:CPU (`build`, env_on="cpu"): beside a training run on an H100, an
+evaluation step of that check took 24.5 ms instead of 34.7 (benchmarks/evaluation.py), and the
+loop lets evaluations queue (`evaluations.MAX_PENDING_EVALS`).
 
 Both evaluate one episode in each of the eval env's E envs per seed (`evaluate`), write its videos
 where they run (the evaluation's thread or process, never the training loop's: assembling and
@@ -65,7 +64,7 @@ def evaluate(env, step, params, key, *, video: bool, stop=lambda: False, hosts=N
 
     Returns per-seed metrics ([S] arrays) and, if asked, video frames of env 0 per seed.
     Raises EvalAborted when `stop()` turns true (checked every step). With several processes
-    (`hosts`, dear_jax.train.Hosts), those of this process's lanes, whose envs `env` steps; the
+    (`hosts`, dear_jax.devices.Hosts), those of this process's lanes, whose envs `env` steps; the
     episodes end when every process's have.
     """
     to_global = hosts.to_global if hosts else lambda x: x
@@ -270,13 +269,17 @@ def build(config, *, policy_on: str, env_on: str = "default"):
     "cpu": the float32 policy on XLA:CPU. env_on: where the env's array work (uploads, frame
     stack, compositing) runs, the process's default device ("default") or XLA:CPU ("cpu", which
     sets the process's default device, with CPU physics only; the evaluation process's choice
-    with CPU physics). The env is `train.make_eval_env`'s: CPU physics on
+    with CPU physics). The env is `experiment.make_eval_env`'s: CPU physics on
     env.eval_physics_threads threads. On an H100 beside a training run, ms per evaluation step
     of the DrQ-v2 learning check (benchmarks/evaluation.py --load): policy on the accelerator
     with the env "default" 34.7 (1 physics thread) / 30.9 (8), "cpu" 28.9 / 24.5; policy and env
     on XLA:CPU 42.0 / 36.4.
     """
-    from dear_jax import lanes, train  # the child imports these after setting its platform
+    # The child imports these after setting its platform.
+    from dear_jax import lanes
+    from dear_jax.devices import Hosts
+    from dear_jax.experiment import agent_config, hparams, make_eval_env
+    from dear_jax.programs import build_programs
 
     if policy_on not in ("accelerator", "cpu") or env_on not in ("default", "cpu"):
         raise ValueError(
@@ -289,8 +292,8 @@ def build(config, *, policy_on: str, env_on: str = "default"):
         # Every thread's default device, the env thread's too: the caller's process is changed.
         jax.config.update("jax_default_device", jax.devices("cpu")[0])
     policy_device = jax.devices()[0] if policy_on == "accelerator" else jax.devices("cpu")[0]
-    env = train.make_eval_env(config, hosts=train.Hosts(None, lanes.num_lanes(config)))
-    acfg = train.agent_config(config, env.spec.action_dim)
-    programs = train.build_programs(acfg, train.hparams(config), config)
+    env = make_eval_env(config, hosts=Hosts(None, lanes.num_lanes(config)))
+    acfg = agent_config(config, env.spec.action_dim)
+    programs = build_programs(acfg, hparams(config), config)
     step = programs.evaluate_step if policy_on == "accelerator" else programs.evaluate_step_host
     return env, step, lambda policy: jax.device_put(policy, policy_device)

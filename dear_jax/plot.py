@@ -61,7 +61,7 @@ def pools(workdirs: Sequence[str | os.PathLike]) -> list[lanes.Pool]:
     """The workdirs' seeds pooled by experiment and setting (`lanes.pools`): runs of the same
     config (but for its seeds and the fields a run may change without changing what it learns)
     are one experiment, wherever and whenever they ran."""
-    from dear_jax.train import RESUMABLE_CHANGES
+    from dear_jax.experiment import RESUMABLE_CHANGES
 
     try:
         from configs.base import get_config

@@ -55,3 +55,19 @@ class StopRequest:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
         self._previous = {}
+
+
+class AgreedStop:
+    """A StopRequest as several processes read it: set by the loop's step (`dear_jax/loop.py`)
+    once any process got a signal (`request`: this process's own), on every process at the same
+    step, so that all checkpoint together."""
+
+    def __init__(self, request: StopRequest):
+        self.request, self.signum = request, None
+
+    def __bool__(self) -> bool:
+        return self.signum is not None
+
+    @property
+    def name(self) -> str:
+        return signal.Signals(self.signum).name if self.signum else ""

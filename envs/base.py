@@ -22,7 +22,7 @@ Env object and advance with every step: an Env is stepped along one trajectory, 
 `host_state()` / `set_host_state()` read and restore them (numpy arrays and python numbers), so
 a checkpointed run continues exactly.
 
-Devices: with `sharding` (a NamedSharding of the seeds axis, `dear_jax/train.py`), every host ->
+Devices: with `sharding` (a NamedSharding of the seeds axis, `dear_jax/devices.py`), every host ->
 device upload (frames, labels, rewards, flags, episode starts) lands split over the devices by
 seed and the device programs keep it so: the one render pool feeds every device, and no array is
 gathered onto one device. Without it, arrays go to the default device, uncommitted.

@@ -11,7 +11,7 @@ Interface (both backends):
     state = backend.where(reset, new, old)    # per-env select, reset: bool [S,E] numpy
     backend.qpos(state)                       # [S,E,nq] (device array or numpy)
 
-With `sharding` (a NamedSharding of the seeds axis, `dear_jax/train.py`), MJX uploads its starts
+With `sharding` (a NamedSharding of the seeds axis, `dear_jax/devices.py`), MJX uploads its starts
 with it and its programs return states with it, so each device steps its block of seeds.
 
 MJX solver settings (`SolverSettings`) are the speed knob. dm_control's XMLs use MuJoCo's

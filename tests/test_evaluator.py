@@ -12,13 +12,15 @@ import jax
 import numpy as np
 import pytest
 
-from dear_jax import lanes, train, update
+from dear_jax import experiment, lanes, update
+from dear_jax.devices import Hosts
 from dear_jax.evaluator import EvalProcess, LocalEvaluator
+from dear_jax.programs import build_programs
 from tests.test_run import ROOT, tiny_config
 
 
 def _agent_params(config):
-    acfg = train.agent_config(config, action_dim=6)  # walker
+    acfg = experiment.agent_config(config, action_dim=6)  # walker
     keys = jax.random.split(jax.random.key(3), config.seeds)
     return update.init_seeds(acfg, keys).params, acfg
 
@@ -38,9 +40,9 @@ def test_the_eval_process_evaluates_as_this_process_does(tmp_path):
     restoring that state replays the same episodes there."""
     config = tiny_config()
     params, acfg = _agent_params(config)
-    hosts = train.Hosts(None, lanes.num_lanes(config))
-    env = train.make_env(config, envs_per_seed=config.num_eval_episodes, split="val", seed=1)
-    local = LocalEvaluator(env, train.build_programs(acfg, train.hparams(config), config)
+    hosts = Hosts(None, lanes.num_lanes(config))
+    env = experiment.make_env(config, envs_per_seed=config.num_eval_episodes, split="val", seed=1)
+    local = LocalEvaluator(env, build_programs(acfg, experiment.hparams(config), config)
                            .evaluate_step, hosts)  # fmt: skip
     key = jax.random.key(7)
     with EvalProcess(config) as remote:
@@ -72,14 +74,14 @@ def test_on_the_accelerator_the_eval_process_runs_the_trainings_own_program():
     program, and differ from the float32 host program's that "cpu" runs."""
     config = tiny_config(**{"agent.compute_dtype": "bfloat16", "eval_device": "accelerator"})
     params, acfg = _agent_params(config)
-    hosts = train.Hosts(None, lanes.num_lanes(config))
-    programs = train.build_programs(acfg, train.hparams(config), config)
+    hosts = Hosts(None, lanes.num_lanes(config))
+    programs = build_programs(acfg, experiment.hparams(config), config)
     key = jax.random.key(7)
     want = {}
     with EvalProcess(config) as remote:
         start = remote.host_state()
         got = remote.evaluate(params, key)
-    env = train.make_env(config, envs_per_seed=config.num_eval_episodes, split="val", seed=1)
+    env = experiment.make_env(config, envs_per_seed=config.num_eval_episodes, split="val", seed=1)
     try:
         for name, step in (("bf16", programs.evaluate_step), ("f32", programs.evaluate_step_host)):
             local = LocalEvaluator(env, step, hosts)

@@ -407,11 +407,11 @@ def test_scripted_kettle_push_reaches_the_goal():
 @pytest.mark.parametrize("task", ["light", "kettle"])
 def test_configs_validate(task):
     from configs import paper
-    from dear_jax import train
+    from dear_jax import experiment
 
     for method in ("dear", "drqv2", "sear", "ted"):
         config = paper.get_config(f"{task},{method}")
-        train.validate(config)
+        experiment.validate(config)
         assert config.env.task == f"kitchen-{task}" and config.agent.method == method
         assert config.env.action_repeat == 1 and config.env.episode_frames == 0
 

@@ -9,7 +9,7 @@ import pytest
 from test_update import SMALL, _batch
 
 from configs import base
-from dear_jax import lanes, losses, train, update
+from dear_jax import experiment, lanes, losses, update
 from dear_jax.config import check_override_keys
 
 
@@ -38,7 +38,7 @@ def test_lanes_cross_settings_with_seeds():
     ]
     assert len(runs) == 12 and [r.index for r in runs] == list(range(12))
     assert [r.seed for r in runs] == [0, 1] * 6
-    hp = train.hparams(c)
+    hp = experiment.hparams(c)
     np.testing.assert_array_equal(hp.beta, [-1, -1, 0, 0, 100, 100] * 2)
     np.testing.assert_array_equal(hp.alpha, [0.25] * 6 + [0.0] * 6)
     np.testing.assert_array_equal(
@@ -54,11 +54,11 @@ def test_lanes_cross_settings_with_seeds():
 def test_bad_sweeps_are_refused_naming_the_key():
     c = sweep_config(gamma="1,2")
     with pytest.raises(ValueError, match=r"unknown sweep key 'gamma'.*: alpha, beta, recon_weight"):
-        train.validate(c)
+        experiment.validate(c)
     with pytest.raises(KeyError, match=r"'sweep.gamma'.*Valid fields of sweep: alpha, beta"):
         check_override_keys(base.get_config(), ["--config.sweep.gamma=1,2"])
     with pytest.raises(ValueError, match=r"sweep.beta has no effect on agent.method='drqv2'"):
-        train.validate(sweep_config(method="drqv2", beta="0,1"))
+        experiment.validate(sweep_config(method="drqv2", beta="0,1"))
     with pytest.raises(ValueError, match=r"sweep.beta='1,x': give comma-separated numbers"):
         lanes.lanes(sweep_config(beta="1,x"))
     with pytest.raises(ValueError, match="repeats a value"):
@@ -71,7 +71,7 @@ def test_lanes_use_their_own_weights():
     gradients by exactly 100 x the orthogonality loss's own gradient, computed here through the
     encoder by hand; so the beta = 0 lane gets none of it. No augmentation (pad 0) makes the
     encoded batch the raw one."""
-    hp = train.hparams(sweep_config(seeds=1, beta="0,100"))
+    hp = experiment.hparams(sweep_config(seeds=1, beta="0,100"))
     cfg = update.AgentConfig(method="dear", augment_pad=0, **SMALL)
     nets = update.make_networks(cfg)
     state = update.init(cfg, jax.random.key(0))

@@ -43,24 +43,24 @@ def _child(root: pathlib.Path, port: int, process: int) -> None:
 
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.distributed.initialize(f"localhost:{port}", num_processes=2, process_id=process)
-    from dear_jax import train
+    from dear_jax import loop, train
     from dear_jax.signals import Stopped
 
     assert jax.process_count() == 2 and len(jax.devices()) == 2, jax.devices()
     summaries = {"whole": train.train(config(total_frames=END), root / "whole")}
-    step = train._Run._step
+    step = loop.Loop.step
 
-    def step_then_signal(run, pbar):  # only process 1 is told to stop
-        step(run, pbar)
-        if process == 1 and run.counters["iteration"] == SIGNAL_AT:
+    def step_then_signal(run, progress):  # only process 1 is told to stop
+        step(run, progress)
+        if process == 1 and run.carry.counters["iteration"] == SIGNAL_AT:
             os.kill(os.getpid(), signal.SIGTERM)
 
-    train._Run._step = step_then_signal
+    loop.Loop.step = step_then_signal
     try:
         train.train(config(total_frames=END), root / "resumed")
     except Stopped as e:
         summaries["stopped"] = str(e)
-    train._Run._step = step
+    loop.Loop.step = step
     summaries["resumed"] = train.train(config(total_frames=END), root / "resumed")
     (root / f"summaries_{process}.json").write_text(json.dumps(summaries))
 
@@ -163,11 +163,11 @@ def test_a_run_resumes_only_with_as_many_processes(runs):
 
 
 def test_lanes_that_do_not_split_over_the_processes_are_refused():
-    from dear_jax import train
+    from dear_jax import devices
 
     with pytest.raises(ValueError, match=r"3 lanes .* cannot be split evenly over 2 processes; "):
-        train.lanes_per_host(3, 2)
-    assert train.lanes_per_host(4, 2) == 2
+        devices.lanes_per_host(3, 2)
+    assert devices.lanes_per_host(4, 2) == 2
 
 
 if __name__ == "__main__":

@@ -18,10 +18,12 @@ import numpy as np
 import pytest
 
 from configs import smoke
-from dear_jax import evaluator, replay_disk, report, train, update
+from dear_jax import evaluations, evaluator, experiment, replay_disk, report, train, update
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.config import resolve_config_path
+from dear_jax.devices import Hosts
 from dear_jax.logger import read_csv
+from dear_jax.programs import build_programs
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -236,7 +238,7 @@ def test_background_evaluations_queue_without_holding_up_the_loop(run, tmp_path,
     starts the one at 120 beside it, and waits only at 240, with MAX_PENDING_EVALS (2) started
     and unlogged. The run, rows included, is the uninterrupted fixture run's."""
     loop_waits, held, waited = threading.Event(), [], []
-    evaluate, finish = evaluator.LocalEvaluator.evaluate, train._Run._finish_evaluations
+    evaluate, finish = evaluator.LocalEvaluator.evaluate, evaluations.Evaluations.finish
 
     def held_evaluate(self, params, key, **kwargs):
         if not held:  # the first evaluation, at frame 0
@@ -244,17 +246,17 @@ def test_background_evaluations_queue_without_holding_up_the_loop(run, tmp_path,
         return evaluate(self, params, key, **kwargs)
 
     def watched_finish(self, *, keep=None):
-        if keep is not None and len(self._pending_evals) > keep and not waited:
-            waited.append((self.counters["frame"], len(self._pending_evals)))
+        if keep is not None and len(self.pending) > keep and not waited:
+            waited.append((self.carry.counters["frame"], len(self.pending)))
             loop_waits.set()
         finish(self, keep=keep)
 
     monkeypatch.setattr(evaluator.LocalEvaluator, "evaluate", held_evaluate)
-    monkeypatch.setattr(train._Run, "_finish_evaluations", watched_finish)
+    monkeypatch.setattr(evaluations.Evaluations, "finish", watched_finish)
     # No checkpoint at 120: a checkpoint waits for every evaluation in flight.
     config = tiny_config(total_frames=280, eval_device="train", checkpoint_every_frames=0)
     train.train(config, tmp_path)
-    assert train.MAX_PENDING_EVALS == 2
+    assert evaluations.MAX_PENDING_EVALS == 2
     assert held == [True] and waited == [(240, 2)]
     assert_same_run(run[-1], tmp_path, 280)
 
@@ -265,24 +267,24 @@ def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
     agent.compute_dtype says (its actions those of the bf16 program up to bf16's rounding);
     "train" keeps the training's devices and dtype."""
     config = tiny_config(**{"agent.compute_dtype": "bfloat16"})
-    hosts = train.Hosts(None, config.seeds)
-    assert train.eval_device(config, hosts) == "cpu"
+    hosts = Hosts(None, config.seeds)
+    assert experiment.eval_device(config, hosts) == "cpu"
     with monkeypatch.context() as m:
         m.setattr(jax, "default_backend", lambda: "gpu")
-        assert train.eval_device(config, hosts) == "accelerator"
+        assert experiment.eval_device(config, hosts) == "accelerator"
     config.eval_device = "train"
-    assert train.eval_device(config, hosts) == "train"
+    assert experiment.eval_device(config, hosts) == "train"
     # Several processes (jax.distributed) evaluate in the training processes, and only there.
     two = types.SimpleNamespace(multi=True, count=2)
     for own in ("cpu", "accelerator"):
         config.eval_device = own
         with pytest.raises(ValueError, match=f"eval_device='{own}' evaluates in one process"):
-            train.eval_device(config, two)
+            experiment.eval_device(config, two)
     config.eval_device = "auto"
-    assert train.eval_device(config, two) == "train"
+    assert experiment.eval_device(config, two) == "train"
     config.eval_device = "train"
-    acfg = train.agent_config(config, action_dim=6)
-    programs = train.build_programs(acfg, train.hparams(config), config)
+    acfg = experiment.agent_config(config, action_dim=6)
+    programs = build_programs(acfg, experiment.hparams(config), config)
     params = update.init_seeds(acfg, jax.random.split(jax.random.key(0), config.seeds)).params
     obs = jax.random.randint(jax.random.key(1), (config.seeds, 3, 84, 84, 9), 0, 256, jnp.uint8)
     host = jax.make_jaxpr(programs.evaluate_step_host)(params, obs)
@@ -320,7 +322,7 @@ def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):
     assert row["s_per_1000_with_eval"] == pytest.approx(1000 * summary["wall_s"] / (280 * c.seeds))
     fps = read_csv(whole / "seed_0" / "train.csv")["fps"]
     assert row["s_per_1000_training"] == pytest.approx(1000 / np.median(fps[np.isfinite(fps)]))
-    acfg = train.agent_config(c, summary["action_dim"])
+    acfg = experiment.agent_config(c, summary["action_dim"])
     assert row["params_m"] == pytest.approx(sum(report.param_counts(acfg).values()) / 1e6)
     assert "| dear " in text and (tmp_path / "table.md").read_text() == text
     assert read_csv(tmp_path / "table.csv")["final_return_mean"][0] == pytest.approx(finals.mean())
@@ -353,12 +355,12 @@ def test_changed_learning_fields_are_refused_naming_them(run):
 
 def test_fingerprint_is_every_field_but_the_resumable_ones():
     c = tiny_config()
-    fp = train.fingerprint(c)
+    fp = experiment.fingerprint(c)
     assert {"agent.nstep", "agent.compute_dtype", "agent.ortho_form", "env.distraction"} <= set(fp)
     assert {"env.mask", "replay.capacity", "env.render.quality", "seed"} <= set(fp)
-    assert not set(train.RESUMABLE_CHANGES) & set(fp)
+    assert not set(experiment.RESUMABLE_CHANGES) & set(fp)
     c.agent.new_field = 1  # a field added later counts, unless listed as resumable
-    assert train.fingerprint(c)["agent.new_field"] == 1
+    assert experiment.fingerprint(c)["agent.new_field"] == 1
     relaxed = tiny_config(
         total_frames=10,
         log_every_frames=7,
@@ -368,7 +370,7 @@ def test_fingerprint_is_every_field_but_the_resumable_ones():
         progress=True,
         **{"env.render.num_workers": 2},
     )
-    assert train.fingerprint(relaxed) == train.fingerprint(tiny_config())
+    assert experiment.fingerprint(relaxed) == experiment.fingerprint(tiny_config())
 
 
 @pytest.mark.parametrize(
@@ -435,7 +437,7 @@ def test_every_experiment_of_the_paper_has_a_config():
     grid = itertools.product(("walker", "cup", "finger"), paper.METHODS, paper.DIFFICULTIES)
     for task, method, difficulty in grid:
         c = paper.get_config(f"{task},{method},{difficulty}")
-        train.validate(c)
+        experiment.validate(c)
         level = difficulty.removesuffix("-full")
         assert (c.agent.method, c.env.distraction) == (method, level)
         # The paper's setting: background videos only; "-full": the whole suite.
@@ -492,7 +494,7 @@ def test_eval_env_steps_its_physics_on_the_configured_threads():
     core this process may use, up to 8; the training env keeps one."""
     cores = min(8, len(os.sched_getaffinity(0)))
     for setting, threads in ((3, 3), (0, cores)):
-        env = train.make_eval_env(tiny_config(**{"env.eval_physics_threads": setting}))
+        env = experiment.make_eval_env(tiny_config(**{"env.eval_physics_threads": setting}))
         try:
             assert env.physics.threads == threads
             assert env.shape[1] == tiny_config().num_eval_episodes
@@ -548,8 +550,8 @@ def test_configs_that_cannot_work_are_refused_by_name(overrides, message, tmp_pa
 
 def _overrides(config) -> list[str]:
     """--config.key=value arguments that make configs/smoke.py into `config`."""
-    base = train._flatten(smoke.get_config().to_dict())
-    want = train._flatten(config.to_dict())
+    base = experiment._flatten(smoke.get_config().to_dict())
+    want = experiment._flatten(config.to_dict())
     return [f"--config.{k}={v}" for k, v in want.items() if base.get(k) != v]
 
 
@@ -631,7 +633,7 @@ def test_stale_lock_is_taken_over(tmp_path, caplog):
 
 
 # Last in this file: its two-lane programs replace the fixture's in the trainer's program cache
-# (one experiment per process, train.cached_programs), which the tests above reuse (the resume of
+# (one experiment per process, programs.cached_programs), which the tests above reuse (the resume of
 # test_sigterm_checkpoints_exits_cleanly_and_resumes_exactly would compile them again).
 def test_a_sweep_trains_each_lane_with_its_own_settings(tmp_path):
     """`sweep.beta = "0,100"` with one seed: two lanes in one program, each logging under its

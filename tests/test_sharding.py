@@ -47,13 +47,13 @@ def _where(tree) -> list:
 
 def _placements(run) -> dict:
     return {
-        "agent": _where(run.agent),
-        "replay": _where(run.buffer),
-        "env": _where(run.state),
-        "timestep": _where(run.ts),
-        "returns": _where(run.returns),
+        "agent": _where(run.carry.agent),
+        "replay": _where(run.carry.buffer),
+        "env": _where(run.carry.state),
+        "timestep": _where(run.carry.ts),
+        "returns": _where(run.carry.returns),
         "physics_threads": run.env.physics.threads,
-        "key": sorted({(str(run.key.sharding.spec), len(run.key.sharding.device_set))})
+        "key": sorted({(str(run.carry.key.sharding.spec), len(run.carry.key.sharding.device_set))})
         if run.mesh is not None
         else [],
     }
@@ -65,20 +65,20 @@ def _child(root: pathlib.Path) -> None:
     from jax.sharding import Mesh, NamedSharding
     from jax.sharding import PartitionSpec as P
 
-    from dear_jax import train
+    from dear_jax import loop, train
     from envs import dmc
     from envs.physics import MjxPhysics
 
     assert len(jax.devices()) == 4, jax.devices()
     placements = []
-    save = train._Run.save
+    save = loop.Loop.save
 
     def recording_save(run, wall_s):  # every checkpoint: after the start and after resuming
         devices = 1 if run.mesh is None else run.mesh.size
         placements.append({"devices": devices, **_placements(run)})
         save(run, wall_s)
 
-    train._Run.save = recording_save
+    loop.Loop.save = recording_save
     # Grouped by device count: the compiled programs of a process are those of its last mesh.
     train.train(config(total_frames=END), root / "whole")
     train.train(config(total_frames=CUT), root / "to_split")
@@ -112,13 +112,14 @@ def _pallas_child(root: pathlib.Path) -> None:
     writes each one's outputs and parameters to root/pallas_<devices>.npz."""
     import jax
 
-    from dear_jax import replay, train, update
+    from dear_jax import devices, experiment, replay, update
+    from dear_jax.programs import build_programs
     from envs.base import TimeStep
 
     pallas = {"agent.conv_stack": "pallas", "agent.filter_gradient": "pallas"}
     seeds, envs, action_dim, rows = 2, 2, 6, 12
     c = config(seeds=seeds, **pallas)
-    acfg, hp = train.agent_config(c, action_dim), train.hparams(c)
+    acfg, hp = experiment.agent_config(c, action_dim), experiment.hparams(c)
     rng = np.random.default_rng(0)
     shape = (rows, seeds, envs)
     obs = rng.integers(0, 256, (seeds, envs, 84, 84, 9), np.uint8)
@@ -138,10 +139,10 @@ def _pallas_child(root: pathlib.Path) -> None:
     ]
     actions = rng.uniform(-1, 1, (*shape, action_dim)).astype(np.float32)
     for n in (1, 2):
-        mesh = train.seed_mesh(config(seeds=seeds, devices=n, **pallas))
-        sharding = train.seed_sharding(mesh)
+        mesh = devices.seed_mesh(n, seeds)
+        sharding = devices.seed_sharding(mesh)
         put = (lambda x: x) if mesh is None else (lambda x, s=sharding: jax.device_put(x, s))
-        programs = train.build_programs(acfg, hp, c, mesh)
+        programs = build_programs(acfg, hp, c, mesh)
         agent = put(update.init_seeds(acfg, jax.random.split(jax.random.key(0), seeds)))
         buffer = put(replay.init(100, envs, (84, 84, 3), action_dim, leading=(seeds,)))
         for ts, action in zip(steps, actions):
@@ -264,18 +265,18 @@ def test_arrays_live_split_over_the_devices(runs):
 
 
 def test_splits_that_cannot_work_are_refused_by_name(tmp_path):
-    from dear_jax import train
+    from dear_jax import devices, train
 
     with pytest.raises(ValueError, match=r"seeds=3 cannot be split evenly over devices=2 .* "):
-        train.num_devices(2, 3, available=4)
+        devices.num_devices(2, 3, available=4)
     with pytest.raises(ValueError, match=r"valid devices for 3 seeds: 1, 3;"):
-        train.num_devices("all", 3, available=4)
+        devices.num_devices("all", 3, available=4)
     with pytest.raises(ValueError, match=r"devices=8 but 4 .* exist here; valid: 1 to 4, or 'all'"):
-        train.num_devices(8, 8, available=4)
+        devices.num_devices(8, 8, available=4)
     with pytest.raises(ValueError, match=r"devices must be 'all' or an int >= 1, got 'two'"):
-        train.num_devices("two", 2, available=4)
-    assert train.num_devices("all", 8, available=4) == 4
-    assert train.num_devices(1, 3, available=1) == 1
+        devices.num_devices("two", 2, available=4)
+    assert devices.num_devices("all", 8, available=4) == 4
+    assert devices.num_devices(1, 3, available=1) == 1
     # The trainer refuses before anything is written (this process has one device).
     with pytest.raises(ValueError, match=r"devices=2 but 1 cpu device\(s\) exist here"):
         train.train(config(devices=2), tmp_path)
@@ -283,10 +284,10 @@ def test_splits_that_cannot_work_are_refused_by_name(tmp_path):
 
 
 def test_devices_may_change_on_resume():
-    from dear_jax import train
+    from dear_jax import experiment
 
-    assert "devices" in train.RESUMABLE_CHANGES
-    assert train.fingerprint(config(devices="all")) == train.fingerprint(config())
+    assert "devices" in experiment.RESUMABLE_CHANGES
+    assert experiment.fingerprint(config(devices="all")) == experiment.fingerprint(config())
 
 
 if __name__ == "__main__":

@@ -1,0 +1,195 @@
+"""Where a run's arrays live: the 1-D mesh ("seeds") its lanes are split over, and each process's
+share of them (`Hosts`).
+
+Several devices (`config.devices`): the seeds axis of every array the loop carries (agent,
+replay, env states and timesteps, returns) is split over a 1-D mesh of N local devices, axis
+"seeds", each device holding S / N seeds; act, learn and add run per device
+(`dear_jax/programs.py`), physics and the env's device half stay where their seeds live, and
+one render pool on the host feeds them all. `devices=1` keeps arrays uncommitted on the default
+device, with no mesh.
+
+Several processes (`jax.distributed`): the mesh spans every process's `config.devices` devices
+and the loop's arrays are global; each process steps, renders, logs and stores its own block of
+lanes (`Hosts`), and every decision that issues a program is made from values all processes
+agree on (`Hosts.agree`), so all run the same programs in the same order.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+
+def num_devices(devices, seeds: int, available: int) -> int:
+    """`config.devices` ("all" or an int) as a device count, refused unless it fits the host's
+    `available` devices and splits the `seeds` evenly (a sweep's lanes: seeds x settings)."""
+    if devices == "all":
+        n = available
+    elif isinstance(devices, int) and not isinstance(devices, bool) and devices >= 1:
+        n = devices
+    else:
+        raise ValueError(f"devices must be 'all' or an int >= 1, got {devices!r}")
+    if n > available:
+        counts = "1" if available == 1 else f"1 to {available}"
+        raise ValueError(
+            f"devices={devices} but {available} {jax.default_backend()} device(s) exist here; "
+            f"valid: {counts}, or 'all'"
+        )
+    if seeds % n:
+        valid = [d for d in range(1, available + 1) if seeds % d == 0]
+        raise ValueError(
+            f"seeds={seeds} cannot be split evenly over devices={devices} ({n} devices); valid "
+            f"devices for {seeds} seeds: {', '.join(map(str, valid))}; or make seeds a multiple "
+            f"of {n}"
+        )
+    return n
+
+
+def seed_mesh(devices, num_lanes: int) -> Mesh | None:
+    """The 1-D mesh ("seeds") of the first `devices` (`config.devices`) local devices; None for
+    one device. With several processes, of the first `devices` devices of every process, in
+    process order: process p holds the p-th block of the `num_lanes` lanes."""
+    hosts = jax.process_count()
+    per_host = lanes_per_host(num_lanes, hosts)
+    n = num_devices(devices, per_host, jax.local_device_count())
+    if hosts == 1:
+        return None if n == 1 else Mesh(np.array(jax.local_devices()[:n]), ("seeds",))
+    devices = [[d for d in jax.devices() if d.process_index == p][:n] for p in range(hosts)]
+    return Mesh(np.array(sum(devices, [])), ("seeds",))
+
+
+def lanes_per_host(num_lanes: int, hosts: int) -> int:
+    """Lanes per process, refused unless the processes split them evenly."""
+    if num_lanes % hosts:
+        valid = [h for h in range(1, num_lanes + 1) if num_lanes % h == 0]
+        raise ValueError(
+            f"{num_lanes} lanes (seeds x sweep settings) cannot be split evenly over {hosts} "
+            f"processes; valid process counts: {', '.join(map(str, valid))}; or make the lanes "
+            f"a multiple of {hosts}"
+        )
+    return num_lanes // hosts
+
+
+def seed_sharding(mesh: Mesh | None) -> NamedSharding | None:
+    """Arrays with a leading seeds axis split over `mesh` (None: no mesh, the default device)."""
+    return None if mesh is None else NamedSharding(mesh, P("seeds"))
+
+
+class Hosts:
+    """This process's share of a run's arrays. One process: every array is whole here and the
+    methods do nothing. Several (`jax.distributed`): the loop's arrays are global (split over
+    `mesh`, every process's devices), while this process's envs, logs and replay files hold its
+    block of lanes (`lanes`) on its own devices (`local`, the env's sharding); the methods move
+    between the two without copies, and `agree` is the one place processes exchange values."""
+
+    def __init__(self, mesh: Mesh | None, num_lanes: int):
+        self.count, self.index = jax.process_count(), jax.process_index()
+        self.mesh = mesh
+        per_host = num_lanes // self.count
+        self.lanes = range(self.index * per_host, (self.index + 1) * per_host)
+        self.local = seed_sharding(mesh)
+        if self.count > 1:
+            mine = [d for d in mesh.devices if d.process_index == self.index]
+            self.local = NamedSharding(Mesh(np.array(mine), ("seeds",)), P("seeds"))
+
+    @property
+    def multi(self) -> bool:
+        return self.count > 1
+
+    @property
+    def num_devices(self) -> int:
+        """The devices this process trains on."""
+        return 1 if self.local is None else len(self.local.device_set)
+
+    def _shards(self, x) -> list:
+        """x's shards on this process's devices, in mesh order."""
+        by_device = {s.device: s.data for s in x.addressable_shards}
+        return [by_device[d] for d in self.local.mesh.devices]
+
+    def to_global(self, tree):
+        """This process's block [S / P, ...] (on `local`) -> the run's array [S, ...]; 0-d
+        leaves, which must be the same on every process -> replicated."""
+        if not self.multi:
+            return tree
+
+        def one(x):
+            if x.ndim == 0:
+                return self.place(x, NamedSharding(self.mesh, P()))
+            if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
+                data = one(jax.random.key_data(x))
+                return jax.random.wrap_key_data(data, impl=jax.random.key_impl(x))
+            shape = (x.shape[0] * self.count, *x.shape[1:])
+            return jax.make_array_from_single_device_arrays(
+                shape, seed_sharding(self.mesh), self._shards(x)
+            )
+
+        return jax.tree.map(one, tree)
+
+    def to_local(self, tree):
+        """The run's arrays [S, ...] -> this process's block [S / P, ...] on `local`; replicated
+        0-d leaves -> uncommitted arrays here."""
+        if not self.multi:
+            return tree
+
+        def one(x):
+            if x.ndim == 0:
+                return uncommitted(x.addressable_data(0))
+            if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
+                data = one(jax.random.key_data(x))
+                return jax.random.wrap_key_data(data, impl=jax.random.key_impl(x))
+            shape = (x.shape[0] // self.count, *x.shape[1:])
+            return jax.make_array_from_single_device_arrays(shape, self.local, self._shards(x))
+
+        return jax.tree.map(one, tree)
+
+    def read(self, x) -> np.ndarray:
+        """This process's block of a [S, ...] array, on the host."""
+        if not self.multi:
+            return np.asarray(x)
+        return np.concatenate([np.asarray(a) for a in self._shards(x)])
+
+    def place(self, x, sharding):
+        """A value every process holds whole and alike, placed over the run's devices."""
+        if not self.multi:
+            return jax.device_put(x, sharding)
+        if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
+            data = self.place(jax.random.key_data(x), sharding)
+            return jax.random.wrap_key_data(data, impl=jax.random.key_impl(x))
+        host = np.asarray(x)
+        return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+
+    def place_local(self, x: np.ndarray):
+        """This process's block [S / P, ...] of host values -> the run's array [S, ...]."""
+        shape = (x.shape[0] * self.count, *x.shape[1:])
+        return jax.make_array_from_process_local_data(seed_sharding(self.mesh), x, shape)
+
+    def env_key(self, key):
+        """A key of the loop (on every device) as this process's envs take it: here, and
+        folded with the process index, so processes draw different episode starts."""
+        if not self.multi:
+            return key
+        return jax.random.fold_in(self.to_local(key), self.index)
+
+    def agree(self, values) -> np.ndarray:
+        """[processes, k]: every process's `values` (k numbers), the same on every process."""
+        values = np.asarray(values, np.int64)
+        if not self.multi:
+            return values[None]
+        from jax.experimental import multihost_utils
+
+        return np.asarray(multihost_utils.process_allgather(values)).reshape(self.count, -1)
+
+
+def uncommitted(x):
+    """`x` as a fresh run has it: a device array not committed to a device. jit compiles
+    separately for committed arguments (orbax restores those), so a resumed run would otherwise
+    compile every program of the loop twice."""
+    if not isinstance(x, jax.Array):
+        return x
+    if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
+        data = jnp.asarray(np.asarray(jax.random.key_data(x)))
+        return jax.random.wrap_key_data(data, impl=jax.random.key_impl(x))
+    return jnp.asarray(np.asarray(x))

@@ -1,0 +1,291 @@
+"""What a config makes of an experiment: the fields that change what it learns (its
+checkpoint's fingerprint), its checks, its agent's settings, its envs, where it evaluates and
+its replay's store on disk.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+import pathlib
+
+import jax
+import jax.numpy as jnp
+from jax.sharding import Mesh
+from ml_collections import ConfigDict
+
+import envs
+from dear_jax import augment, lanes, losses, networks, replay, replay_disk, update
+from dear_jax.devices import Hosts, lanes_per_host, num_devices
+from envs import distractions
+
+log = logging.getLogger("dear_jax")
+
+# Config fields a resumed run may change: how long it runs, what and how often it logs, evaluates
+# and saves, and how fast it runs; never what it learns. Every other field, new ones included, is
+# part of the checkpoint's fingerprint, and a resume that changes one is refused.
+RESUMABLE_CHANGES = (
+    "total_frames",
+    "eval_every_frames",
+    "num_eval_episodes",
+    "log_every_frames",
+    "checkpoint_every_frames",
+    "keep_checkpoints",
+    "save_video",
+    "progress",
+    "profile.at_frame",
+    "profile.iterations",
+    "env.render.num_workers",
+    "env.eval_backend",
+    "env.physics_threads",
+    "env.eval_physics_threads",
+    "eval_in_background",
+    "eval_device",
+    "agent.seed_axis",
+    "agent.shift_impl",
+    "agent.filter_gradient",
+    "agent.conv_stack",
+    "replay.disk",
+    "devices",
+)
+
+
+def fingerprint(config: ConfigDict) -> dict:
+    """Every config field that changes what a run learns (all but RESUMABLE_CHANGES), dotted."""
+    return {k: v for k, v in lanes.flatten(config.to_dict()).items() if k not in RESUMABLE_CHANGES}
+
+
+# Offset of process p's env seeds (and episode-start keys): p * HOST_SEED_STRIDE.
+HOST_SEED_STRIDE = 1_000_033
+
+EVAL_DEVICES = ("auto", "cpu", "accelerator", "train")
+OWN_PROCESS = ("cpu", "accelerator")  # eval_device values that evaluate in a child process
+
+
+def _get(config: ConfigDict, dotted: str):
+    for part in dotted.split("."):
+        config = config[part]
+    return config
+
+
+def validate(config: ConfigDict) -> None:
+    """Fail early, naming the field and the valid choices."""
+    if config.env.task not in envs.names():
+        raise ValueError(f"unknown env.task {config.env.task!r}; valid: {', '.join(envs.names())}")
+    choices = {
+        "agent.method": update.METHODS,
+        "agent.encoder": ("pool", "plain"),
+        "agent.ortho_form": losses.ORTHOGONALITY_FORMS,
+        "agent.seed_axis": update.SEED_AXES,
+        "agent.shift_impl": augment.SHIFT_IMPLS,
+        "agent.filter_gradient": networks.FILTER_GRADIENTS,
+        "agent.conv_stack": networks.STACKS,
+        "env.backend": ("auto", "mjx", "cpu"),
+        "env.eval_backend": ("cpu", "train"),
+        "eval_device": EVAL_DEVICES,
+        "env.distraction": ("none", "easy", "medium", "hard"),
+        "env.mask": ("true", "noisy", "approximate"),
+    }
+    for key, valid in choices.items():
+        if _get(config, key) not in valid:
+            raise ValueError(f"unknown {key} {_get(config, key)!r}; valid: {', '.join(valid)}")
+    try:
+        distractions.parse_types(config.env.distraction_types)
+    except ValueError as e:
+        raise ValueError(f"env.distraction_types: {e}") from None
+    positive = (
+        "seeds",
+        "envs_per_seed",
+        "total_frames",
+        "eval_every_frames",
+        "num_eval_episodes",
+        "agent.batch_size",
+        "agent.nstep",
+        "agent.update_every_steps",
+        "replay.capacity",
+    )
+    for key in positive:
+        if _get(config, key) < 1:
+            raise ValueError(f"{key} must be >= 1, got {_get(config, key)}")
+    for key, auto in [
+        ("env.physics_threads", "one per device"),
+        ("env.eval_physics_threads", "one per core, up to 8"),
+    ]:
+        if _get(config, key) < 0:
+            raise ValueError(f"{key} must be >= 0 (0: {auto}), got {_get(config, key)}")
+    a, r = config.agent, config.replay
+    steps = r.seed_frames // config.env.action_repeat  # transitions per seed before updating
+    if steps < a.batch_size:
+        raise ValueError(
+            f"replay.seed_frames={r.seed_frames} gives {steps} transitions per seed (at "
+            f"env.action_repeat={config.env.action_repeat}) before the first update, fewer than "
+            f"one batch (agent.batch_size={a.batch_size}); set replay.seed_frames >= "
+            f"{a.batch_size * config.env.action_repeat}"
+        )
+    if a.batch_size > r.capacity:
+        raise ValueError(
+            f"agent.batch_size={a.batch_size} is larger than the replay "
+            f"(replay.capacity={r.capacity}); lower the batch or raise the capacity"
+        )
+    lanes.sweep_values(config)  # unknown or ineffective sweep keys
+    per_host = lanes_per_host(lanes.num_lanes(config), jax.process_count())
+    num_devices(config.devices, per_host, jax.local_device_count())
+    if config.env.background_dir and not pathlib.Path(config.env.background_dir).is_dir():
+        raise FileNotFoundError(
+            f"env.background_dir {config.env.background_dir!r} is not a folder; give a DAVIS-2017 "
+            "root (JPEGImages/480p/<video>/*.jpg, ImageSets/2017/train.txt and val.txt) or '' "
+            "for the built-in procedural backgrounds"
+        )
+
+
+def agent_config(config: ConfigDict, action_dim: int) -> update.AgentConfig:
+    a = config.agent
+    return update.AgentConfig(
+        action_dim=action_dim,
+        method=a.method,
+        encoder=a.encoder,
+        latent_dim=a.latent_dim,
+        feature_dim=a.feature_dim,
+        hidden_dim=a.hidden_dim,
+        lr=a.lr,
+        ted_lr=a.ted_lr,
+        ortho_form=a.ortho_form,
+        compute_dtype=a.compute_dtype,
+        shift_impl=a.shift_impl,
+        filter_gradient=a.filter_gradient,
+        conv_stack=a.conv_stack,
+    )
+
+
+def hparams(config: ConfigDict) -> update.HParams:
+    """The update's per-lane numbers: [lanes] arrays, the config's values and the sweep's."""
+    a = config.agent
+    runs = lanes.lanes(config)
+    names = [f.name for f in dataclasses.fields(update.HParams)]
+    return update.HParams(
+        **{n: jnp.array([dict(r.settings).get(n, a[n]) for r in runs], jnp.float32) for n in names}
+    )
+
+
+def eval_device(config: ConfigDict, hosts: Hosts) -> str:
+    """Where the evaluations run (config.eval_device, "auto" resolved): a process of their own
+    on the host's CPU ("cpu") or on the training's accelerator ("accelerator";
+    dear_jax/evaluator.py), or "train", this process.
+
+    "auto" is "accelerator" for a run of one process on a GPU: on an H100 its evaluations slowed
+    training less than "cpu" did (benchmarks/RESULTS.md, "Where an evaluation's cost goes");
+    "cpu" elsewhere (a CPU-only machine runs the policy in float32); "train" for several
+    processes."""
+    choice = config.eval_device
+    if choice == "auto":
+        if hosts.multi:
+            choice = "train"
+        else:
+            choice = "accelerator" if jax.default_backend() == "gpu" else "cpu"
+    if choice in OWN_PROCESS and hosts.multi:
+        raise ValueError(
+            f"eval_device={choice!r} evaluates in one process, and this run has {hosts.count}; "
+            "set eval_device='train' or 'auto'"
+        )
+    return choice
+
+
+def make_env(
+    config: ConfigDict,
+    *,
+    envs_per_seed: int,
+    split: str,
+    seed: int,
+    backend: str | None = None,
+    mesh: Mesh | None = None,
+    hosts: Hosts | None = None,
+    physics_threads: int = 1,
+) -> envs.Env:
+    """The batched env of the config (`backend` overrides env.backend; seeds split over `mesh`);
+    with several processes (`hosts`), of this process's lanes on its devices. physics_threads:
+    CPU MuJoCo's threads."""
+    e = config.env
+    hosts = hosts or Hosts(mesh, lanes.num_lanes(config))
+    # Each process draws its own lanes' episode starts and distractions.
+    seed += HOST_SEED_STRIDE * hosts.index
+    env = envs.make(
+        e.task,
+        num_seeds=len(hosts.lanes),
+        envs_per_seed=envs_per_seed,
+        backend=backend or e.backend,
+        distraction=e.distraction,
+        distraction_types=e.distraction_types,
+        dynamic=e.dynamic,
+        background_dir=e.background_dir or None,
+        split=split,
+        mask=e.mask,
+        mask_drop_prob=e.mask_drop_prob,
+        render=envs.RenderSettings(**e.render.to_dict()),
+        seed=seed,
+        action_repeat=e.action_repeat,
+        episode_frames=e.episode_frames or None,
+        sharding=hosts.local,
+        physics_threads=physics_threads,
+    )
+    return env
+
+
+def make_eval_env(
+    config: ConfigDict, *, mesh: Mesh | None = None, hosts: Hosts | None = None
+) -> envs.Env:
+    """The evaluation episodes' env: num_eval_episodes envs per seed of the validation split,
+    its own seed, env.eval_backend's physics; CPU physics on env.eval_physics_threads threads
+    (0: as many as this process may use cores, up to 8)."""
+    usable = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else range(os.cpu_count())
+    threads = config.env.eval_physics_threads or min(8, len(usable))
+    return make_env(
+        config,
+        envs_per_seed=config.num_eval_episodes,
+        split="val",
+        seed=config.seed + 1,
+        backend="cpu" if config.env.eval_backend == "cpu" else None,
+        mesh=mesh,
+        hosts=hosts,
+        physics_threads=threads,
+    )
+
+
+def replay_store(config: ConfigDict, spec: envs.EnvSpec, workdir: pathlib.Path, hosts: Hosts):
+    """The chunk store of the replay on disk (None when replay.disk is off), its size checked."""
+    if not config.replay.disk:
+        return None
+    num_envs = config.envs_per_seed
+    rows = math.ceil(config.replay.capacity / num_envs)
+    chunk_rows = replay_disk.chunk_rows_for(config.replay.chunk_entries, num_envs, rows)
+    # Rows are batched env steps: each adds E x action_repeat frames per seed, and every episode
+    # adds one more row, its first timestep.
+    per_frame = (spec.episode_steps + 1) / spec.episode_steps / (num_envs * spec.action_repeat)
+    total_rows = math.ceil(config.total_frames * per_frame) + 1
+    ckpt_every = config.checkpoint_every_frames
+    between = math.ceil(ckpt_every * per_frame) + 1 if ckpt_every else total_rows
+    need = replay_disk.disk_bound(
+        num_seeds=len(hosts.lanes),
+        rows=rows,
+        chunk_rows=chunk_rows,
+        num_envs=num_envs,
+        entry_bytes=replay.entry_bytes(spec.frame_shape, spec.action_dim),
+        rows_between_checkpoints=between,
+        keep_checkpoints=config.keep_checkpoints,
+        total_rows=total_rows,
+    )
+    directory = workdir / "replay"
+    more, free = replay_disk.check_disk(directory, need)
+    gib = 2**30
+    log.info(
+        "replay on disk in %s: up to %.2f GiB (uncompressed bound, %.2f GiB more than now; "
+        "%.2f GiB free); replay.disk=False turns it off",
+        directory,
+        need / gib,
+        more / gib,
+        free / gib,
+    )
+    return replay_disk.ChunkStore(
+        directory, len(hosts.lanes), rows, chunk_rows, first_seed=hosts.lanes[0], read=hosts.read
+    )

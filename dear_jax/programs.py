@@ -1,0 +1,158 @@
+"""The loop's jitted programs (act, learn, add, the evaluation's policy step), each over all
+lanes at once; with a mesh, act, learn and add run each device's block of lanes on that device
+(`jax.shard_map`, no collectives: lanes are independent).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+from jax.sharding import Mesh
+from jax.sharding import PartitionSpec as P
+from ml_collections import ConfigDict
+
+from dear_jax import lanes, losses, replay, update
+from dear_jax.experiment import hparams
+
+
+@dataclasses.dataclass(frozen=True)
+class Programs:
+    """The jitted functions of the loop, each over all seeds at once."""
+
+    act: callable  # (agent, obs [S,E,...], key, stepping [S,E]) -> (actions [S,E,A], agent)
+    learn: callable  # (agent, replay, key) -> (agent, metrics [S]): one update per seed
+    add: callable  # (replay, ts, action) -> replay
+    # (params, obs) -> (actions, {cos_agent_env, abs_cos_agent_env: [S]}, predicted mask of env 0
+    # [S,H,W])
+    evaluate_step: callable
+    # The same in float32, for the evaluation process on the host's CPU (eval_device="cpu",
+    # dear_jax/evaluator.py): XLA:CPU runs bfloat16 convolutions at half float32's speed.
+    evaluate_step_host: callable
+    accumulate: callable  # (returns [S,E], ts) -> returns
+    add_metrics: callable  # (metrics, metrics) -> elementwise sum
+
+
+_PROGRAMS: dict = {}
+
+
+def cached_programs(
+    acfg: update.AgentConfig, config: ConfigDict, mesh: Mesh | None = None
+) -> Programs:
+    """build_programs, reused by later runs of this process with the same agent and seeds (tests,
+    resumes in one process): their jitted functions are then compiled once per mesh."""
+    settings = {k: config[k].to_dict() for k in ("agent", "sweep")}
+    experiment = (acfg, config.seeds, json.dumps(settings, sort_keys=True))
+    if (experiment, mesh) not in _PROGRAMS:
+        hp = hparams(config)
+        for key in [k for k in _PROGRAMS if k[0] != experiment]:
+            del _PROGRAMS[key]  # a process runs one experiment at a time
+        _PROGRAMS[experiment, mesh] = build_programs(acfg, hp, config, mesh)
+    return _PROGRAMS[experiment, mesh]
+
+
+def build_programs(
+    acfg: update.AgentConfig, hp: update.HParams, config: ConfigDict, mesh: Mesh | None = None
+) -> Programs:
+    """The loop's programs; with a `mesh`, act, learn and add run each device's block of seeds
+    on that device. Per-seed keys are split before the split over devices, so a seed draws the
+    same numbers on any number of devices."""
+    a = config.agent
+    num_seeds = lanes.num_lanes(config)
+    nets = update.make_networks(acfg)
+
+    def per_device(fn):
+        """`fn` of a block of seeds ([S / N, ...] arguments), run where the block lives."""
+        if mesh is None:
+            return fn
+        # check_vma=False: the bodies hold no collectives (each device runs its own seeds), so
+        # there is nothing for shard_map's varying-axes types to check, and every output varies
+        # over "seeds" by construction. With the check on, each pallas_call (wideconv, wgrad)
+        # would have to state its outputs' varying axes in its out_shape, a jax-version-specific
+        # annotation kernels meant for one device do not carry; without it, tracing fails.
+        return jax.shard_map(
+            fn, mesh=mesh, in_specs=P("seeds"), out_specs=P("seeds"), check_vma=False
+        )
+
+    # Acting, updating and evaluating run their seeds as agent.seed_axis says (sampling is always
+    # vmapped: integer work, gathers and element-wise sums, the same for any number of seeds).
+    # With "loop", a seed's computation is the same however many seeds share its device, so a
+    # split run is the same bit for bit; a vmapped convolution of S seeds is one grouped
+    # convolution whose rounding depends on S.
+    def over_seeds(fn):
+        return per_device(update.over_seeds(fn, a.seed_axis))
+
+    def act(agent, obs, key, stepping):
+        keys = jax.random.split(key, num_seeds)
+
+        def per_seed(agent, obs, key, hp, stepping):
+            return update.act(acfg, agent, obs, key, hp, explore=True, stepping=stepping)
+
+        return over_seeds(per_seed)(agent, obs, keys, hp, stepping)
+
+    def sample_one(buffer, key):
+        return replay.sample(
+            buffer,
+            key,
+            a.batch_size,
+            nstep=a.nstep,
+            gamma=a.discount,
+            frame_stack=acfg.frame_stack,
+            same_episode=acfg.method == "ted",
+        )
+
+    def update_one(agent, batch, key, hp_seed):
+        return update.update(agent, batch, key, hp_seed, cfg=acfg)
+
+    # One update per seed per call; the loop calls it E / update_every_steps times (dispatch is
+    # asynchronous). A lax.scan over the updates made tests/test_run.py's tiny runs ~3x slower
+    # on CPU (its fixture: 298 s with the scan, 97 s without; pytest --durations).
+    # Batches are drawn for all seeds at once (vmapped gathers from the [S, T, E, ...] replay);
+    # only the updates follow agent.seed_axis. Looping the sampling too, which slices each
+    # seed's replay out of the buffer first, made DEAR's learn program on an H100 take 395
+    # instead of 295 ms per 5 x 16 iteration (benchmarks/RESULTS.md, "The training loop").
+    def learn_block(agent, buffer, keys, hp):
+        k_sample, k_update = jnp.moveaxis(jax.vmap(jax.random.split)(keys), 1, 0)
+        batches = jax.vmap(sample_one)(buffer, k_sample)
+        return update.over_seeds(update_one, a.seed_axis)(agent, batches, k_update, hp)
+
+    def learn(agent, buffer, key):
+        keys = jax.random.split(key, num_seeds)
+        return per_device(learn_block)(agent, buffer, keys, hp)
+
+    def add(buffer, ts, action):
+        return per_device(jax.vmap(replay.add))(
+            buffer, ts.frame, ts.mask, action, ts.reward, ts.discount, ts.first
+        )
+
+    def evaluate_step(nets):
+        def one(params, obs):
+            z = nets.encoder.apply({"params": params["encoder"]}, obs)
+            action = nets.actor.apply({"params": params["actor"]}, z)
+            z_env, z_agent = losses.split_latent(z)
+            cos = losses.latent_cosines(z_agent, z_env)
+            if nets.mask_decoder is None:
+                pred = jnp.zeros(obs.shape[1:3])
+            else:  # newest frame's channel of env 0
+                logits = nets.mask_decoder.apply({"params": params["mask_decoder"]}, z_agent[:1])
+                pred = jax.nn.sigmoid(logits[0, ..., -1])
+            return action, cos, pred
+
+        return one
+
+    nets_f32 = update.make_networks(dataclasses.replace(acfg, compute_dtype="float32"))
+
+    def accumulate(returns, ts):
+        return jnp.where(ts.first, 0.0, returns) + ts.reward
+
+    return Programs(
+        act=jax.jit(act, donate_argnums=0),
+        learn=jax.jit(learn, donate_argnums=0),
+        add=jax.jit(add, donate_argnums=0),
+        evaluate_step=jax.jit(over_seeds(evaluate_step(nets))),
+        evaluate_step_host=jax.jit(update.over_seeds(evaluate_step(nets_f32), a.seed_axis)),
+        accumulate=jax.jit(accumulate),
+        add_metrics=jax.jit(lambda a, b: jax.tree.map(jnp.add, a, b)),
+    )

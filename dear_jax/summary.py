@@ -1,0 +1,126 @@
+"""A run's summary: each lane's final and best evaluation, the means over each setting's seeds,
+and what the run ran on, as summary.md and summary.json in its workdir."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import jax
+import numpy as np
+
+import envs
+from dear_jax import lanes, networks
+from dear_jax.logger import format_table, read_csv, write_text_atomic
+from dear_jax.provenance import provenance
+
+
+def _best(values: np.ndarray) -> float:
+    """The largest non-NaN value; NaN when there is none (a run stopped before evaluating)."""
+    return float(np.nanmax(values)) if np.isfinite(values).any() else math.nan
+
+
+def _distraction_line(spec: envs.EnvSpec) -> str:
+    """What the run's frames were distracted by, as the summary says it."""
+    if spec.distraction == "none":
+        return "no distraction"
+    kinds = ", ".join(spec.distraction_types)
+    return (
+        f"distraction {spec.distraction} ({kinds}; {'dynamic' if spec.dynamic else 'static'}; "
+        f"backgrounds: {spec.backgrounds})"
+    )
+
+
+def write_summary(
+    workdir,
+    config,
+    spec,
+    counters,
+    *,
+    devices: int = 1,
+    stopped: str | None = None,
+    evaluated_on: str,
+) -> dict:
+    """Summary per seed from the eval logs, saved as summary.md / summary.json and printed
+    unless the run was `stopped` (by that signal's name) before its end. `evaluated_on`: the
+    resolved eval_device."""
+    wall = counters["wall_s"]
+    runs = lanes.lanes(config)
+    fps = counters["frame"] * len(runs) / max(wall, 1e-9)
+    rows, per_seed = [], []
+    for lane in runs:
+        path = workdir / lane.name / "eval.csv"
+        evals = read_csv(path) if path.exists() else {}
+        returns = evals.get("episode_return", np.array([np.nan]))
+        abs_cos = evals.get("abs_cos_agent_env", np.array([np.nan]))
+        cos = evals.get("cos_agent_env", np.array([np.nan]))
+        best = _best(returns)
+        per_seed.append(
+            dict(
+                seed=lane.seed,
+                lane=lane.name,
+                settings=dict(lane.settings),
+                final_return=float(returns[-1]),
+                best_return=best,
+                cos_agent_env=float(cos[-1]),
+                abs_cos_agent_env=float(abs_cos[-1]),
+            )
+        )
+        rows.append([lane.name, f"{returns[-1]:.1f}", f"{best:.1f}", f"{abs_cos[-1]:.2e}"])
+        if spec.has_success:  # success rate of the eval episodes (kitchen)
+            success = evals.get("success", np.array([np.nan]))
+            per_seed[-1].update(final_success=float(success[-1]), best_success=_best(success))
+            rows[-1].append(f"{success[-1]:.2f}")
+    for label in dict.fromkeys(lane.label for lane in runs):  # mean over each setting's seeds
+        group = [p for p, lane in zip(per_seed, runs) if lane.label == label]
+        finals = np.array([p["final_return"] for p in group])
+        rows.append([f"mean {label}".strip(), f"{finals.mean():.1f} ± {finals.std():.1f}", "", ""])
+        if spec.has_success:
+            rates = np.array([p["final_success"] for p in group])
+            rows[-1].append(f"{rates.mean():.2f} ± {rates.std():.2f}")
+    summary = {
+        "task": config.env.task,
+        "method": config.agent.method,
+        "action_dim": spec.action_dim,
+        "seeds": config.seeds,
+        "lanes": len(runs),
+        "sweep": {k: list(v) for k, v in lanes.sweep_values(config).items()},
+        "devices": devices,
+        "processes": jax.process_count(),
+        "envs_per_seed": config.envs_per_seed,
+        "frames_per_seed": counters["frame"],
+        "updates_per_seed": counters["updates"],
+        "wall_s": wall,
+        "aggregate_fps": fps,
+        "backend": spec.backend,
+        "device": jax.devices()[0].device_kind,
+        "conv_stack": networks.stack_for(config.agent.conv_stack),
+        "render": config.env.render.to_dict(),
+        "render_quality": config.env.render.quality,
+        "eval_device": evaluated_on,
+        "distraction": config.env.distraction,
+        "distraction_types": list(spec.distraction_types),
+        "backgrounds": spec.backgrounds,
+        "stopped": stopped,
+        "per_seed": per_seed,
+        "provenance": provenance(),
+    }
+    unit = "lane" if runs[0].settings else "seed"
+    columns = [unit, "final eval return", "best eval return", "abs cos(z_A, z_E)"]
+    columns += ["final eval success"] if spec.has_success else []
+    table = format_table(columns, rows)
+    until = f"stopped by {stopped} at " if stopped else ""
+    text = (
+        f"# {config.agent.method} on {config.env.task}\n\n"
+        f"{until}{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, "
+        f"{wall:.0f} s of training ({fps:.0f} frames/s in all) on {summary['device']} "
+        f"({spec.backend} physics, {summary['conv_stack']} conv stacks, evaluations on "
+        f"{summary['eval_device']}); {_distraction_line(spec)}; render "
+        f"settings {summary['render']}; commit {summary['provenance']['commit']}, jax "
+        f"{summary['provenance']['jax']}\n\n{table}\n"
+    )
+    write_text_atomic(workdir / "summary.md", text)
+    write_text_atomic(workdir / "summary.json", json.dumps(summary, indent=1))
+    if not stopped:
+        print(text)
+    return summary

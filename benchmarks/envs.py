@@ -31,7 +31,8 @@ import envs  # noqa: E402
 from benchmarks.common import save_json
 from envs import dmc, kitchen  # noqa: E402
 from envs.physics import SolverSettings, make_physics  # noqa: E402
-from envs.render import RenderPool, RenderSettings  # noqa: E402
+from envs.render import RenderSettings  # noqa: E402
+from envs.render_pool import RenderPool  # noqa: E402
 
 
 def _initial_states(task, model, n, seed=0):

@@ -39,14 +39,9 @@ import numpy as np  # noqa: E402
 
 from benchmarks.common import save_json  # noqa: E402
 from envs import dmc  # noqa: E402
-from envs.render import (  # noqa: E402
-    QUALITY_VISUALS,
-    RenderPool,
-    RenderSettings,
-    TileRenderer,
-    label_tables,
-    labels_from_segmentation,
-)
+from envs.labels import label_tables, labels_from_segmentation  # noqa: E402
+from envs.render import QUALITY_VISUALS, RenderSettings, TileRenderer  # noqa: E402
+from envs.render_pool import RenderPool  # noqa: E402
 
 _DM = QUALITY_VISUALS["dm_control"]
 VARIANTS = {

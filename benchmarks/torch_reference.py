@@ -870,8 +870,7 @@ def run_pipeline(rank: int, cfg: dict, barrier=None) -> dict:
     """One process of the pipeline; returns its measurement."""
     import mujoco
 
-    from envs import dmc
-    from envs import render as R
+    from envs import camera, dmc, labels
     from envs.physics import CpuPhysics
 
     device = torch.device(cfg["device"])
@@ -896,7 +895,7 @@ def run_pipeline(rank: int, cfg: dict, barrier=None) -> dict:
     render_data = mujoco.MjData(render_model)
     renderer = mujoco.Renderer(render_model, 84, 84)
     with_mask = cfg["method"] == "dear"
-    tables = R.label_tables(
+    tables = labels.label_tables(
         render_model, task.agent_geom_ids(render_model), task.floor_geom_ids(render_model)
     )
 
@@ -904,7 +903,7 @@ def run_pipeline(rank: int, cfg: dict, barrier=None) -> dict:
         """RGB [3, 84, 84] and the agent mask [84, 84] (dear), as two renders like the
         reference's pixel observation and segmentation calls."""
         render_data.qpos[:] = qpos
-        R.kinematics(render_model, render_data)
+        camera.kinematics(render_model, render_data)
         renderer.update_scene(render_data, camera=task.camera)
         rgb = renderer.render().transpose(2, 0, 1)
         mask = None
@@ -913,7 +912,9 @@ def run_pipeline(rank: int, cfg: dict, barrier=None) -> dict:
             renderer.update_scene(render_data, camera=task.camera)
             seg = renderer.render()
             renderer.disable_segmentation_rendering()
-            mask = (R.labels_from_segmentation(seg, tables) == R.LABEL_AGENT).astype(np.uint8)
+            mask = (labels.labels_from_segmentation(seg, tables) == labels.LABEL_AGENT).astype(
+                np.uint8
+            )
         return rgb, mask
 
     agent = Agent(

@@ -4,7 +4,7 @@
 - physics (`envs/physics.py`, MJX or CPU MuJoCo) steps S x E envs through one agent step: CPU
   MuJoCo on the env thread below, MJX dispatched by the caller;
 - a background thread (one-thread executor) steps CPU physics, fetches qpos to the host, renders
-  RGB + pixel labels in the render pool (`envs/render.py`), uploads them and dispatches one
+  RGB + pixel labels in the render pool (`envs/render_pool.py`), uploads them and dispatches one
   jitted function that composites the distraction background (`envs/distractions.py`), builds
   the mask variant (`envs/masks.py`) and rolls the frame stack; `step_async` returns at once, so
   the caller can dispatch accelerator work meanwhile;
@@ -45,7 +45,8 @@ from jax.sharding import PartitionSpec as P
 from envs import distractions, dmc, masks
 from envs.dmc import DmcTask
 from envs.physics import SolverSettings, make_physics, resolve_backend, upload
-from envs.render import RenderPool, RenderSettings
+from envs.render import RenderSettings
+from envs.render_pool import RenderPool
 
 MASK_KINDS = ("true", "noisy", "approximate")
 

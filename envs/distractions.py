@@ -48,14 +48,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from envs.render import (
-    LABEL_BACKGROUND,
-    LABEL_FLOOR,
-    cart_to_sphere,
-    kinematics,
-    lookat_point,
-    sphere_to_cart,
-)
+from envs.camera import cart_to_sphere, kinematics, lookat_point, sphere_to_cart
+from envs.labels import LABEL_BACKGROUND, LABEL_FLOOR
 
 log = logging.getLogger(__name__)
 

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs.render import LABEL_AGENT
+from envs.labels import LABEL_AGENT
 
 APPROX_SMALL = 28  # the intermediate resolution of the approximate mask
 APPROX_SIGMA = 0.5

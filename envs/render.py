@@ -1,19 +1,11 @@
-"""The render pool: batched MuJoCo states -> uint8 RGB frames and per-pixel labels.
+"""Drawing: the visual settings, and the renderer that turns MuJoCo states into frames and labels.
 
-This file owns the CPU side of the picture: worker processes, each with its own MjModel, MjData,
-EGL context and MuJoCo render context; the kinematics needed to draw a state; the visual settings
-(`RenderSettings`, recorded in run summaries); the per-sample colour / camera perturbations of the
-Distracting Control Suite applied just before drawing; and the rule that turns MuJoCo's
-segmentation into the four labels BACKGROUND / FLOOR / AGENT / OTHER.
-
-Agent rule (docs/method.md, Masks), per segmentation object type:
-- geom: AGENT if its id is one of the task's agent geoms, FLOOR if one of its floor geoms,
-  else OTHER.
-- site, tendon: OTHER, always. The mask is exactly "pixels of agent geoms", as the reference
-  computes it from MuJoCo's geom segmentation. ball_in_cup's string (a tendon 3 mm wide, a pixel
-  at most at 84x84) and visible sites (the cup's 5 mm site, finger's spinner tip and target
-  sites) are therefore scenery, never mask; tests/test_render.py checks both cases.
-- anything else drawn (decor, skins, flexes): OTHER. Pixels where nothing is drawn: BACKGROUND.
+This file owns what one render worker does with a batch of states: the visual settings
+(`RenderSettings`, recorded in run summaries, and the effects each quality turns on), and
+`TileRenderer`, which sets each sample's state, applies the per-sample colour / camera
+perturbations of the Distracting Control Suite just before drawing (the camera's pose from
+envs/camera.py), and draws its uint8 RGB frame and its per-pixel labels (the rule is in
+envs/labels.py). The worker processes that run one `TileRenderer` each are envs/render_pool.py.
 
 Pictures (`RenderSettings.quality`, the config's `env.render.quality`): "dm_control" draws what
 dm_control's `physics.render(84, 84, camera_id)` draws, i.e. mujoco.Renderer's default frame
@@ -27,8 +19,7 @@ as mujoco.Renderer draws a frame, so every effect works per picture (one shadow-
 light, one reflection pass, one skybox), and the frame equals mujoco.Renderer's bit for bit; a
 GPU-side copy (resolving the multisamples) then puts it in its place on the sheet, an auxiliary
 buffer. One `mjv_updateScene` per sample serves both pictures, and one readback per sheet reads
-everything (per-frame readback is what limits throughput, docs/design.md). Results return through one
-shared-memory block; only the small inputs (qpos, perturbations) are pickled.
+everything (per-frame readback is what limits throughput, docs/design.md).
 
 The earlier layout drew each picture in place on a sheet-sized buffer (`RenderSettings.in_place`,
 kept for measurements): there MuJoCo's reflection pass clears the stencil of the whole sheet for
@@ -43,22 +34,17 @@ from __future__ import annotations
 import ctypes
 import dataclasses
 import os
-import signal
-import threading
-import traceback
-from collections.abc import Callable
-from multiprocessing import connection, get_context, resource_tracker, shared_memory
-from typing import Any
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-LABEL_BACKGROUND, LABEL_FLOOR, LABEL_AGENT, LABEL_OTHER = 0, 1, 2, 3
-LABEL_NAMES = ("background", "floor", "agent", "other")
+from envs.camera import kinematics, perturbed_camera_pose  # noqa: E402
+from envs.labels import LABEL_BACKGROUND, LABEL_OTHER, label_tables  # noqa: E402
 
-# Perturbation keys understood by RenderPool.render (all numpy, leading batch dim B):
+# Perturbation keys understood by TileRenderer.render and RenderPool.render (all numpy, leading
+# batch dim B):
 #   "mat_rgb"    f32 [B, nmat, 3]   material RGB (alpha kept from the model)
 #   "geom_rgb"   f32 [B, ngeom, 3]  RGB of geoms drawn without a material (alpha kept)
 #   "cam_sphere" f32 [B, 4]         (radius, horizontal angle, vertical angle, roll) of the camera,
@@ -66,8 +52,6 @@ LABEL_NAMES = ("background", "floor", "agent", "other")
 #                                   and to the world origin for fixed ones
 #   "cam_lookat" f32 [B, 3]         point a fixed camera looks at (ignored for tracking cameras)
 PERTURB_KEYS = ("mat_rgb", "geom_rgb", "cam_sphere", "cam_lookat")
-
-_WORKER_TIMEOUT_S = 600.0
 
 
 QUALITIES = ("dm_control", "fast")
@@ -144,99 +128,6 @@ def apply_scene_flags(scene: mujoco.MjvScene, visuals: Visuals) -> None:
     scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = visuals.reflections
     scene.flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = visuals.skybox
 
-
-def kinematics(model: mujoco.MjModel, data: mujoco.MjData) -> None:
-    """What drawing a state needs, and no more than mj_forward's position stage.
-
-    Poses alone (mj_kinematics, mj_comPos, mj_camlight, mj_tendon) are not enough: MuJoCo draws a
-    tendon at its limit in the constraint colour (ball_in_cup's taut string turns red), which
-    needs the constraint rows of mj_fwdPosition. It costs 2-3 us per state on dm_control's
-    models, nothing next to drawing.
-    """
-    mujoco.mj_fwdPosition(model, data)
-
-
-def label_tables(model: mujoco.MjModel, agent_geom_ids, floor_geom_ids) -> dict[int, np.ndarray]:
-    """Per object type (mjtObj value) -> uint8 label of each object of that type (agent rule)."""
-    agent = np.zeros(model.ngeom, bool)
-    agent[np.asarray(agent_geom_ids, int)] = True
-    floor = np.zeros(model.ngeom, bool)
-    floor[np.asarray(floor_geom_ids, int)] = True
-    if (agent & floor).any():
-        raise ValueError(f"geoms {np.flatnonzero(agent & floor)} are both agent and floor")
-    geom = np.full(model.ngeom, LABEL_OTHER, np.uint8)
-    geom[agent] = LABEL_AGENT
-    geom[floor] = LABEL_FLOOR
-
-    # Sites and tendons (and every other drawn object type) fall back to OTHER.
-    return {int(mujoco.mjtObj.mjOBJ_GEOM): geom}
-
-
-def labels_from_segmentation(seg: np.ndarray, tables: dict[int, np.ndarray]) -> np.ndarray:
-    """seg int32 [..., 2] (object id, object type), as mujoco.Renderer returns -> uint8 labels."""
-    objid, objtype = seg[..., 0], seg[..., 1]
-    out = np.full(objid.shape, LABEL_OTHER, np.uint8)
-    out[objtype == -1] = LABEL_BACKGROUND
-    for kind, table in tables.items():
-        hit = objtype == kind
-        out[hit] = table[objid[hit]]
-    return out
-
-
-# ---------------------------------------------------------------------------------------------
-# Camera perturbation geometry (used in the workers, after kinematics of the sample).
-
-
-def sphere_to_cart(sphere: np.ndarray) -> np.ndarray:
-    """(radius, horizontal angle, vertical angle from +z) -> xyz."""
-    r, h, v = sphere[0], sphere[1], sphere[2]
-    return np.array([r * np.sin(v) * np.cos(h), r * np.sin(v) * np.sin(h), r * np.cos(v)])
-
-
-def cart_to_sphere(xyz: np.ndarray) -> np.ndarray:
-    r = float(np.linalg.norm(xyz))
-    return np.array([r, np.arctan2(xyz[1], xyz[0]), np.arctan2(np.linalg.norm(xyz[:2]), xyz[2])])
-
-
-def look_at_xmat(target: np.ndarray, position: np.ndarray, roll: float) -> np.ndarray:
-    """Camera frame (MuJoCo: looks along -z, y up) at `position` facing `target`, level horizon,
-    then rolled by `roll` about its viewing axis. Returns the 3x3 frame, columns = camera axes."""
-    forward = target - position
-    forward = forward / np.linalg.norm(forward)
-    right = np.cross(forward, np.array([0.0, 0.0, 1.0]))
-    norm = np.linalg.norm(right)
-    # Looking straight up or down: any horizontal right axis keeps the view well defined.
-    right = right / norm if norm > 1e-9 else np.array([1.0, 0.0, 0.0])
-    up = np.cross(right, forward)
-    frame = np.stack([right, up, -forward], axis=1)
-    c, s = np.cos(roll), np.sin(roll)
-    roll_mat = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return frame @ roll_mat
-
-
-def lookat_point(data: mujoco.MjData, cam_id: int, anchor: np.ndarray) -> np.ndarray:
-    """The point on the camera's viewing axis as far away as `anchor` (the agent's centre)."""
-    dist = np.linalg.norm(data.cam_xpos[cam_id] - anchor)
-    return data.cam_xpos[cam_id] + data.cam_xmat[cam_id].reshape(3, 3) @ np.array([0, 0, -dist])
-
-
-def perturbed_camera_pose(
-    model: mujoco.MjModel, data: mujoco.MjData, cam_id: int, sphere: np.ndarray, lookat: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """World position and frame of the perturbed camera for the current (kinematics-done) state."""
-    tracking = model.cam_mode[cam_id] != mujoco.mjtCamLight.mjCAMLIGHT_FIXED
-    if tracking:
-        com = data.subtree_com[1]
-        position = sphere_to_cart(sphere) + com
-        target = lookat_point(data, cam_id, com)
-    else:
-        position = sphere_to_cart(sphere)
-        target = np.asarray(lookat, np.float64)
-    return position, look_at_xmat(target, position, float(sphere[3]))
-
-
-# ---------------------------------------------------------------------------------------------
-# One worker's renderer.
 
 _SHEET_AUX = 0  # index of the MuJoCo auxiliary buffer that holds the sheet
 
@@ -493,257 +384,3 @@ class TileRenderer:
         # Left to the garbage collector, the MuJoCo context would free its GL objects in
         # whichever context is current: another renderer's, whose objects have the same ids.
         self.close()
-
-
-# ---------------------------------------------------------------------------------------------
-# Worker processes and the pool.
-
-
-def _attach_shm(name: str) -> shared_memory.SharedMemory:
-    # The parent owns and unlinks the block; a worker that registered it with the resource
-    # tracker would make the tracker unlink it (or warn about a leak) when the worker exits.
-    register = resource_tracker.register
-    resource_tracker.register = lambda *args, **kwargs: None
-    try:
-        return shared_memory.SharedMemory(name=name)
-    finally:
-        resource_tracker.register = register
-
-
-def _worker_main(conn, model_fn, init_kwargs) -> None:
-    # Ctrl-C and SIGTERM sent to the whole process group are the parent's to handle: it finishes
-    # its step, checkpoints and then closes the pool. A worker also ends when the parent's end of
-    # the pipe closes (EOF below), so it never outlives the parent.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    renderer = None
-    shm = None
-    try:
-        renderer = TileRenderer(model_fn(), **init_kwargs)
-        conn.send(("ok", None))
-    except BaseException:  # noqa: BLE001 - any failure must reach the parent
-        conn.send(("error", traceback.format_exc()))
-        return
-    h, w = init_kwargs["settings"].height, init_kwargs["settings"].width
-    while True:
-        try:
-            msg = conn.recv()
-        except EOFError:
-            break
-        kind = msg[0]
-        try:
-            if kind == "close":
-                break
-            if kind == "info":
-                conn.send(("ok", renderer.gl_info()))
-            elif kind == "render":
-                _, shm_name, capacity, lo, qpos, mocap_pos, mocap_quat, perturb = msg
-                if shm is None or shm.name != shm_name:
-                    if shm is not None:
-                        shm.close()
-                    shm = _attach_shm(shm_name)
-                rgb, labels = _views(shm, capacity, h, w)
-                n = qpos.shape[0]
-                renderer.render(
-                    qpos,
-                    rgb[lo : lo + n],
-                    labels[lo : lo + n],
-                    mocap_pos=mocap_pos,
-                    mocap_quat=mocap_quat,
-                    perturb=perturb,
-                )
-                conn.send(("ok", None))
-            else:
-                conn.send(("error", f"unknown message {kind!r}"))
-        except BaseException:  # noqa: BLE001
-            conn.send(("error", traceback.format_exc()))
-    if shm is not None:
-        shm.close()
-    renderer.close()
-
-
-def _views(shm: shared_memory.SharedMemory, capacity: int, h: int, w: int):
-    rgb = np.ndarray((capacity, h, w, 3), np.uint8, buffer=shm.buf)
-    labels = np.ndarray((capacity, h, w), np.uint8, buffer=shm.buf, offset=capacity * h * w * 3)
-    return rgb, labels
-
-
-def _hint(error: str, workers: int) -> str:
-    """What to do about a worker's known failures (empty if none applies)."""
-    if "Offscreen framebuffer is not complete" not in error:
-        return ""
-    # Seen on an H100 (2026-11-24): the 5th and 6th training process on one GPU, each with
-    # 8 workers for its training env and 8 for its evaluation env, could not make their
-    # offscreen buffers while 4 others ran, with 26 GB of the GPU's memory still free.
-    return (
-        f"\nThe GPU's EGL driver gave this worker no offscreen buffer. This env has {workers} "
-        "render workers, each with its own GL context; other processes on this GPU hold theirs. "
-        "Lower env.render.num_workers (e.g. --config.env.render.num_workers=2), or run fewer "
-        "training processes on this GPU (several seeds or a sweep in one run share one set)."
-    )
-
-
-class RenderPool:
-    """Worker processes turning batched states into RGB frames and pixel labels.
-
-    model_fn: picklable zero-argument callable returning a mujoco.MjModel (each worker calls it).
-    camera: camera id or name. agent_geom_ids / floor_geom_ids: geom ids for the labels.
-    """
-
-    def __init__(
-        self,
-        model_fn: Callable[[], mujoco.MjModel],
-        *,
-        camera: int | str,
-        agent_geom_ids,
-        floor_geom_ids,
-        settings: RenderSettings = RenderSettings(),
-    ):
-        self.settings = settings
-        self._lock = threading.Lock()
-        self._shm: shared_memory.SharedMemory | None = None
-        self._capacity = 0
-        init_kwargs = dict(
-            camera=camera,
-            agent_geom_ids=[int(i) for i in agent_geom_ids],
-            floor_geom_ids=[int(i) for i in floor_geom_ids],
-            settings=settings,
-        )
-        # spawn, not fork: the parent may hold JAX / CUDA threads that a fork would corrupt.
-        ctx = get_context("spawn")
-        self._conns: list[connection.Connection] = []
-        self._procs = []
-        for _ in range(settings.resolved_workers()):
-            parent, child = ctx.Pipe()
-            proc = ctx.Process(
-                target=_worker_main, args=(child, model_fn, init_kwargs), daemon=True
-            )
-            proc.start()
-            child.close()
-            self._conns.append(parent)
-            self._procs.append(proc)
-        try:
-            for i in range(len(self._conns)):
-                self._receive(i)
-        except BaseException:
-            self.close()
-            raise
-
-    @property
-    def num_workers(self) -> int:
-        return len(self._conns)
-
-    def _receive(self, i: int) -> Any:
-        conn, proc = self._conns[i], self._procs[i]
-        deadline = _WORKER_TIMEOUT_S
-        while not conn.poll(1.0):
-            deadline -= 1.0
-            if not proc.is_alive():
-                raise RuntimeError(f"render worker {i} died (exit code {proc.exitcode})")
-            if deadline <= 0:
-                raise TimeoutError(f"render worker {i} gave no answer in {_WORKER_TIMEOUT_S} s")
-        status, payload = conn.recv()
-        if status != "ok":
-            raise RuntimeError(
-                f"render worker {i} failed:\n{payload}{_hint(payload, len(self._procs))}"
-            )
-        return payload
-
-    def _ensure_capacity(self, batch: int) -> None:
-        if batch <= self._capacity:
-            return
-        h, w = self.settings.height, self.settings.width
-        if self._shm is not None:
-            self._shm.close()
-            self._shm.unlink()
-        self._capacity = batch
-        self._shm = shared_memory.SharedMemory(create=True, size=batch * h * w * 4)
-
-    def gl_info(self) -> list[dict[str, str]]:
-        """GL vendor / renderer / version strings of every worker's context."""
-        with self._lock:
-            for conn in self._conns:
-                conn.send(("info",))
-            return [self._receive(i) for i in range(len(self._conns))]
-
-    def render(
-        self,
-        qpos: np.ndarray,
-        *,
-        mocap_pos: np.ndarray | None = None,
-        mocap_quat: np.ndarray | None = None,
-        perturb: dict[str, np.ndarray] | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """qpos [B,nq] -> (rgb uint8 [B,H,W,3], labels uint8 [B,H,W]). perturb: PERTURB_KEYS."""
-        qpos = np.asarray(qpos, np.float64)
-        if qpos.ndim != 2:
-            raise ValueError(f"qpos must be [B, nq], got shape {qpos.shape}")
-        perturb = {k: np.asarray(v) for k, v in (perturb or {}).items()}
-        unknown = set(perturb) - set(PERTURB_KEYS)
-        if unknown:
-            raise ValueError(f"unknown perturbation keys {sorted(unknown)}; valid: {PERTURB_KEYS}")
-        batch = qpos.shape[0]
-        for name, arr in [("mocap_pos", mocap_pos), ("mocap_quat", mocap_quat), *perturb.items()]:
-            if arr is not None and np.shape(arr)[0] != batch:
-                raise ValueError(f"{name} has leading dim {np.shape(arr)[0]}, qpos has {batch}")
-        h, w = self.settings.height, self.settings.width
-        with self._lock:
-            self._ensure_capacity(batch)
-            bounds = np.linspace(0, batch, len(self._conns) + 1).round().astype(int)
-            busy = []
-            for i, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
-                if hi <= lo:
-                    continue
-                part = slice(lo, hi)
-                self._conns[i].send(
-                    (
-                        "render",
-                        self._shm.name,
-                        self._capacity,
-                        int(lo),
-                        qpos[part],
-                        None if mocap_pos is None else np.asarray(mocap_pos)[part],
-                        None if mocap_quat is None else np.asarray(mocap_quat)[part],
-                        {k: v[part] for k, v in perturb.items()},
-                    )
-                )
-                busy.append(i)
-            errors = []
-            for i in busy:
-                try:
-                    self._receive(i)
-                except RuntimeError as err:
-                    errors.append(err)
-            if errors:
-                raise errors[0]
-            rgb, labels = _views(self._shm, self._capacity, h, w)
-            return rgb[:batch].copy(), labels[:batch].copy()
-
-    def close(self) -> None:
-        for conn in self._conns:
-            try:
-                conn.send(("close",))
-            except (BrokenPipeError, OSError):
-                pass
-        for proc in self._procs:
-            proc.join(timeout=10)
-            if proc.is_alive():
-                proc.kill()  # workers ignore SIGTERM
-                proc.join(timeout=10)
-        for conn in self._conns:
-            conn.close()
-        self._conns, self._procs = [], []
-        if self._shm is not None:
-            self._shm.close()
-            self._shm.unlink()
-            self._shm = None
-
-    def __enter__(self) -> RenderPool:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def __del__(self) -> None:
-        if getattr(self, "_conns", None):
-            self.close()

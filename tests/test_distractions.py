@@ -18,6 +18,7 @@ import pytest
 
 from envs import distractions as D
 from envs import render as R
+from envs.labels import LABEL_AGENT, LABEL_BACKGROUND, LABEL_FLOOR, LABEL_OTHER
 
 SUITE = pathlib.Path(importlib.util.find_spec("dm_control").origin).parent / "suite"
 
@@ -134,16 +135,16 @@ def test_background_distraction_changes_no_agent_pixel(walker_frames, alpha):
     bg = bgs[np.array([0, 1, 0, 1]), np.array([0, 1, 2, 3])]
     out = np.asarray(jax.jit(D.composite, static_argnums=3)(rgb, labels, bg, alpha))
     assert out.dtype == np.uint8 and out.shape == rgb.shape
-    keep = (labels == R.LABEL_AGENT) | (labels == R.LABEL_OTHER)
+    keep = (labels == LABEL_AGENT) | (labels == LABEL_OTHER)
     np.testing.assert_array_equal(out[keep], rgb[keep])
-    back = labels == R.LABEL_BACKGROUND
+    back = labels == LABEL_BACKGROUND
     np.testing.assert_array_equal(out[back], bg[back])
-    fl = labels == R.LABEL_FLOOR
+    fl = labels == LABEL_FLOOR
     want = np.round(alpha * rgb[fl].astype(np.float64) + (1 - alpha) * bg[fl]).astype(np.uint8)
     np.testing.assert_allclose(out[fl], want, atol=1)  # f32 vs f64 rounding at .5
     if alpha == 1.0:
         np.testing.assert_array_equal(out[fl], rgb[fl])
-    assert (labels == R.LABEL_AGENT).any() and back.any() and fl.any()
+    assert (labels == LABEL_AGENT).any() and back.any() and fl.any()
 
 
 def test_composite_vmaps_over_seeds_and_envs(walker_frames):
@@ -247,12 +248,12 @@ def test_colour_and_camera_perturbation_on_rendered_frames(walker_frames):
     p = dis.perturb()
     rgb_c, labels_c = render_walker(qpos, perturb={"mat_rgb": p["mat_rgb"]})
     np.testing.assert_array_equal(labels_c, labels)
-    agent = labels == R.LABEL_AGENT
+    agent = labels == LABEL_AGENT
     assert (rgb_c != rgb).any(-1)[agent].mean() > 0.9
     _, labels_cam = render_walker(qpos, perturb={k: p[k] for k in ("cam_sphere", "cam_lookat")})
-    moved = (labels_cam == R.LABEL_AGENT) != agent
+    moved = (labels_cam == LABEL_AGENT) != agent
     assert moved.any(axis=(1, 2)).all(), "a different view in every env"
-    area = (labels_cam == R.LABEL_AGENT).sum(axis=(1, 2)) / agent.sum(axis=(1, 2))
+    area = (labels_cam == LABEL_AGENT).sum(axis=(1, 2)) / agent.sum(axis=(1, 2))
     r_ratio = p["cam_sphere"][:, 0] / dis.cam_default[0]
     assert (area > 0).all()
     assert (area < 2.0 / r_ratio**2).all() and (area > 0.3 / r_ratio**2).all(), (area, r_ratio)

@@ -32,7 +32,7 @@ import pytest  # noqa: E402
 
 import envs  # noqa: E402
 from envs import kitchen  # noqa: E402
-from envs.render import LABEL_AGENT  # noqa: E402
+from envs.labels import LABEL_AGENT  # noqa: E402
 
 S, E = 1, 2
 STEP = kitchen.ACTION_SCALE * kitchen.CONTROL_TIMESTEP

@@ -16,6 +16,7 @@ import pytest
 
 from envs import masks as M
 from envs import render as R
+from envs.labels import LABEL_AGENT, LABEL_BACKGROUND, LABEL_FLOOR, LABEL_OTHER
 
 SUITE = pathlib.Path(importlib.util.find_spec("dm_control").origin).parent / "suite"
 
@@ -67,7 +68,7 @@ def dilate3(mask):
 
 
 def test_agent_mask_by_hand():
-    labels = jnp.array([[R.LABEL_BACKGROUND, R.LABEL_FLOOR], [R.LABEL_AGENT, R.LABEL_OTHER]])
+    labels = jnp.array([[LABEL_BACKGROUND, LABEL_FLOOR], [LABEL_AGENT, LABEL_OTHER]])
     np.testing.assert_array_equal(M.agent_mask(labels), [[0, 0], [1, 0]])
     assert M.agent_mask(labels).dtype == jnp.uint8
 

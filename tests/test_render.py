@@ -16,6 +16,16 @@ from configs import base as base_config
 from configs import smoke as smoke_config
 from envs import dmc
 from envs import render as R
+from envs.camera import cart_to_sphere
+from envs.labels import (
+    LABEL_AGENT,
+    LABEL_BACKGROUND,
+    LABEL_FLOOR,
+    LABEL_OTHER,
+    label_tables,
+    labels_from_segmentation,
+)
+from envs.render_pool import RenderPool
 
 SUITE = pathlib.Path(importlib.util.find_spec("dm_control").origin).parent / "suite"
 
@@ -99,7 +109,7 @@ def tile_render(model, qpos, cam, agent, floor, settings, **kwargs):
 def pool_render(task, qpos, settings):
     """The env's path: spawned workers building the task's render model, the task's camera."""
     model = task.render_model()
-    with R.RenderPool(
+    with RenderPool(
         functools.partial(dmc.render_model_fn, task.name),
         camera=task.camera,
         agent_geom_ids=task.agent_geom_ids(model),
@@ -134,8 +144,8 @@ def test_default_frames_are_dm_controls(name):
 
     assert frame_diff(rgb).max() <= 3.0, frame_diff(rgb)
     assert frame_diff(fast_rgb).min() >= 20.0, frame_diff(fast_rgb)
-    tables = R.label_tables(model, task.agent_geom_ids(model), task.floor_geom_ids(model))
-    np.testing.assert_array_equal(labels, R.labels_from_segmentation(ref_seg, tables))
+    tables = label_tables(model, task.agent_geom_ids(model), task.floor_geom_ids(model))
+    np.testing.assert_array_equal(labels, labels_from_segmentation(ref_seg, tables))
     np.testing.assert_array_equal(fast_labels, labels)
 
 
@@ -160,7 +170,7 @@ def test_pool_equals_single_process_renderer(task):
     model, agent, floor, cam = task_facts(task)
     settings = R.RenderSettings(num_workers=2, tiles_per_sheet=1)
     qpos = random_qpos(model, 5, seed=1)
-    with R.RenderPool(
+    with RenderPool(
         functools.partial(copy.deepcopy, model),
         camera=cam,
         agent_geom_ids=agent,
@@ -175,8 +185,8 @@ def test_pool_equals_single_process_renderer(task):
     np.testing.assert_array_equal(rgb, ref_rgb)
     np.testing.assert_array_equal(rgb2, ref_rgb[3:])
     np.testing.assert_array_equal(labels2, labels[3:])
-    tables = R.label_tables(model, agent, floor)
-    np.testing.assert_array_equal(labels, R.labels_from_segmentation(ref_seg, tables))
+    tables = label_tables(model, agent, floor)
+    np.testing.assert_array_equal(labels, labels_from_segmentation(ref_seg, tables))
 
 
 @pytest.mark.parametrize("task", ["walker", "cup", "finger"])
@@ -191,11 +201,11 @@ def test_mask_lies_exactly_on_agent_geoms(task):
     is_geom = objtype == mujoco.mjtObj.mjOBJ_GEOM
     on_agent = is_geom & np.isin(objid, agent)
     on_floor = is_geom & np.isin(objid, floor)
-    mask = labels == R.LABEL_AGENT
+    mask = labels == LABEL_AGENT
     assert mask.sum(axis=(1, 2)).min() > 20, "every frame shows the agent"
     np.testing.assert_array_equal(mask, on_agent)
-    np.testing.assert_array_equal(labels == R.LABEL_FLOOR, on_floor)
-    np.testing.assert_array_equal(labels == R.LABEL_BACKGROUND, objtype == -1)
+    np.testing.assert_array_equal(labels == LABEL_FLOOR, on_floor)
+    np.testing.assert_array_equal(labels == LABEL_BACKGROUND, objtype == -1)
 
 
 def test_tendon_and_sites_are_not_agent():
@@ -209,8 +219,8 @@ def test_tendon_and_sites_are_not_agent():
     tendon = seg[..., 1] == mujoco.mjtObj.mjOBJ_TENDON
     site = seg[..., 1] == mujoco.mjtObj.mjOBJ_SITE
     assert tendon.sum() > 10 and site.sum() > 0, "the string and a site are visible"
-    assert (labels[tendon] == R.LABEL_OTHER).all()
-    assert (labels[site] == R.LABEL_OTHER).all()
+    assert (labels[tendon] == LABEL_OTHER).all()
+    assert (labels[site] == LABEL_OTHER).all()
 
 
 @pytest.mark.parametrize("quality", R.QUALITIES)
@@ -223,8 +233,8 @@ def test_tiles_of_a_sheet_are_renderer_frames(quality):
     qpos = random_qpos(model, 24, seed=3)
     rgb, labels = tile_render(model, qpos, cam, agent, floor, settings)
     ref_rgb, ref_seg = reference_render(model, qpos, cam, settings.resolved_visuals())
-    tables = R.label_tables(model, agent, floor)
-    np.testing.assert_array_equal(labels, R.labels_from_segmentation(ref_seg, tables))
+    tables = label_tables(model, agent, floor)
+    np.testing.assert_array_equal(labels, labels_from_segmentation(ref_seg, tables))
     np.testing.assert_array_equal(rgb, ref_rgb)
 
 
@@ -236,8 +246,8 @@ def test_in_place_sheet_matches_renderer_up_to_rasterisation():
     qpos = random_qpos(model, 24, seed=3)
     rgb, labels = tile_render(model, qpos, cam, agent, floor, settings)
     ref_rgb, ref_seg = reference_render(model, qpos, cam, settings.resolved_visuals())
-    tables = R.label_tables(model, agent, floor)
-    np.testing.assert_array_equal(labels, R.labels_from_segmentation(ref_seg, tables))
+    tables = label_tables(model, agent, floor)
+    np.testing.assert_array_equal(labels, labels_from_segmentation(ref_seg, tables))
     diff = np.abs(rgb.astype(int) - ref_rgb)
     assert (diff.max(-1) > 0).mean() < 0.01
 
@@ -256,7 +266,7 @@ def test_colour_perturbation_changes_pixels_not_labels():
     )
     # Colours move no geometry: every label stays; agent pixels change colour.
     np.testing.assert_array_equal(labels1, labels0)
-    agent_px = labels0 == R.LABEL_AGENT
+    agent_px = labels0 == LABEL_AGENT
     changed = (rgb1 != rgb0).any(-1)
     assert changed[agent_px].mean() > 0.9
 
@@ -265,7 +275,7 @@ def camera_sphere(model, cam):
     """The unperturbed camera's own (radius, h, v, roll=0) relative to the agent's com."""
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
-    return np.append(R.cart_to_sphere(data.cam_xpos[cam] - data.subtree_com[1]), 0.0)
+    return np.append(cart_to_sphere(data.cam_xpos[cam] - data.subtree_com[1]), 0.0)
 
 
 def test_camera_perturbation_geometry():
@@ -284,8 +294,8 @@ def test_camera_perturbation_geometry():
     _, labels = tile_render(
         model, qpos3, cam, agent, floor, settings, perturb={"cam_sphere": spheres}
     )
-    mask0 = labels0[0] == R.LABEL_AGENT
-    same, zoomed, rolled = labels == R.LABEL_AGENT
+    mask0 = labels0[0] == LABEL_AGENT
+    same, zoomed, rolled = labels == LABEL_AGENT
     assert (same != mask0).mean() < 0.002  # float rounding of the rebuilt frame only
     ratio = zoomed.sum() / mask0.sum()
     assert 1.3 < ratio < 1.9, ratio  # 1/0.8^2 = 1.56 for a flat object; perspective varies it
@@ -298,8 +308,8 @@ def test_camera_perturbation_geometry():
 def test_bad_input_is_named():
     model, agent, floor, cam = task_facts("walker")
     with pytest.raises(ValueError, match="both agent and floor"):
-        R.label_tables(model, [0, 1], [0])
-    with R.RenderPool(
+        label_tables(model, [0, 1], [0])
+    with RenderPool(
         functools.partial(copy.deepcopy, model),
         camera=cam,
         agent_geom_ids=agent,
@@ -315,7 +325,7 @@ def test_bad_input_is_named():
 
 
 def test_a_worker_without_an_offscreen_buffer_names_the_setting_to_lower():
-    from envs.render import _hint
+    from envs.render_pool import _hint
 
     error = "mujoco.FatalError: Offscreen framebuffer is not complete, error 0x8cdd"
     assert "env.render.num_workers" in _hint(error, 8) and "8 render workers" in _hint(error, 8)

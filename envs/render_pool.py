@@ -1,0 +1,272 @@
+"""The render pool: worker processes turning batched MuJoCo states into frames and labels.
+
+Each worker process has its own MjModel, MjData, EGL context and MuJoCo render context, held by
+one `TileRenderer` (envs/render.py), and draws its share of a batch. Results return through one
+shared-memory block; only the small inputs (qpos, perturbations) are pickled.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+import traceback
+from collections.abc import Callable
+from multiprocessing import connection, get_context, resource_tracker, shared_memory
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from envs.render import PERTURB_KEYS, RenderSettings, TileRenderer
+
+_WORKER_TIMEOUT_S = 600.0
+
+
+def _attach_shm(name: str) -> shared_memory.SharedMemory:
+    # The parent owns and unlinks the block; a worker that registered it with the resource
+    # tracker would make the tracker unlink it (or warn about a leak) when the worker exits.
+    register = resource_tracker.register
+    resource_tracker.register = lambda *args, **kwargs: None
+    try:
+        return shared_memory.SharedMemory(name=name)
+    finally:
+        resource_tracker.register = register
+
+
+def _worker_main(conn, model_fn, init_kwargs) -> None:
+    # Ctrl-C and SIGTERM sent to the whole process group are the parent's to handle: it finishes
+    # its step, checkpoints and then closes the pool. A worker also ends when the parent's end of
+    # the pipe closes (EOF below), so it never outlives the parent.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    renderer = None
+    shm = None
+    try:
+        renderer = TileRenderer(model_fn(), **init_kwargs)
+        conn.send(("ok", None))
+    except BaseException:  # noqa: BLE001 - any failure must reach the parent
+        conn.send(("error", traceback.format_exc()))
+        return
+    h, w = init_kwargs["settings"].height, init_kwargs["settings"].width
+    while True:
+        try:
+            msg = conn.recv()
+        except EOFError:
+            break
+        kind = msg[0]
+        try:
+            if kind == "close":
+                break
+            if kind == "info":
+                conn.send(("ok", renderer.gl_info()))
+            elif kind == "render":
+                _, shm_name, capacity, lo, qpos, mocap_pos, mocap_quat, perturb = msg
+                if shm is None or shm.name != shm_name:
+                    if shm is not None:
+                        shm.close()
+                    shm = _attach_shm(shm_name)
+                rgb, labels = _views(shm, capacity, h, w)
+                n = qpos.shape[0]
+                renderer.render(
+                    qpos,
+                    rgb[lo : lo + n],
+                    labels[lo : lo + n],
+                    mocap_pos=mocap_pos,
+                    mocap_quat=mocap_quat,
+                    perturb=perturb,
+                )
+                conn.send(("ok", None))
+            else:
+                conn.send(("error", f"unknown message {kind!r}"))
+        except BaseException:  # noqa: BLE001
+            conn.send(("error", traceback.format_exc()))
+    if shm is not None:
+        shm.close()
+    renderer.close()
+
+
+def _views(shm: shared_memory.SharedMemory, capacity: int, h: int, w: int):
+    rgb = np.ndarray((capacity, h, w, 3), np.uint8, buffer=shm.buf)
+    labels = np.ndarray((capacity, h, w), np.uint8, buffer=shm.buf, offset=capacity * h * w * 3)
+    return rgb, labels
+
+
+def _hint(error: str, workers: int) -> str:
+    """What to do about a worker's known failures (empty if none applies)."""
+    if "Offscreen framebuffer is not complete" not in error:
+        return ""
+    # Seen on an H100 (2026-11-24): the 5th and 6th training process on one GPU, each with
+    # 8 workers for its training env and 8 for its evaluation env, could not make their
+    # offscreen buffers while 4 others ran, with 26 GB of the GPU's memory still free.
+    return (
+        f"\nThe GPU's EGL driver gave this worker no offscreen buffer. This env has {workers} "
+        "render workers, each with its own GL context; other processes on this GPU hold theirs. "
+        "Lower env.render.num_workers (e.g. --config.env.render.num_workers=2), or run fewer "
+        "training processes on this GPU (several seeds or a sweep in one run share one set)."
+    )
+
+
+class RenderPool:
+    """Worker processes turning batched states into RGB frames and pixel labels.
+
+    model_fn: picklable zero-argument callable returning a mujoco.MjModel (each worker calls it).
+    camera: camera id or name. agent_geom_ids / floor_geom_ids: geom ids for the labels.
+    """
+
+    def __init__(
+        self,
+        model_fn: Callable[[], mujoco.MjModel],
+        *,
+        camera: int | str,
+        agent_geom_ids,
+        floor_geom_ids,
+        settings: RenderSettings = RenderSettings(),
+    ):
+        self.settings = settings
+        self._lock = threading.Lock()
+        self._shm: shared_memory.SharedMemory | None = None
+        self._capacity = 0
+        init_kwargs = dict(
+            camera=camera,
+            agent_geom_ids=[int(i) for i in agent_geom_ids],
+            floor_geom_ids=[int(i) for i in floor_geom_ids],
+            settings=settings,
+        )
+        # spawn, not fork: the parent may hold JAX / CUDA threads that a fork would corrupt.
+        ctx = get_context("spawn")
+        self._conns: list[connection.Connection] = []
+        self._procs = []
+        for _ in range(settings.resolved_workers()):
+            parent, child = ctx.Pipe()
+            proc = ctx.Process(
+                target=_worker_main, args=(child, model_fn, init_kwargs), daemon=True
+            )
+            proc.start()
+            child.close()
+            self._conns.append(parent)
+            self._procs.append(proc)
+        try:
+            for i in range(len(self._conns)):
+                self._receive(i)
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def num_workers(self) -> int:
+        return len(self._conns)
+
+    def _receive(self, i: int) -> Any:
+        conn, proc = self._conns[i], self._procs[i]
+        deadline = _WORKER_TIMEOUT_S
+        while not conn.poll(1.0):
+            deadline -= 1.0
+            if not proc.is_alive():
+                raise RuntimeError(f"render worker {i} died (exit code {proc.exitcode})")
+            if deadline <= 0:
+                raise TimeoutError(f"render worker {i} gave no answer in {_WORKER_TIMEOUT_S} s")
+        status, payload = conn.recv()
+        if status != "ok":
+            raise RuntimeError(
+                f"render worker {i} failed:\n{payload}{_hint(payload, len(self._procs))}"
+            )
+        return payload
+
+    def _ensure_capacity(self, batch: int) -> None:
+        if batch <= self._capacity:
+            return
+        h, w = self.settings.height, self.settings.width
+        if self._shm is not None:
+            self._shm.close()
+            self._shm.unlink()
+        self._capacity = batch
+        self._shm = shared_memory.SharedMemory(create=True, size=batch * h * w * 4)
+
+    def gl_info(self) -> list[dict[str, str]]:
+        """GL vendor / renderer / version strings of every worker's context."""
+        with self._lock:
+            for conn in self._conns:
+                conn.send(("info",))
+            return [self._receive(i) for i in range(len(self._conns))]
+
+    def render(
+        self,
+        qpos: np.ndarray,
+        *,
+        mocap_pos: np.ndarray | None = None,
+        mocap_quat: np.ndarray | None = None,
+        perturb: dict[str, np.ndarray] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """qpos [B,nq] -> (rgb uint8 [B,H,W,3], labels uint8 [B,H,W]). perturb: PERTURB_KEYS."""
+        qpos = np.asarray(qpos, np.float64)
+        if qpos.ndim != 2:
+            raise ValueError(f"qpos must be [B, nq], got shape {qpos.shape}")
+        perturb = {k: np.asarray(v) for k, v in (perturb or {}).items()}
+        unknown = set(perturb) - set(PERTURB_KEYS)
+        if unknown:
+            raise ValueError(f"unknown perturbation keys {sorted(unknown)}; valid: {PERTURB_KEYS}")
+        batch = qpos.shape[0]
+        for name, arr in [("mocap_pos", mocap_pos), ("mocap_quat", mocap_quat), *perturb.items()]:
+            if arr is not None and np.shape(arr)[0] != batch:
+                raise ValueError(f"{name} has leading dim {np.shape(arr)[0]}, qpos has {batch}")
+        h, w = self.settings.height, self.settings.width
+        with self._lock:
+            self._ensure_capacity(batch)
+            bounds = np.linspace(0, batch, len(self._conns) + 1).round().astype(int)
+            busy = []
+            for i, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
+                if hi <= lo:
+                    continue
+                part = slice(lo, hi)
+                self._conns[i].send(
+                    (
+                        "render",
+                        self._shm.name,
+                        self._capacity,
+                        int(lo),
+                        qpos[part],
+                        None if mocap_pos is None else np.asarray(mocap_pos)[part],
+                        None if mocap_quat is None else np.asarray(mocap_quat)[part],
+                        {k: v[part] for k, v in perturb.items()},
+                    )
+                )
+                busy.append(i)
+            errors = []
+            for i in busy:
+                try:
+                    self._receive(i)
+                except RuntimeError as err:
+                    errors.append(err)
+            if errors:
+                raise errors[0]
+            rgb, labels = _views(self._shm, self._capacity, h, w)
+            return rgb[:batch].copy(), labels[:batch].copy()
+
+    def close(self) -> None:
+        for conn in self._conns:
+            try:
+                conn.send(("close",))
+            except (BrokenPipeError, OSError):
+                pass
+        for proc in self._procs:
+            proc.join(timeout=10)
+            if proc.is_alive():
+                proc.kill()  # workers ignore SIGTERM
+                proc.join(timeout=10)
+        for conn in self._conns:
+            conn.close()
+        self._conns, self._procs = [], []
+        if self._shm is not None:
+            self._shm.close()
+            self._shm.unlink()
+            self._shm = None
+
+    def __enter__(self) -> RenderPool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        if getattr(self, "_conns", None):
+            self.close()

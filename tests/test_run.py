@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from configs import smoke
-from dear_jax import evaluations, evaluator, experiment, replay_disk, report, train, update
+from dear_jax import evaluations, evaluator, experiment, lanes, replay_disk, report, train, update
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.config import resolve_config_path
 from dear_jax.devices import Hosts
@@ -550,8 +550,8 @@ def test_configs_that_cannot_work_are_refused_by_name(overrides, message, tmp_pa
 
 def _overrides(config) -> list[str]:
     """--config.key=value arguments that make configs/smoke.py into `config`."""
-    base = experiment._flatten(smoke.get_config().to_dict())
-    want = experiment._flatten(config.to_dict())
+    base = lanes.flatten(smoke.get_config().to_dict())
+    want = lanes.flatten(config.to_dict())
     return [f"--config.{k}={v}" for k, v in want.items() if base.get(k) != v]
 
 

@@ -13,7 +13,9 @@
 #                       `--out $OUT/NAME.json`
 #   start NAME GPU ARGS  a detached `run.py ARGS --workdir runs/NAME` on GPU number GPU ("all":
 #                       every GPU), its console in runs/NAME.out; it outlives this call. ARGS
-#                       are the words that start with `--` (write `--config=FILE`). Several runs
+#                       are the words that start with `--` (write `--config=FILE`). A run on
+#                       one GPU is pinned to that GPU's share of the cores (GPU i of G: the
+#                       i-th of G equal blocks), so runs side by side don't share cores. Several runs
 #                       on one GPU: give each a share of its memory, e.g.
 #                       `XLA_PYTHON_CLIENT_MEM_FRACTION=0.22 bash benchmarks/device.sh start ...`
 #   wait S              sleep up to S seconds while runs train, printing their last log lines;
@@ -64,9 +66,14 @@ while [ $# -gt 0 ]; do
       args=()
       while [ $# -gt 0 ] && [[ $1 == --* ]]; do args+=("$1"); shift; done
       visible=$([ "$gpu" = all ] && nvidia-smi --query-gpu=index --format=csv,noheader | paste -sd, || echo "$gpu")
-      CUDA_VISIBLE_DEVICES=$visible setsid nohup python3 run.py "${args[@]}" --workdir "runs/$name" \
+      pin=()
+      if [ "$gpu" != all ]; then
+        share=$(($(nproc) / $(nvidia-smi --query-gpu=index --format=csv,noheader | wc -l)))
+        pin=(taskset -c "$((gpu * share))-$((gpu * share + share - 1))")
+      fi
+      CUDA_VISIBLE_DEVICES=$visible setsid nohup "${pin[@]}" python3 run.py "${args[@]}" --workdir "runs/$name" \
         >"runs/$name.out" 2>&1 </dev/null &
-      echo "started runs/$name on GPU $visible: run.py ${args[*]}"
+      echo "started runs/$name on GPU $visible ${pin[*]}: run.py ${args[*]}"
       ;;
     wait)
       end=$((SECONDS + $1)); shift

@@ -90,7 +90,7 @@ class RenderSettings:
     width: int = 84
     height: int = 84
     quality: str = "dm_control"  # QUALITIES: "dm_control" (its picture) | "fast" (no effects)
-    num_workers: int = 0  # 0 -> min(os.cpu_count(), 8)
+    num_workers: int = 0  # 0 -> min(cores this process may use, 8)
     # Samples drawn before one readback (one "sheet"). 0 -> auto: 64.
     tiles_per_sheet: int = 0
     # For measurements only (benchmarks/render.py), never set by configs:
@@ -107,7 +107,7 @@ class RenderSettings:
             )
 
     def resolved_workers(self) -> int:
-        return self.num_workers if self.num_workers > 0 else min(os.cpu_count() or 1, 8)
+        return self.num_workers if self.num_workers > 0 else min(len(os.sched_getaffinity(0)), 8)
 
     def resolved_visuals(self) -> Visuals:
         return self.visuals or QUALITY_VISUALS[self.quality]

@@ -23,7 +23,7 @@ and devices (`sources` in the CSV):
   cos(z_A, z_E)       mean cosine between the latent halves on that evaluation's batches
   abs cos(z_A, z_E)   the mean of its magnitude (signs cancel in the mean of the cosine; runs
                       logged before commit f3d5730 have no such column: "-")
-  final return        that evaluation's return, mean ± std over seeds
+  final return        that evaluation's return, mean ± std over seeds (population std, ddof 0)
   frames to T         first evaluated frame at which a seed's return reaches --threshold (the
                       median over the seeds that reach it; "k/S" says how many did)
 It prints Markdown and, with --out PREFIX, writes PREFIX.md and PREFIX.csv. A sweep's run
@@ -279,7 +279,8 @@ def runs_table(
     text = (
         f"Table II: {len(rows)} experiment(s), each with its seeds pooled over the runs named; "
         "s / 1000 frames per seed amortised over the seeds "
-        f"trained together; returns and cosines of {when}; frames to a return of "
+        f"trained together; returns and cosines of {when} (return: mean ± population std over "
+        "seeds); frames to a return of "
         f"{threshold:g}\n\n" + format_table(TABLE_COLUMNS, [_cells(r) for r in rows]) + "\n"
     )
     if out:

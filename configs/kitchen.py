@@ -18,7 +18,13 @@ def make(task: str, method: str) -> ConfigDict:
     c = get_config()
     c.env.task = KITCHEN_TASKS[task]
     c.env.action_repeat = 1  # 40 physics steps of 2 ms per agent step, as in D4RL
-    c.env.backend = "auto"  # MJX on an accelerator (measured there); CPU MuJoCo's cost not measured
+    # CPU MuJoCo, stepped on threads beside the accelerator's updates, as the DMC tasks: one
+    # kitchen agent step (40 physics steps) costs 2.2 ms per env on one CPU thread, so 3 seeds x
+    # 16 envs take ~13 ms on 8 threads, where MJX took 75 ms for 40 envs on an H100
+    # (results/README.md, "Franka Kitchen"; benchmarks/RESULTS.md, "Franka Kitchen physics").
+    # tests/test_kitchen.py checks both backends.
+    c.env.backend = "cpu"
+    c.env.physics_threads = 8
     c.env.episode_frames = 0  # the task's 280 steps
     c.agent.method = method
     return c

@@ -76,7 +76,7 @@ def test_lanes_use_their_own_weights():
     nets = update.make_networks(cfg)
     state = update.init(cfg, jax.random.key(0))
     learner = {k: v for k, v in state.params.items() if k != "actor"}
-    batch = _batch(jax.random.key(1))
+    batch = _batch(1)
     loss = functools.partial(update.learner_loss, cfg=cfg)
     grad = jax.jit(jax.grad(loss, has_aux=True))
     lane = [

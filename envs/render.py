@@ -107,7 +107,10 @@ class RenderSettings:
             )
 
     def resolved_workers(self) -> int:
-        return self.num_workers if self.num_workers > 0 else min(len(os.sched_getaffinity(0)), 8)
+        if self.num_workers > 0:
+            return self.num_workers
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        return min(cores or 1, 8)
 
     def resolved_visuals(self) -> Visuals:
         return self.visuals or QUALITY_VISUALS[self.quality]

@@ -24,14 +24,27 @@ def _lax_stack(x, layers, pads, relu_last=True, stride=1):
     return x
 
 
-def _layers(key, kernels, channels, lead=()):
-    keys = jax.random.split(key, 2 * len(kernels))
+# Inputs are drawn with NumPy: jax.random compiles a program per shape (seconds each).
+def _normal(seed, shape, scale=1.0):
+    return jnp.asarray(np.random.default_rng(seed).normal(0, scale, shape), jnp.float32)
+
+
+def _pixels(seed, shape):
+    return jnp.asarray(np.random.default_rng(seed).integers(0, 256, shape, np.uint8))
+
+
+def _bernoulli(seed, p, shape):
+    return jnp.asarray(np.random.default_rng(seed).uniform(size=shape) < p)
+
+
+def _layers(seed, kernels, channels, lead=()):
+    rng = np.random.default_rng(seed)
     return tuple(
         (
-            jax.random.normal(keys[2 * i], (*lead, k, k, c, f)) * 0.2,
-            jax.random.normal(keys[2 * i + 1], (*lead, f)) * 0.1,
+            jnp.asarray(rng.normal(0, 0.2, (*lead, k, k, c, f)), jnp.float32),
+            jnp.asarray(rng.normal(0, 0.1, (*lead, f)), jnp.float32),
         )
-        for i, (k, c, f) in enumerate(zip(kernels, channels, channels[1:]))
+        for k, c, f in zip(kernels, channels, channels[1:])
     )
 
 
@@ -58,12 +71,9 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
     size, kernels, pads, channels, relu_last, stride, shift = STACKS[name]
     pixels = stride > 1
-    kx, kw = jax.random.split(jax.random.key(0))
-    if pixels:
-        x = jax.random.randint(kx, (2, size, size, channels[0]), 0, 256).astype(jnp.uint8)
-    else:
-        x = jax.random.normal(kx, (2, size, size, channels[0]))
-    layers = _layers(kw, kernels, channels)
+    shape = (2, size, size, channels[0])
+    x = _pixels(0, shape) if pixels else _normal(0, shape)
+    layers = _layers(1, kernels, channels)
     assert wideconv.supported(x, layers, pads, stride, shift)
     dtype = jnp.float32 if pixels else None
     # each image's crop offsets, the shift's extremes among them (edge pixels repeated)
@@ -78,7 +88,14 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     def theirs(x, ws):
         return _lax_stack(shifted(x), ws, pads, relu_last, stride)
 
-    got, want = ours(x, layers), theirs(x, layers)
+    want = jax.jit(theirs)(x, layers)
+    scale = float(jnp.abs(want).max())
+    argnums = 1 if pixels else (0, 1)
+    # The output and the gradients of sum(sin(output / scale)), each stack one program: the
+    # kernels are compiled once, for the values, the gradients and the dead layers below.
+    ours_and_grads = _value_and_grad(ours, argnums, scale)
+    (_, got), got_grads = ours_and_grads(x, layers)
+    (_, want), want_grads = _value_and_grad(theirs, argnums, scale)(x, layers)
     out = (
         (size + 2 * pads[0] - kernels[0]) // stride
         + 1
@@ -86,23 +103,26 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     )
     assert got.shape == want.shape == (2, out, out, channels[-1])
     assert got.dtype == jnp.float32
-    scale = float(jnp.abs(want).max())
     tol = 1e-5 if wideconv._interpret() else 1e-4
     np.testing.assert_allclose(got / scale, want / scale, rtol=tol, atol=tol)
-
-    def loss(stack):
-        return lambda x, ws: jnp.sum(jnp.sin(stack(x, ws) / scale))
-
-    argnums = 1 if pixels else (0, 1)
-    got = jax.grad(loss(ours), argnums)(x, layers)
-    want = jax.grad(loss(theirs), argnums)(x, layers)
-    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+    for a, b in zip(jax.tree.leaves(got_grads), jax.tree.leaves(want_grads), strict=True):
         np.testing.assert_allclose(a, b, rtol=10 * tol, atol=10 * tol)
     if relu_last:
         # The ReLU gradient is applied: a stack whose pre-activations are all negative passes none.
         dead = tuple((k, b - 1e4) for k, b in layers)
-        grads = jax.grad(loss(ours), argnums)(x, dead)
+        _, grads = ours_and_grads(x, dead)
         assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads))
+
+
+def _value_and_grad(stack, argnums, scale):
+    """jit of (x, layers) -> ((sum(sin(stack(x, layers) / scale)), stack(x, layers)), the
+    gradients of that sum)."""
+
+    def loss(x, ws):
+        y = stack(x, ws)
+        return jnp.sum(jnp.sin(y / scale)), y
+
+    return jax.jit(jax.value_and_grad(loss, argnums, has_aux=True))
 
 
 @pytest.mark.parametrize("phase, shift", [(2, 4), (1, 0)])
@@ -112,11 +132,11 @@ def test_conv_stack_bce_is_the_loss_of_the_stacks_logits(monkeypatch, phase, shi
     value and in every gradient; the output's lanes past the labels' get no loss."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
     monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
-    x = jax.random.normal(jax.random.key(0), (2, 5, 5, 16))
-    layers = _layers(jax.random.key(1), (3, 3, 2), (16, 32, 16, 16))
+    x = _normal(0, (2, 5, 5, 16))
+    layers = _layers(1, (3, 3, 2), (16, 32, 16, 16))
     pads = (2, 2, 1)  # sides 5 -> 7 -> 9 -> 10
     side = 10 * phase
-    labels = jax.random.bernoulli(jax.random.key(2), 0.3, (2, side, side, 3)).astype(jnp.uint8)
+    labels = _bernoulli(2, 0.3, (2, side, side, 3)).astype(jnp.uint8)
     crops = jnp.array([[0, 2 * shift], [shift + 1, 1]]) if shift else None
     lanes = phase**2 * 3
 
@@ -129,14 +149,16 @@ def test_conv_stack_bce_is_the_loss_of_the_stacks_logits(monkeypatch, phase, shi
         y = networks.space_to_depth(y, phase).astype(jnp.float32)
         return jnp.sum(losses.sigmoid_cross_entropy(logits, y))
 
-    np.testing.assert_allclose(ours(x, layers), theirs(x, layers), rtol=1e-5)
-    got = jax.grad(ours, (0, 1))(x, layers)
-    want = jax.grad(theirs, (0, 1))(x, layers)
+    # c * the loss, for the cotangents c = 1 and 2: one program, compiled once
+    scaled = jax.jit(jax.value_and_grad(lambda x, ws, c: c * ours(x, ws), (0, 1)))
+    value, got = scaled(x, layers, 1.0)
+    want_value, want = jax.jit(jax.value_and_grad(theirs, (0, 1)))(x, layers)
+    np.testing.assert_allclose(value, want_value, rtol=1e-5)
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
         scale = float(jnp.abs(b).max())
         np.testing.assert_allclose(a / scale, b / scale, atol=1e-5)
     # the cotangent scales every gradient (it is folded into the last layer's)
-    double = jax.grad(lambda x, ws: 2 * ours(x, ws), (0, 1))(x, layers)
+    _, double = scaled(x, layers, 2.0)
     for a, b in zip(jax.tree.leaves(double), jax.tree.leaves(got), strict=True):
         np.testing.assert_allclose(a, 2 * b, rtol=1e-6, atol=1e-6)
     small = labels[:, 1:, 1:]
@@ -155,9 +177,9 @@ def test_conv_stack_bce_under_vmap_is_each_seed_on_its_own(monkeypatch):
     """Vmapped over seeds, each with its own weights, bool labels, crops and cotangent: every
     seed's loss and gradients are those of its stack alone, times its cotangent."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
-    x = jax.random.normal(jax.random.key(3), (2, 2, 5, 5, 16))
-    layers = _layers(jax.random.key(4), (3, 2), (16, 16, 16), lead=(2,))
-    labels = jax.random.bernoulli(jax.random.key(5), 0.4, (2, 2, 16, 16, 3))
+    x = _normal(3, (2, 2, 5, 5, 16))
+    layers = _layers(4, (3, 2), (16, 16, 16), lead=(2,))
+    labels = _bernoulli(5, 0.4, (2, 2, 16, 16, 3))
     crops = jnp.array([[[0, 8], [3, 1]], [[8, 8], [4, 0]]])
     weights = jnp.array([1.0, 3.0])
 
@@ -167,12 +189,10 @@ def test_conv_stack_bce_under_vmap_is_each_seed_on_its_own(monkeypatch):
     def weighted(x, ws):
         return jnp.sum(weights * jax.vmap(bce)(x, ws, labels, crops))
 
-    loss, grads = jax.value_and_grad(weighted, (0, 1))(x, layers)
+    loss, grads = jax.jit(jax.value_and_grad(weighted, (0, 1)))(x, layers)
+    one = jax.jit(jax.value_and_grad(bce, (0, 1)))  # compiled once, for both seeds
     alone = [
-        jax.value_and_grad(bce, (0, 1))(
-            x[s], jax.tree.map(lambda a, s=s: a[s], layers), labels[s], crops[s]
-        )
-        for s in range(2)
+        one(x[s], jax.tree.map(lambda a, s=s: a[s], layers), labels[s], crops[s]) for s in range(2)
     ]
     np.testing.assert_allclose(loss, sum(w * a[0] for w, a in zip(weights, alone)), rtol=1e-6)
     for s, w in enumerate(weights):
@@ -183,15 +203,16 @@ def test_conv_stack_bce_under_vmap_is_each_seed_on_its_own(monkeypatch):
 def test_conv_stack_under_vmap_is_each_seed_on_its_own():
     """Vmapped over seeds (each with its own weights), bf16 activations: every seed's values and
     gradients equal the same stack run for that seed alone."""
-    x = jax.random.normal(jax.random.key(1), (2, 2, 7, 7, 16)).astype(jnp.bfloat16)
-    layers = _layers(jax.random.key(2), (3, 2), (16, 16, 16), lead=(2,))
+    x = _normal(1, (2, 2, 7, 7, 16)).astype(jnp.bfloat16)
+    layers = _layers(2, (3, 2), (16, 16, 16), lead=(2,))
 
     def f(x, ws):
         return jnp.sum(wideconv.conv_stack(x, ws, (0, 1), False).astype(jnp.float32) ** 2)
 
-    both = jax.vmap(jax.value_and_grad(f, (0, 1)))(x, layers)
+    both = jax.jit(jax.vmap(jax.value_and_grad(f, (0, 1))))(x, layers)
+    one = jax.jit(jax.value_and_grad(f, (0, 1)))  # compiled once, for both seeds
     for s in range(2):
-        alone = jax.value_and_grad(f, (0, 1))(x[s], jax.tree.map(lambda a, s=s: a[s], layers))
+        alone = one(x[s], jax.tree.map(lambda a, s=s: a[s], layers))
         for a, b in zip(jax.tree.leaves(both), jax.tree.leaves(alone), strict=True):
             assert a.dtype == b.dtype
             np.testing.assert_array_equal(np.asarray(a[s], np.float32), np.asarray(b, np.float32))
@@ -269,22 +290,27 @@ def test_networks_with_pallas_stacks_are_the_same_function(monkeypatch):
     reading its pixels through random-shift crops as the XLA path crops them first."""
     monkeypatch.setattr(wideconv, "BLOCK", 1024)  # few programs: the interpreter runs each
     enc, dec = networks.PoolEncoder(64), networks.PoolDecoder(3)
-    obs = jax.random.randint(jax.random.key(1), (1, 84, 84, 9), 0, 256).astype(jnp.uint8)
+    obs = _pixels(2, (1, 84, 84, 9))
     # offset (1, 7), pad 4: each pixel from 3 rows above and 3 columns right (edges repeat)
     crops = augment.Crops(jnp.array([[1, 7]]), 4, "gather")
-    z = jax.random.normal(jax.random.key(2), (1, 32))
-    params = enc.init(jax.random.key(0), obs), dec.init(jax.random.key(0), z)
+    z = _normal(2, (1, 32))
+
+    def init():
+        return enc.init(jax.random.key(0), obs), dec.init(jax.random.key(0), z)
 
     def loss(p, phases):
         latent = enc.apply(p[0], obs, crops)
         decoded = dec.apply(p[1], latent[:, :32], phases=phases)
         return jnp.sum(latent**2) + jnp.sum(jnp.tanh(decoded))
 
-    want = jax.value_and_grad(loss)(params, False)
+    # Each path jitted on its own (the stack is chosen as the program is traced): one compiled
+    # program each, the Pallas kernels compiled once.
+    params = jax.jit(init)()
+    want = jax.jit(jax.value_and_grad(loss), static_argnums=1)(params, False)
     with networks.conv_settings(stack="pallas"):
-        same = enc.init(jax.random.key(0), obs), dec.init(jax.random.key(0), z)
+        same = jax.jit(init)()
         # the decoder's output as its phases (as the update's losses take it): the same sum
-        got = jax.value_and_grad(loss)(params, True)
+        got = jax.jit(jax.value_and_grad(loss), static_argnums=1)(params, True)
     for a, b in zip(jax.tree.leaves(same), jax.tree.leaves(params), strict=True):
         np.testing.assert_array_equal(a, b)
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
@@ -297,29 +323,32 @@ def test_decoder_with_a_target_is_the_mask_loss_on_either_stack(monkeypatch):
     gradients, for the parameters and the latent."""
     monkeypatch.setattr(wideconv, "BLOCK", 1024)
     dec = networks.PoolDecoder(3)
-    z = jax.random.normal(jax.random.key(2), (2, 32))
-    params = dec.init(jax.random.key(0), z)
-    mask = jax.random.bernoulli(jax.random.key(3), 0.2, (2, 84, 84, 3)).astype(jnp.uint8)
+    z = _normal(2, (2, 32))
+    params = jax.jit(dec.init)(jax.random.key(0), z)
+    mask = _bernoulli(3, 0.2, (2, 84, 84, 3)).astype(jnp.uint8)
     crops = augment.Crops(jnp.array([[1, 7], [8, 0]]), 4, "gather")
 
     def loss(p, z):
         return dec.apply(p, z, target=(mask, crops))
 
-    definition = losses.mask_loss(dec.apply(params, z), crops.apply(mask))
-    want = jax.value_and_grad(loss, (0, 1))(params, z)
-    np.testing.assert_allclose(want[0], definition, rtol=1e-5)
+    def uncropped(p, z):  # two leading axes, masks taken as they are
+        return dec.apply(p, z, target=(mask[None], None))
+
+    # Each path jitted on its own (the stack is chosen as the program is traced).
+    definition = jax.jit(lambda p, z: losses.mask_loss(dec.apply(p, z), crops.apply(mask)))
+    want = jax.jit(jax.value_and_grad(loss, (0, 1)))(params, z)
+    np.testing.assert_allclose(want[0], definition(params, z), rtol=1e-5)
     with networks.conv_settings(stack="pallas"):
-        got = jax.value_and_grad(loss, (0, 1))(params, z)
+        got = jax.jit(jax.value_and_grad(loss, (0, 1)))(params, z)
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
         scale = float(jnp.abs(b).max())
         np.testing.assert_allclose(a / scale, b / scale, atol=1e-5)
-    # two leading axes, masks taken as they are: the mean over both axes of the loss per image
-    uncropped = lambda p, z: dec.apply(p, z, target=(mask[None], None))  # noqa: E731
-    per_image = [losses.mask_loss(dec.apply(params, z[i : i + 1]), mask[i : i + 1]) for i in (0, 1)]
-    want = jnp.mean(jnp.array(per_image))
-    np.testing.assert_allclose(uncropped(params, z[None]), want, rtol=1e-5)
+    # the mean over both axes of the loss per image
+    per_image = jax.jit(lambda p, z, m: losses.mask_loss(dec.apply(p, z), m))
+    want = jnp.mean(jnp.array([per_image(params, z[i : i + 1], mask[i : i + 1]) for i in (0, 1)]))
+    np.testing.assert_allclose(jax.jit(uncropped)(params, z[None]), want, rtol=1e-5)
     with networks.conv_settings(stack="pallas"):
-        np.testing.assert_allclose(uncropped(params, z[None]), want, rtol=1e-5)
+        np.testing.assert_allclose(jax.jit(uncropped)(params, z[None]), want, rtol=1e-5)
     with pytest.raises(
         ValueError, match=r"target masks are \(2, 84, 84, 1\), need \(2, 84, 84, 3\)"
     ):

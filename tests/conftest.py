@@ -20,7 +20,7 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
 
-# XLA:CPU's fusion emitters off in every process of the session (the tests' child processes
+# XLA:CPU's fusion emitters off in every process of the test run (the tests' child processes
 # inherit XLA_FLAGS; those of test_sharding.py and test_multihost.py set it themselves): the tiny
 # DEAR update of test_run.py's config compiles in about half the time (43 -> 21 s on a 2-core
 # machine) and runs ~1.4x faster. The persistent cache keys include XLA_FLAGS but for the device

@@ -12,6 +12,16 @@ from dear_jax import networks
 from dear_jax.report import param_counts
 from dear_jax.update import AgentConfig, init_params
 
+
+# Inputs are drawn with NumPy: jax.random compiles a program per shape (seconds each).
+def _normal(seed, shape):
+    return jnp.asarray(np.random.default_rng(seed).normal(size=shape), jnp.float32)
+
+
+def _pixels(seed, shape):
+    return jnp.asarray(np.random.default_rng(seed).integers(0, 256, shape, np.uint8))
+
+
 REFERENCE_COUNTS = {  # per module (docs/method.md, Architecture), walker |A| = 6
     "encoder": 8_423_072,
     "actor": 1_312_924,
@@ -65,12 +75,12 @@ def test_shapes():
 
 
 def test_decoder_and_actor_values():
-    z = jax.random.normal(jax.random.key(0), (2, 32))
+    z = _normal(0, (2, 32))
     actor = networks.Actor(6, hidden_dim=16)
-    mean = actor.apply(actor.init(jax.random.key(1), z), z)
+    mean = actor.apply(jax.jit(actor.init)(jax.random.key(1), z), z)
     assert np.all(np.abs(np.asarray(mean)) < 1.0)
     dec = networks.PoolDecoder(3)
-    params = dec.init(jax.random.key(2), z)
+    params = jax.jit(dec.init)(jax.random.key(2), z)
     out = dec.apply(params, z)
     assert out.shape == (2, 84, 84, 3) and np.all(np.isfinite(np.asarray(out)))
     phases = dec.apply(params, z, phases=True)
@@ -84,15 +94,15 @@ def test_bf16_products_keep_the_parameters_and_float32_values():
     """Actor and critic with bf16 products (the bf16 path's): the same parameters, float32
     outputs near the float32 networks', every forward product reading bf16 operands into
     float32 (their gradients' products stay float32)."""
-    z = jax.random.normal(jax.random.key(0), (4, 64))
-    a = jax.random.uniform(jax.random.key(1), (4, 6), minval=-1, maxval=1)
+    z = _normal(0, (4, 64))
+    a = jnp.asarray(np.random.default_rng(1).uniform(-1, 1, (4, 6)), jnp.float32)
     for make, args in (
         (lambda **kw: networks.Actor(6, hidden_dim=32, **kw), (z,)),
         (lambda **kw: networks.Critic(hidden_dim=32, **kw), (z, a)),
     ):
         full, mixed = make(), make(products=jnp.bfloat16)
-        params = full.init(jax.random.key(2), *args)
-        same = mixed.init(jax.random.key(2), *args)
+        params = jax.jit(full.init)(jax.random.key(2), *args)
+        same = jax.jit(mixed.init)(jax.random.key(2), *args)
         for x, y in zip(jax.tree.leaves(params), jax.tree.leaves(same), strict=True):
             np.testing.assert_array_equal(x, y)
         want, got = full.apply(params, *args), mixed.apply(params, *args)
@@ -116,7 +126,7 @@ def test_bf16_products_keep_the_parameters_and_float32_values():
         (networks.PoolEncoder(64, jnp.bfloat16), obs),
         (networks.PoolDecoder(3, jnp.bfloat16), z[:1]),
     ):
-        p = module.init(jax.random.key(0), x)
+        p = jax.eval_shape(module.init, jax.random.key(0), x)  # the program, not its numbers
         eqns = jax.make_jaxpr(module.apply)(p, x).jaxpr.eqns
         dense = [e for e in eqns if e.primitive.name == "dot_general"][0]
         assert [v.aval.dtype for v in (*dense.invars, *dense.outvars)] == [jnp.bfloat16] * 3
@@ -131,12 +141,11 @@ def test_transposed_convolutions_equal_pytorch_sizes_and_lax(stride, output_padd
     and have the same gradients with respect to input, kernel and bias.
     """
     k = 4 if stride == 4 else 3
-    kx, kk, kb, kg = jax.random.split(jax.random.key(0), 4)
-    x = jax.random.normal(kx, (2, 9, 9, 5))
+    x = _normal(0, (2, 9, 9, 5))
     layer = networks.ConvTranspose(7, k, stride, output_padding, channels=channels)
     params = {
-        "kernel": jax.random.normal(kk, (k, k, 5, 7)),
-        "bias": jax.random.normal(kb, (7,)),
+        "kernel": _normal(1, (k, k, 5, 7)),
+        "bias": _normal(2, (7,)),
     }
     init = layer.init(jax.random.key(1), x)["params"]
     assert jax.tree.map(jnp.shape, init) == jax.tree.map(jnp.shape, params)
@@ -159,7 +168,7 @@ def test_transposed_convolutions_equal_pytorch_sizes_and_lax(stride, output_padd
     else:
         with pytest.raises(ValueError, match=f"side {size} is not whole"):
             layer.apply({"params": params}, x, phases=True)
-    probe = jax.random.normal(kg, out.shape)  # a random cotangent
+    probe = _normal(3, out.shape)  # a random cotangent
     loss = lambda f: lambda p, x: jnp.sum(probe * f(p, x))  # noqa: E731
     grads, expected = (jax.grad(loss(f), argnums=(0, 1))(params, x) for f in (ours, reference))
     for g, e in zip(jax.tree.leaves(grads), jax.tree.leaves(expected)):
@@ -170,7 +179,7 @@ def test_transposed_convolutions_equal_pytorch_sizes_and_lax(stride, output_padd
 def test_convolution_is_flax_conv_with_or_without_channel_padding(stride, cin):
     """`networks.Conv` has nn.Conv's parameters, initial values and function, and the same
     gradients, with its channels zero-padded to multiples of 8 (as on GPUs) or not."""
-    x = jax.random.normal(jax.random.key(0), (2, 13, 13, cin))
+    x = _normal(0, (2, 13, 13, cin))
     flax_conv = nn.Conv(
         32,
         (3, 3),
@@ -180,10 +189,8 @@ def test_convolution_is_flax_conv_with_or_without_channel_padding(stride, cin):
         bias_init=networks.ZEROS,
     )
     expected_params = flax_conv.init(jax.random.key(1), x)["params"]
-    probe = jax.random.normal(
-        jax.random.key(2), flax_conv.apply({"params": expected_params}, x).shape
-    )
-    bias = jax.random.normal(jax.random.key(3), (32,))
+    probe = _normal(2, flax_conv.apply({"params": expected_params}, x).shape)
+    bias = _normal(3, (32,))
     for channels in (1, 8):
         ours = networks.Conv(32, stride, channels=channels)
         params = ours.init(jax.random.key(1), x)["params"]
@@ -235,8 +242,8 @@ def test_initialisation_is_pytorchs_orthogonal_on_its_layouts(method):
 def test_avg_pool_is_flax_avg_pool_in_values_and_gradients(shape, k):
     """The reshape-and-mean pool is flax's VALID average pool (windows past the edge dropped),
     and its gradient too: 1/k^2 on every pixel of a whole window, 0 on the dropped ones."""
-    x = jax.random.normal(jax.random.key(0), shape)
-    ct = jax.random.normal(jax.random.key(1), (shape[0], shape[1] // k, shape[2] // k, shape[3]))
+    x = _normal(0, shape)
+    ct = _normal(1, (shape[0], shape[1] // k, shape[2] // k, shape[3]))
 
     def flax_pool(x):
         return nn.avg_pool(x, (k, k), strides=(k, k), padding="VALID")
@@ -260,7 +267,7 @@ def test_pixels_are_centred():
 def test_trunk_with_tensor_core_channels_is_the_same_function():
     """The conv trunk as GPUs run it in bf16 (pixels kept apart by a barrier, channels padded to
     8) computes what the plain trunk computes, gradients included (here in float32)."""
-    obs = jax.random.randint(jax.random.key(0), (2, 84, 84, 9), 0, 256).astype(jnp.uint8)
+    obs = _pixels(0, (2, 84, 84, 9))
     plain, padded = networks.ConvTrunk(channels=1), networks.ConvTrunk(channels=8)
     params = plain.init(jax.random.key(1), obs)
     assert jax.tree.map(jnp.shape, params) == jax.tree.map(
@@ -276,12 +283,13 @@ def _vmapped_decoder_and_encoder(seeds: int, batch: int):
     """(params, z, obs, f): a mask decoder and a conv trunk per seed, and f = vmap over seeds of
     the value and gradient (in params and z) of a loss that reads both networks' outputs."""
     dec, enc = networks.PoolDecoder(3), networks.ConvTrunk()
-    z = jax.random.normal(jax.random.key(0), (seeds, batch, 8))
-    obs = jax.random.randint(jax.random.key(1), (seeds, batch, 84, 84, 9), 0, 256)
-    obs = obs.astype(jnp.uint8)
-    params = jax.vmap(lambda k: (dec.init(k, z[0]), enc.init(k, obs[0])))(
-        jax.random.split(jax.random.key(2), seeds)
-    )
+    z = _normal(0, (seeds, batch, 8))
+    obs = _pixels(1, (seeds, batch, 84, 84, 9))
+    # one seed after another (as update.init_seeds): vmapped, XLA:CPU may run the batched QR
+    # decompositions of the orthogonal inits at once, and deadlock on 2 cores
+    params = jax.jit(
+        lambda keys: jax.lax.map(lambda k: (dec.init(k, z[0]), enc.init(k, obs[0])), keys)
+    )(jax.random.split(jax.random.key(2), seeds))
 
     def loss(p, z, obs):
         return jnp.sum(jnp.sin(dec.apply(p[0], z))) + jnp.sum(jnp.cos(enc.apply(p[1], obs)))
@@ -332,18 +340,20 @@ def test_pallas_filter_gradient_equals_cudnns():
         (4, 9, 32, 16, 2, 2),
         (3, 5, 16, 256, 1, 3),
     ):
-        kx, kg = jax.random.split(jax.random.key(size))
-        x = jax.random.normal(kx, (n, size, size, c))
-        g = jax.random.normal(kg, (n, size - k + 1, size - k + 1, f))
+        x = _normal(size, (n, size, size, c))
+        g = _normal(size + 1, (n, size - k + 1, size - k + 1, f))
         assert wgrad.supported(x.shape, (k, k, c, f), 1)
+        # jitted: an eager pallas_call builds its kernel anew, and compiles it, on every call
+        ours = jax.jit(wgrad.filter_gradient, static_argnums=2, static_argnames="images")
         np.testing.assert_allclose(
-            wgrad.filter_gradient(x, g, k, images=images), cudnn(x, g, k), rtol=1e-5, atol=1e-4
+            ours(x, g, k, images=images), cudnn(x, g, k), rtol=1e-5, atol=1e-4
         )
-    stacked = jax.vmap(lambda x, g: wgrad.filter_gradient(x, g, 3))
-    xs = jax.random.normal(jax.random.key(1), (2, 2, 7, 7, 16))
-    gs = jax.random.normal(jax.random.key(2), (2, 2, 5, 5, 32))
+    stacked = jax.jit(jax.vmap(lambda x, g: wgrad.filter_gradient(x, g, 3)))
+    xs = _normal(1, (2, 2, 7, 7, 16))
+    gs = _normal(2, (2, 2, 5, 5, 32))
+    both = stacked(xs, gs)
     for i in range(2):
-        np.testing.assert_allclose(stacked(xs, gs)[i], cudnn(xs[i], gs[i], 3), rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(both[i], cudnn(xs[i], gs[i], 3), rtol=1e-5, atol=1e-4)
     assert not wgrad.supported((2, 11, 11, 16), (3, 3, 16, 32), 2)  # stride 2 stays on cuDNN
     assert not wgrad.supported((2, 11, 11, 12), (3, 3, 12, 32), 1)  # 12 channels: not a power of 2
     with pytest.raises(ValueError, match="not the gradient"):
@@ -374,9 +384,10 @@ def test_networks_with_pallas_filter_gradients_are_the_same_function(loop_seeds)
         with networks.conv_settings(loop_seeds=loop_seeds, filter_gradient="pallas"):
             return grads(p, z, obs)
 
-    text = jax.jit(pallas).lower(params, z, obs).as_text()
+    ours = jax.jit(pallas)
+    text = ours.lower(params, z, obs).as_text()
     assert "triton" in text or "pallas" in text  # the kernel is in the program
-    want, got = jax.jit(grads)(params, z, obs), jax.jit(pallas)(params, z, obs)
+    want, got = jax.jit(grads)(params, z, obs), ours(params, z, obs)
     for a, b in zip(jax.tree.leaves(want), jax.tree.leaves(got)):
         np.testing.assert_allclose(a, b, rtol=2e-4, atol=2e-4)
     with pytest.raises(ValueError, match="unknown filter_gradient"):

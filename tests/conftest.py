@@ -20,15 +20,38 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
 
-# XLA:CPU's fusion emitters off in every process of the test run (the tests' child processes
-# inherit XLA_FLAGS; those of test_sharding.py and test_multihost.py set it themselves): in one
-# process on a 2-core machine, tests/test_update.py took 211 s against 299 s with them on. The
-# persistent cache's keys include XLA_FLAGS but for the device count, so the children share the
-# workers' compiled programs. (Off, jax.random compiles more slowly: ~10 s for an image-sized
-# draw; the tests draw their inputs with NumPy.)
-if "--xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
-    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_cpu_use_fusion_emitters=false"
-    os.environ["XLA_FLAGS"] = flags.strip()
+# XLA:CPU flags for every process of the test run (the tests' child processes inherit
+# XLA_FLAGS; those of test_sharding.py and test_multihost.py add their device count to them).
+# The tests' programs are small and run a few times, so compiling them is most of the suite's
+# time; on a 2-core machine:
+# - fusion emitters off: tests/test_update.py took 211 s against 299 s with them on (and a
+#   seed's code is then the same in a 1-seed and a 2-seed program, which test_sharding.py
+#   relies on; jax.random compiles more slowly, so the tests draw their inputs with NumPy);
+# - LLVM at optimisation level 0: test_vmapped_seeds_every_method[drqv2] took 12 s against
+#   22 s at the default level.
+# The persistent cache's keys include XLA_FLAGS but for the device count, so the children share
+# the workers' compiled programs.
+TEST_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0")
+_flags = os.environ.get("XLA_FLAGS", "")
+os.environ["XLA_FLAGS"] = " ".join(
+    [_flags, *(f for f in TEST_XLA_FLAGS if f.split("=")[0] not in _flags)]
+).strip()
+
+
+def pytest_configure(config):
+    """MJX's physics programs at XLA's full optimisation in the test processes: they compile once
+    and step hundreds of times (a kitchen agent step of 2 envs took 1.9 s at level 0 against
+    0.7 s; the other programs are the other way round)."""
+    from envs import physics
+
+    options = physics._compiler_options
+
+    def full_optimisation():
+        base = options()
+        return None if base is None else {**base, "xla_backend_optimization_level": 3}
+
+    physics._compiler_options = full_optimisation
+
 
 SLOWEST_FIRST = (
     "test_sharding.py",

@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-FLAGS = "--xla_force_host_platform_device_count=1 --xla_cpu_use_fusion_emitters=false"
+FLAGS = f"--xla_force_host_platform_device_count=1 {os.environ['XLA_FLAGS']}"  # conftest's
 CUT, END = 160, 200  # frames per seed: evaluations and checkpoints at CUT; the runs end at END
 SIGNAL_AT = 35  # the loop step after which process 1 gets SIGTERM (updates start at step 30)
 

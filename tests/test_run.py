@@ -37,7 +37,8 @@ def tiny_config(**overrides):
     c.log_every_frames = 40
     c.checkpoint_every_frames = 120
     c.env.episode_frames = 40
-    c.agent.batch_size = 8
+    c.agent.batch_size = 4
+    c.agent.update_every_steps = 4  # 20 updates per seed in 280 frames
     c.agent.latent_dim = 64
     c.agent.hidden_dim = 32
     c.agent.feature_dim = 8
@@ -340,11 +341,11 @@ def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):
 
 def test_changed_learning_fields_are_refused_naming_them(run):
     workdir = run[0]
-    changed = {"agent.batch_size": 4, "agent.alpha": 0.5, "total_frames": 400}
+    changed = {"agent.batch_size": 2, "agent.alpha": 0.5, "total_frames": 400}
     with pytest.raises(IncompatibleCheckpointError) as err:
         train.train(tiny_config(**changed), workdir)
     message = str(err.value)
-    assert "agent.batch_size: saved=8, now=4" in message
+    assert "agent.batch_size: saved=4, now=2" in message
     assert "agent.alpha: saved=0.25, now=0.5" in message
     assert "total_frames" not in message  # may change: the fixture's resume changed it
     assert "env.backend" not in message
@@ -529,9 +530,9 @@ def test_benchmarks_set_any_config_field_typed_and_by_known_name():
     [
         (
             {"replay.seed_frames": 0},
-            r"seed_frames=0 gives 0 transitions .* set replay.seed_frames >= 16",
+            r"seed_frames=0 gives 0 transitions .* set replay.seed_frames >= 8",
         ),
-        ({"replay.seed_frames": 14}, r"fewer than one batch \(agent.batch_size=8\)"),
+        ({"replay.seed_frames": 6}, r"fewer than one batch \(agent.batch_size=4\)"),
         (
             {"replay.capacity": 4, "agent.batch_size": 8, "replay.seed_frames": 16},
             r"larger than the replay",
@@ -555,15 +556,19 @@ def _overrides(config) -> list[str]:
     return [f"--config.{k}={v}" for k, v in want.items() if base.get(k) != v]
 
 
-def _children(pid: int) -> list[int]:
-    found = []
+def _descendants(pid: int) -> list[int]:
+    """Every process below `pid` (render workers are children of multiprocessing's fork server)."""
+    parents = {}
     for stat in pathlib.Path("/proc").glob("[0-9]*/stat"):
         try:
-            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            parents[int(stat.parent.name)] = int(stat.read_text().rsplit(")", 1)[1].split()[1])
         except (OSError, IndexError, ValueError):
             continue
-        if ppid == pid:
-            found.append(int(stat.parent.name))
+    found, frontier = [], [pid]
+    while frontier:
+        below = [p for p, parent in parents.items() if parent in frontier]
+        found += below
+        frontier = below
     return found
 
 
@@ -585,7 +590,7 @@ def test_sigterm_checkpoints_exits_cleanly_and_resumes_exactly(run, tmp_path):
         seen.append(line)
         if "eval @ 120 frames" in line:  # one line per evaluation
             break
-    workers = _children(proc.pid)
+    workers = _descendants(proc.pid)
     second = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
     proc.send_signal(signal.SIGTERM)
     out, err = proc.communicate(timeout=300)
@@ -599,7 +604,7 @@ def test_sigterm_checkpoints_exits_cleanly_and_resumes_exactly(run, tmp_path):
     deadline = time.monotonic() + 30
     while any(pathlib.Path(f"/proc/{p}").exists() for p in workers) and time.monotonic() < deadline:
         time.sleep(0.2)
-    assert len(workers) >= 4  # render workers of both envs (+ multiprocessing's tracker)
+    assert len(workers) >= 4  # render workers of both envs, the fork server, the tracker
     assert not [p for p in workers if pathlib.Path(f"/proc/{p}").exists()]
     assert not (workdir / "run.lock").exists()
     assert "stopped by SIGTERM" in (workdir / "log.txt").read_text()

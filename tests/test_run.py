@@ -46,8 +46,8 @@ def tiny_config(**overrides):
     c.replay.seed_frames = 120
     c.replay.capacity = 1000
     c.replay.chunk_entries = 40  # 20 rows: the runs write full chunks, not only partial ones
-    # One render worker per env (smoke: 2): each costs a process start (~2.5 s of CPU) per env of
-    # every run. test_sigterm_checkpoints_exits_cleanly_and_resumes_exactly runs with 2.
+    # One render worker per env (smoke: 2): each is a process forked per env of every run.
+    # test_sigterm_checkpoints_exits_cleanly_and_resumes_exactly runs with 2.
     c.env.render.num_workers = 1
     for key, value in overrides.items():
         node = c

@@ -147,7 +147,10 @@ class EvalProcess:
     An evaluation here always runs to its end (`stop` is not read)."""
 
     def __init__(self, config):
-        ctx = multiprocessing.get_context("spawn")  # never fork a process that holds CUDA
+        # Never fork a process that holds CUDA: the process's fork server (envs/render_pool.py)
+        # holds none, and forks it with jax and the envs already imported.
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(["dear_jax.evaluator"])
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(target=_serve, args=(child, pickle.dumps(config)), name="eval")
         self._proc.start()

@@ -147,8 +147,8 @@ class EvalProcess:
     An evaluation here always runs to its end (`stop` is not read)."""
 
     def __init__(self, config):
-        # Never fork a process that holds CUDA: the process's fork server (envs/render_pool.py)
-        # holds none, and forks it with jax and the envs already imported.
+        # Never fork a process that holds CUDA: the process's fork server (as the render
+        # workers', envs/render_pool.py) holds none and forks it with jax and the envs imported.
         ctx = multiprocessing.get_context("forkserver")
         ctx.set_forkserver_preload(["dear_jax.evaluator"])
         self._conn, child = ctx.Pipe()

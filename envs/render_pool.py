@@ -132,10 +132,11 @@ class RenderPool:
             floor_geom_ids=[int(i) for i in floor_geom_ids],
             settings=settings,
         )
-        # Not fork: the parent may hold JAX / CUDA threads that a fork would corrupt. A fork
-        # server (one per process, started with the first pool, the task modules imported)
-        # forks each worker: on a 2-core machine a later 1-worker walker env was made and reset
-        # in 1.0 s instead of the 3.0-3.6 s of spawning an interpreter that imports them.
+        # Not fork: the parent may hold JAX / CUDA threads that a fork would corrupt. The
+        # process's fork server (multiprocessing's, started by the first pool or evaluation
+        # process with its modules imported; importing them starts no JAX backend) forks each
+        # worker: on a 2-core machine a later 1-worker walker env was made and reset in 1.0 s
+        # instead of the 3.0-3.6 s of spawning an interpreter that imports them.
         ctx = get_context("forkserver")
         ctx.set_forkserver_preload(["envs.render_pool", "envs.registry"])
         self._conns: list[connection.Connection] = []

@@ -1,14 +1,17 @@
 """Time the jitted, seed-vmapped learner update (encoder + heads + critic, actor, target EMA).
 
 python -m benchmarks.update [--methods dear drqv2] [--seeds 1 5] [--batch 256] [--iters 20]
-    [--dtypes float32 bfloat16] [--seed-axis vmap loop]
+    [--dtypes float32 bfloat16] [--seed-axis vmap loop] [--kernels default TAP_LOOP=1,CONV_STAGES=2]
 Prints a table and writes JSON to benchmarks/results/update_<platform>.json (or --out).
+--kernels times each listed setting of the Pallas conv stacks' constants (`dear_jax.wideconv`,
+comma-separated NAME=INT; "default": as they are), in turn, for every other combination.
 The same update in PyTorch, timed on the same GPU: `python -m benchmarks.torch_reference update`.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import itertools
 import time
@@ -17,7 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from benchmarks.common import save_json, timed_calls
-from dear_jax import augment, networks, update, wgrad
+from dear_jax import augment, networks, update, wgrad, wideconv
 from dear_jax.replay import Batch
 
 # docs/design.md: the PyTorch reference architecture's DEAR update, batch 256, TF32, on an H100.
@@ -134,6 +137,31 @@ def time_update(
     )
 
 
+def kernel_setting(text: str) -> dict:
+    """ "NAME=INT,..." (constants of dear_jax.wideconv) or "default" -> {NAME: INT}."""
+    if text == "default":
+        return {}
+    setting = dict(item.split("=", 1) for item in text.split(","))
+    unknown = sorted(n for n in setting if not isinstance(getattr(wideconv, n, None), int))
+    if unknown:
+        raise argparse.ArgumentTypeError(f"not an integer constant of dear_jax.wideconv: {unknown}")
+    return {n: int(v) for n, v in setting.items()}
+
+
+@contextlib.contextmanager
+def kernel_constants(setting: dict):
+    """dear_jax.wideconv's constants set to `setting` while the block runs (they are read as
+    programs are traced)."""
+    old = {n: getattr(wideconv, n) for n in setting}
+    try:
+        for n, v in setting.items():
+            setattr(wideconv, n, type(old[n])(v))
+        yield
+    finally:
+        for n, v in old.items():
+            setattr(wideconv, n, v)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--methods", nargs="+", default=["dear"], choices=update.METHODS)
@@ -165,6 +193,7 @@ def main():
         choices=["default", "tensorfloat32", "float32", "highest"],
         help="jax_default_matmul_precision for float32 matmuls and convolutions",
     )
+    parser.add_argument("--kernels", nargs="+", default=["default"], type=kernel_setting)
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     if args.precision:
@@ -174,31 +203,35 @@ def main():
     for d in args.dtypes:
         for m in args.methods:
             for s in args.seeds:
-                for how, impl, fg, cs in itertools.product(
+                for how, impl, fg, cs, kernels in itertools.product(
                     args.seed_axis if s > 1 else ["vmap"],
                     args.shift_impls,
                     args.filter_gradients,
                     args.conv_stacks,
+                    args.kernels,
                 ):
                     encoder = args.drqv2_encoder if m == "drqv2" else "pool"
-                    rows.append(
-                        time_update(m, s, args.batch, args.iters, d, 6, how, impl, encoder, fg, cs)
-                    )
-                    r = rows[-1]
+                    with kernel_constants(kernels):
+                        r = time_update(
+                            m, s, args.batch, args.iters, d, 6, how, impl, encoder, fg, cs
+                        )
+                    rows.append(dict(r, kernels=kernels))
                     print(
-                        f"{m} {d} {how} {impl} {fg} {cs} seeds={s}: "
+                        f"{m} {d} {how} {impl} {fg} {cs} {kernels or ''} seeds={s}: "
                         f"{r['ms_per_seed_update']:.2f} ms/seed"
                     )
     print(f"device: {device.device_kind} ({device.platform}), jax {jax.__version__}")
     print(
-        "| method | encoder | dtype | precision | seed axis | shift | filter gradient | conv stack | seeds | batch | ms per call "
+        "| method | encoder | dtype | precision | seed axis | shift | filter gradient | conv stack | kernels | seeds | batch | ms per call "
         "| host dispatch ms per call | ms per seed-update | vs PyTorch 12.1 ms | compile s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
             f"| {r['method']} | {r['encoder']} | {r['dtype']} | {r['precision']} | {r['seed_axis']} "
-            f"| {r['shift_impl']} | {r['filter_gradient']} | {r['conv_stack']} | {r['seeds']} | {r['batch']} | "
+            f"| {r['shift_impl']} | {r['filter_gradient']} | {r['conv_stack']} "
+            f"| {','.join(f'{n}={v}' for n, v in r['kernels'].items()) or 'default'} "
+            f"| {r['seeds']} | {r['batch']} | "
             f"{r['ms_per_call']:.2f} | {r['dispatch_ms_per_call']:.2f} | "
             f"{r['ms_per_seed_update']:.2f} | {PYTORCH_ANCHOR_MS / r['ms_per_seed_update']:.2f}x "
             f"| {r['compile_s']:.1f} |"

@@ -391,11 +391,12 @@ def _pallas_trunk(obs: jax.Array, modules, dtype, crops) -> jax.Array | None:
     return y.reshape(*lead, *y.shape[1:])
 
 
-def _pallas_decoder(x: jax.Array, modules, last, dtype, phases: bool, target=None):
+def _pallas_decoder(x: jax.Array, modules, last, dtype, phases: bool, target=None, loss="bce"):
     """Stride-1 transposed 3x3 layers with ReLU (pad 2 each), then the last transposed layer
     (strided, no ReLU) as the dense 2x2 convolution of its output phases, as one
     `wideconv.conv_stack`, interleaved unless `phases`; with `target` (see `PoolDecoder`), the
-    mask loss, from `wideconv.conv_stack_bce`. None where that does not take the shapes."""
+    decoder's loss (`wideconv.LOSSES[loss]`), from `wideconv.conv_stack_loss`. None where that
+    does not take the shapes."""
     *lead, n, _, c = x.shape
     *weights, (kernel, bias) = _weights([*modules, last], (n, n, c), dtype)
     n_last = n + 2 * len(modules)
@@ -415,10 +416,10 @@ def _pallas_decoder(x: jax.Array, modules, last, dtype, phases: bool, target=Non
     if phases or target is not None:
         _check_phases(size, last.stride)
     if target is not None:
-        mask, crops = _flat_target(target)
+        images, crops = _flat_target(target)
         shift, offsets = (crops.pad, crops.offsets) if crops else (0, None)
-        total = wideconv.conv_stack_bce(
-            flat, layers, mask, pads, dtype, last.stride, shift, offsets
+        total = wideconv.conv_stack_loss(
+            flat, layers, images, pads, dtype, last.stride, shift, offsets, loss
         )
         return total / flat.shape[0]
     y = wideconv.conv_stack(flat, layers, pads, False, dtype)[..., :features]
@@ -568,6 +569,8 @@ class Critic(nn.Module):
         return q1, q2
 
 
+# PoolDecoder's losses with a target (as wideconv.LOSSES, summed over pixels, mean over images).
+DECODER_LOSSES = {"bce": losses.mask_loss, "clipped_squares": losses.reconstruction_loss}
 DECODER_STRIDE = 2  # PoolDecoder's last layer
 DECODER_SIDE = 84  # PoolDecoder's output side
 
@@ -581,25 +584,29 @@ class PoolDecoder(nn.Module):
     """Mirror of the pool encoder: [..., in_dim] -> [..., 84, 84, out_channels] (no output activation).
 
     Linear -> 8x8x16 -> ConvT 4x4/4 (+3) -> 35 -> 37 -> 39 -> 41 -> ConvT 3x3/2 (+1) -> 84.
-    The mask decoder (3 channels) returns logits; the sigmoid lives in the loss. The SEAR
-    reconstruction decoder (9 channels) returns pixels in the [-0.5, 0.5] scale.
+    The mask decoder (3 channels, `loss` "bce") returns logits; the sigmoid lives in the loss.
+    The SEAR reconstruction decoder (9 channels, `loss` "clipped_squares") returns pixels in
+    the [-0.5, 0.5] scale.
 
     With `phases`, the output is returned as the last layer computes it, its 2x2 phases
     [..., 42, 42, 4 * out_channels]: `decoder_phases` of the image. A loss summed over pixels
     is the same on either; on phases, neither the output nor its gradient is interleaved.
 
-    With `target` = (mask, crops): {0, 1} masks [..., 84, 84, out_channels] (the leading axes
-    of z) and the random shift's `augment.Crops` (or None: the masks as they are), the mask
-    decoder's loss instead (`phases` does not matter), `losses.mask_loss` of the logits against
-    the cropped masks, averaged over all the leading axes. With Pallas stacks, the last layer's
-    kernel computes it and its gradient as it computes the logits (`wideconv.conv_stack_bce`),
-    and no other pass reads or writes them; it takes the loss of the float32 logits, where XLA's
-    path takes that of the logits in the decoder's dtype (bf16: both within 1e-4 of the float32
-    loss, relative; benchmarks/results/mask_loss_h100.json, commit b60ebbf).
+    With `target` = (images, crops): [..., 84, 84, out_channels] (the leading axes of z) and
+    the random shift's `augment.Crops` (or None: the images as they are), the decoder's loss
+    instead (`phases` does not matter), averaged over all the leading axes: for "bce",
+    `losses.mask_loss` of the logits against {0, 1} masks; for "clipped_squares",
+    `losses.reconstruction_loss` of the output against uint8 frames; each against the cropped
+    images. With Pallas stacks, the last layer's kernel computes the loss and its gradient as
+    it computes the output (`wideconv.conv_stack_loss`), and no other pass reads or writes it;
+    it takes the loss of the float32 output, where XLA's path takes that of the output in the
+    decoder's dtype (bf16 mask loss: both within 1e-4 of the float32 loss, relative;
+    benchmarks/results/mask_loss_h100.json, commit b60ebbf).
     """
 
     out_channels: int
     dtype: Any = jnp.float32
+    loss: str = "bce"  # the loss taken with a target: a key of wideconv.LOSSES
 
     @nn.compact
     def __call__(self, z: jax.Array, phases: bool = False, target=None) -> jax.Array:
@@ -607,7 +614,7 @@ class PoolDecoder(nn.Module):
         if target is not None:
             want = (*z.shape[:-1], DECODER_SIDE, DECODER_SIDE, self.out_channels)
             if target[0].shape != want:
-                raise ValueError(f"the decoder's target masks are {target[0].shape}, need {want}")
+                raise ValueError(f"the decoder's target images are {target[0].shape}, need {want}")
         x = nn.relu(_dense(16 * 8 * 8, dtype=dt)(z))
         x = x.reshape(*x.shape[:-1], 8, 8, 16)
         x = nn.relu(ConvTranspose(16, 4, stride=4, output_padding=3, dtype=dt)(x))
@@ -616,17 +623,18 @@ class PoolDecoder(nn.Module):
             self.out_channels, 3, stride=DECODER_STRIDE, output_padding=1, dtype=dt
         )
         if _CONV.get().stack == "pallas":
-            y = _pallas_decoder(x, layers, last, dt, phases, target)
+            y = _pallas_decoder(x, layers, last, dt, phases, target, self.loss)
             if y is not None:
                 return y.astype(jnp.float32)
         for layer in layers:
             x = nn.relu(layer(x))
         if target is None:
             return last(x, phases=phases).astype(jnp.float32)
-        logits = last(x, phases=True).astype(jnp.float32)
-        mask, crops = _flat_target(target)
-        mask = decoder_phases(crops.apply(mask) if crops else mask)
-        return losses.mask_loss(logits.reshape(-1, *logits.shape[-3:]), mask)
+        out = last(x, phases=True).astype(jnp.float32)
+        images, crops = _flat_target(target)
+        images = decoder_phases(crops.apply(images) if crops else images)
+        loss = DECODER_LOSSES[self.loss]
+        return loss(out.reshape(-1, *out.shape[-3:]), images)
 
 
 def _flat_target(target):

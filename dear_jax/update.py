@@ -131,7 +131,9 @@ def make_networks(cfg: AgentConfig) -> Networks:
         critic=networks.Critic(cfg.feature_dim, cfg.hidden_dim, dtype),
         mask_decoder=networks.PoolDecoder(cfg.frame_stack, dtype) if cfg.uses_mask else None,
         recon_decoder=(
-            networks.PoolDecoder(cfg.obs_shape[-1], dtype) if cfg.method == "sear" else None
+            networks.PoolDecoder(cfg.obs_shape[-1], dtype, loss="clipped_squares")
+            if cfg.method == "sear"
+            else None
         ),
         ted=networks.TEDClassifier() if cfg.method == "ted" else None,
     )
@@ -339,9 +341,10 @@ def learner_loss(
         metrics["ortho_loss"] = l_dis
         total = total + hp.beta * l_dis
     if cfg.method == "sear":
-        recon = nets.recon_decoder.apply({"params": learner["recon_decoder"]}, z_env, phases=True)
-        target = networks.decoder_phases(crops.apply(batch.obs))
-        l_rec = losses.reconstruction_loss(recon, target)
+        # As the mask decoder: the reconstruction error against the cropped frames, fused
+        # into the last kernel with Pallas stacks.
+        params = {"params": learner["recon_decoder"]}
+        l_rec = nets.recon_decoder.apply(params, z_env, target=(batch.obs, crops))
         metrics["recon_loss"] = l_rec
         total = total + hp.recon_weight * l_rec
     if cfg.method == "ted":

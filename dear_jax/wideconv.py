@@ -42,11 +42,11 @@ the last ReLU optional. PyTorch's ConvTranspose2d(k=3, stride=1) is such a layer
 (`networks.ConvTranspose`). Off GPUs the kernels run in Pallas' interpreter (slow; for tests).
 tests/test_wideconv.py checks values and gradients against lax.conv.
 
-`conv_stack_bce` is such a stack with a binary cross-entropy of its last layer's output (the
-mask decoder's logits) fused into that layer's kernel. The mask loss had been two XLA passes
-over the logits, 0.54 ms of a 15.2 ms 5-seed update; fused, the kernel's epilogue costs ~0.2 ms,
-and the update went from 3.01 to 2.95 ms per seed on an H100 (commit 981cf76,
-benchmarks/results/update_bce_fused_ab_h100.json).
+`conv_stack_loss` is such a stack with a loss of its last layer's output fused into that
+layer's kernel: the mask decoder's binary cross-entropy, SEAR's reconstruction error. The mask
+loss had been two XLA passes over the logits, 0.54 ms of a 15.2 ms 5-seed update; fused, the
+kernel's epilogue costs ~0.2 ms, and the update went from 3.01 to 2.95 ms per seed on an H100
+(commit 981cf76, benchmarks/results/update_bce_fused_ab_h100.json).
 """
 
 from __future__ import annotations
@@ -65,7 +65,11 @@ NUM_WARPS = 4
 WGRAD_BLOCK = 64  # rows per step of a filter gradient
 WGRAD_STEPS = 32  # steps of one program of a filter gradient
 WGRAD_WARPS = 2
-STAGES = 3  # Triton's software pipelining of a filter gradient's steps
+STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of looped taps)
+# A convolution's taps as a loop (which Triton may software-pipeline) rather than unrolled,
+# and its pipeline's stages.
+TAP_LOOP = False
+CONV_STAGES = 3
 # The float32 dots' precision on GPUs: None lets them run in TF32, as XLA's float32 convolutions
 # do there by default; jax.lax.Precision.HIGHEST makes them IEEE float32 (the GPU tests).
 PRECISION: jax.lax.Precision | None = None
@@ -151,6 +155,11 @@ class _Grid:
         return rows < self.pixels, image, y, x
 
 
+def _traced(t) -> bool:
+    """Whether a tap's index is a loop's (traced) rather than a Python int."""
+    return not isinstance(t, int)
+
+
 def _round_up(n: int, multiple: int) -> int:
     return -(-n // multiple) * multiple
 
@@ -188,20 +197,20 @@ class _Pass:
         k, last = self.kernel, self.size_in - 1
 
         def load(t):
-            i, j = divmod(t, k)
+            i, j = (jax.lax.div(t, k), jax.lax.rem(t, k)) if _traced(t) else divmod(t, k)
             idx = base + i * self.size_in + j
             if not self.pad:
                 return x_ref[idx[:, None] * c + lanes].astype(dtype)
             ok = keep
             # (the checks that can fail for this tap: the output spans [0, size) and
-            # size - 1 + k - 1 - 2 * pad = size_in - 1)
-            if i < self.pad:
+            # size - 1 + k - 1 - 2 * pad = size_in - 1; a traced tap checks all four)
+            if _traced(t) or i < self.pad:
                 ok &= y + i - self.pad >= 0
-            if i > k - 1 - self.pad:
+            if _traced(t) or i > k - 1 - self.pad:
                 ok &= y + i - self.pad <= last
-            if j < self.pad:
+            if _traced(t) or j < self.pad:
                 ok &= x + j - self.pad >= 0
-            if j > k - 1 - self.pad:
+            if _traced(t) or j > k - 1 - self.pad:
                 ok &= x + j - self.pad <= last
             idx = jnp.where(ok, idx, 0)[:, None] * c + lanes
             mask = jnp.broadcast_to(ok[:, None], idx.shape)
@@ -272,25 +281,26 @@ def _crop_offsets(crop_ref, image, keep):
 
 
 @dataclasses.dataclass(frozen=True)
-class _Labels:
-    """The binary targets of a last layer that computes `phase` x `phase` output pixels per row
-    (its output phases): lane (ry * phase + rx) * channels + c of the row of output (n, i, j)
-    is channel c of pixel (phase * i + ry, phase * j + rx) of image n of the labels ([N, side,
-    side, channels], values in {0, 1} of any numeric dtype). They may be read through a random
-    shift (as `_Pixels`)."""
+class _Targets:
+    """The targets of a last layer's loss (`LOSSES`), for a layer that computes `phase` x
+    `phase` output pixels per row (its output phases): lane (ry * phase + rx) * channels + c of
+    the row of output (n, i, j) is channel c of pixel (phase * i + ry, phase * j + rx) of image
+    n of the targets ([N, side, side, channels] of any numeric dtype). They may be read through
+    a random shift (as `_Pixels`)."""
 
     side: int
     channels: int
     phase: int
     out: _Grid  # the last layer's output
     shift: int = 0
+    loss: str = "bce"
 
     @property
     def lanes(self) -> int:
         return self.phase**2 * self.channels
 
     def load(self, y_ref, crop_ref, rows, f: int):
-        """([len(rows), f] float32 labels of the output at `rows`, where they are defined: the
+        """([len(rows), f] float32 targets of the output at `rows`, where they are defined: the
         pixels' rows and the first `lanes` lanes)."""
         keep, image, i, j = self.out.position(rows)
         image = jnp.where(keep, image, 0)
@@ -317,9 +327,9 @@ def _loader(x_ref, crop_ref, rows, layer, c: int, dtype):
     return layer.loader(x_ref, rows, c, dtype)
 
 
-def _conv_kernel(*refs, layer, relu, has_bias, has_mask, labels):
+def _conv_kernel(*refs, layer, relu, has_bias, has_mask, targets):
     x_ref, *refs = refs
-    loss_ref = refs.pop() if labels is not None else None
+    loss_ref = refs.pop() if targets is not None else None
     o_ref = refs.pop()
     crop_ref = refs.pop(0) if isinstance(layer, _Pixels) and layer.shift else None
     w_ref = refs.pop(0)
@@ -330,7 +340,14 @@ def _conv_kernel(*refs, layer, relu, has_bias, has_mask, labels):
     rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
     taps = _loader(x_ref, crop_ref, rows, layer, c, w_ref.dtype)
     acc = jnp.zeros((BLOCK, f), jnp.float32)
-    for t in range(w_ref.shape[0]):
+    if TAP_LOOP:
+        acc = jax.lax.fori_loop(
+            0,
+            w_ref.shape[0],
+            lambda t, acc: acc + plt.dot(taps(t), w_ref[t], precision=PRECISION),
+            acc,
+        )
+    for t in range(0 if TAP_LOOP else w_ref.shape[0]):
         acc += plt.dot(taps(t), w_ref[t], precision=PRECISION)
     if has_bias:
         acc += b_ref[...][None, :]
@@ -339,40 +356,54 @@ def _conv_kernel(*refs, layer, relu, has_bias, has_mask, labels):
     keep = (rows < layer.out.pixels)[:, None]
     if has_mask:
         keep &= m_ref[pl.ds(start, BLOCK), :] > 0
-    if labels is not None:
+    if targets is not None:
         y_ref = refs.pop(0)
-        label_crop_ref = refs.pop(0) if labels.shift else None
-        acc, keep, loss = _bce(acc, *labels.load(y_ref, label_crop_ref, rows, f))
-        loss_ref[pl.program_id(0)] = loss
+        target_crop_ref = refs.pop(0) if targets.shift else None
+        y, keep = targets.load(y_ref, target_crop_ref, rows, f)
+        acc, loss = LOSSES[targets.loss](acc, y)
+        loss_ref[pl.program_id(0)] = jnp.sum(jnp.where(keep, loss, 0.0), axis=0)
     o_ref[pl.ds(start, BLOCK), :] = jnp.where(keep, acc, 0.0).astype(o_ref.dtype)
 
 
-def _bce(logits, y, defined):
-    """(the BCE's gradient for the logits, sigmoid(logits) - y; where it is defined; each
-    lane's sum of BCE(sigmoid(logits), y) = softplus(logits) - logits * y over the defined
-    rows), float32, with exp(-|logits|) the only exponential (no overflow)."""
+def _bce(logits, y):
+    """(the gradient for the logits, sigmoid(logits) - y; BCE(sigmoid(logits), y) =
+    softplus(logits) - logits * y), float32, elementwise, for {0, 1} labels y, with
+    exp(-|logits|) the only exponential (no overflow). `losses.sigmoid_cross_entropy`."""
     e = jnp.exp(-jnp.abs(logits))
     sigmoid = jnp.where(logits >= 0, 1.0, e) / (1.0 + e)
-    bce = jnp.maximum(logits, 0.0) + jnp.log1p(e) - logits * y
-    return sigmoid - y, defined, jnp.sum(jnp.where(defined, bce, 0.0), axis=0)
+    return sigmoid - y, jnp.maximum(logits, 0.0) + jnp.log1p(e) - logits * y
 
 
-def _conv(x, w, layer, *, bias=None, relu=False, mask=None, labels=None):
+def _clipped_squares(out, y):
+    """(the gradient for the output, the squared error (clip(out, -0.5, 0.5) - (y / 255 -
+    0.5))^2), float32, elementwise, for pixels y in [0, 255]: `losses.reconstruction_loss`
+    summed. The clip passes the gradient strictly inside (-0.5, 0.5)."""
+    err = jnp.clip(out, -0.5, 0.5) - (y / 255.0 - 0.5)
+    inside = (out > -0.5) & (out < 0.5)
+    return jnp.where(inside, 2.0 * err, 0.0), err * err
+
+
+# The losses a last layer's kernel computes with its output: name -> (out, target) ->
+# (the loss's gradient for out, the loss), elementwise.
+LOSSES = {"bce": _bce, "clipped_squares": _clipped_squares}
+
+
+def _conv(x, w, layer, *, bias=None, relu=False, mask=None, targets=None):
     """The rows of layer.out: out[q] = sum_t (tap t of x for q) @ w[t] (+ bias, ReLU) in w's
     dtype, zero where `mask` (of the same rows) is not positive (if given) and past the
     pixels. x may be of another dtype (uint8 pixels): each tap is converted to w's. For a
     `_Pixels` layer x is its input as it is (with a shift, x is (pixels, crop offsets)).
 
-    With `labels` = (a `_Labels`, its arguments: the labels, and with a shift their crop
-    offsets), the output is instead the BCE's gradient for those logits (sigmoid - labels, zero
-    where no label is defined), returned with each program's per-lane sums of the BCE."""
+    With `targets` = (a `_Targets`, its arguments: the targets, and with a shift their crop
+    offsets), the output is instead the gradient of its loss for that output (zero where no
+    target is defined), returned with each program's per-lane sums of the loss."""
     args = [*_pixel_args(x, layer), w]
     if bias is not None:
         args.append(bias.astype(jnp.float32))
     if mask is not None:
         args.append(mask)
-    target, label_args = labels if labels is not None else (None, ())
-    args.extend(label_args)
+    target, target_args = targets if targets is not None else (None, ())
+    args.extend(target_args)
     rows, f = layer.out.rows, w.shape[-1]
     out_shape = jax.ShapeDtypeStruct((rows, f), w.dtype)
     if target is not None:
@@ -384,13 +415,13 @@ def _conv(x, w, layer, *, bias=None, relu=False, mask=None, labels=None):
             relu=relu,
             has_bias=bias is not None,
             has_mask=mask is not None,
-            labels=target,
+            targets=target,
         ),
         out_shape=out_shape,
         grid=(rows // BLOCK,),
         interpret=_interpret(),
         # Triton's parameters also pick Pallas' Triton backend (not Mosaic GPU).
-        compiler_params=plt.CompilerParams(num_warps=NUM_WARPS, num_stages=STAGES),
+        compiler_params=plt.CompilerParams(num_warps=NUM_WARPS, num_stages=CONV_STAGES),
     )(*args)
 
 
@@ -491,10 +522,10 @@ def conv_stack(
     return _forward(x, layers, pads, relu_last, dtype, stride, shift, crops)[0]
 
 
-def _forward(x, layers, pads, relu_last, dtype, stride, shift, crops, labels=None):
+def _forward(x, layers, pads, relu_last, dtype, stride, shift, crops, targets=None):
     """(the stack's output, the activations: its input as the kernels read it, then each
-    layer's output). With `labels` (see `_conv`), the last layer's output is instead the BCE's
-    gradient and each program's sums, and the activations end at that layer's input."""
+    layer's output). With `targets` (see `_conv`), the last layer's output is instead its
+    loss's gradient and each program's sums, and the activations end at that layer's input."""
     dtype = dtype or x.dtype
     pads = _pads(pads, len(layers))
     sizes, passes = _plan(x.shape, layers, pads, stride, shift)
@@ -505,8 +536,8 @@ def _forward(x, layers, pads, relu_last, dtype, stride, shift, crops, labels=Non
     for i, ((k, b), layer) in enumerate(zip(layers, passes)):
         w = _taps_of(k, layer).astype(dtype)
         last = i == len(layers) - 1
-        if last and labels is not None:
-            return _conv(acts[-1], w, layer, bias=b, labels=labels), acts
+        if last and targets is not None:
+            return _conv(acts[-1], w, layer, bias=b, targets=targets), acts
         acts.append(_conv(acts[-1], w, layer, bias=b, relu=relu_last or not last))
     return passes[-1].out.unflatten(acts[-1]), acts
 
@@ -559,54 +590,61 @@ def _backward(acts, layers, passes, g, x_like, scale=None):
 conv_stack.defvjp(_conv_stack_fwd, _conv_stack_bwd)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4, 5, 6))
-def conv_stack_bce(x, layers, labels, pads, dtype=None, phase=1, shift=0, crops=None):
-    """The binary cross-entropy of a stack's output as logits (`conv_stack` with no ReLU after
-    the last layer) against `labels`, summed over every image, pixel and channel: a scalar.
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4, 5, 6, 8))
+def conv_stack_loss(
+    x, layers, targets, pads, dtype=None, phase=1, shift=0, crops=None, loss="bce"
+) -> jax.Array:
+    """A loss of a stack's output (`conv_stack` with no ReLU after the last layer) against
+    `targets`, summed over every image, pixel and channel: a scalar. `loss` (`LOSSES`):
+    - "bce": the binary cross-entropy of the output as logits (`losses.sigmoid_cross_entropy`)
+      against {0, 1} labels (uint8 masks, bool or float);
+    - "clipped_squares": (clip(output, -0.5, 0.5) - (pixels / 255 - 0.5))^2 against integer
+      pixels (`losses.reconstruction_loss`).
 
-    The last layer's kernel computes the loss and its gradient as it computes the logits, which
-    are never written: its output rows are the gradient, and no pass of XLA reads or writes
-    the logits. The BCE is that of `losses.sigmoid_cross_entropy`, on float32 logits.
+    The last layer's kernel computes the loss and its gradient as it computes the output, which
+    is never written: its output rows are the gradient, and no pass of XLA reads or writes
+    the output. The loss is taken of the float32 output.
 
-    labels: {0, 1} values (uint8 masks, bool or float) [N, S, S, C] with S = phase * H',
-    where H' is the last layer's output side; the output's first phase**2 * C channels are
-    their pixels as `networks.space_to_depth(labels, phase)` lays them out (the rest get no
-    loss). They may be read through a random shift: `augment.shift` with pad `shift` > 0 at
-    each image's offsets in `crops` [N, 2]. Labels and crops get no gradient. x, layers, pads,
-    dtype: as `conv_stack` (stride 1).
+    targets: [N, S, S, C] with S = phase * H', where H' is the last layer's output side; the
+    output's first phase**2 * C channels are their pixels as `networks.space_to_depth(targets,
+    phase)` lays them out (the rest get no loss). They may be read through a random shift:
+    `augment.shift` with pad `shift` > 0 at each image's offsets in `crops` [N, 2]. Targets
+    and crops get no gradient. x, layers, pads, dtype: as `conv_stack` (stride 1).
     """
-    return _bce_forward(x, layers, labels, pads, dtype, phase, shift, crops)[0]
+    return _loss_forward(x, layers, targets, pads, dtype, phase, shift, crops, loss)[0]
 
 
-def _bce_forward(x, layers, labels, pads, dtype, phase, shift, crops):
+def _loss_forward(x, layers, targets, pads, dtype, phase, shift, crops, loss):
+    if loss not in LOSSES:
+        raise ValueError(f"unknown loss {loss!r}; valid: {sorted(LOSSES)}")
     pads = _pads(pads, len(layers))
     _, passes = _plan(x.shape, layers, pads, 1)
     out, f = passes[-1].out, layers[-1][0].shape[-1]
-    n, side, width, channels = labels.shape
+    n, side, width, channels = targets.shape
     side_ok = side == width == phase * out.size
     if n != out.images or not side_ok or phase**2 * channels > f:
         raise ValueError(
-            f"labels {labels.shape} do not match the stack's output: {out.images} images of "
+            f"targets {targets.shape} do not match the stack's output: {out.images} images of "
             f"{out.size} x {out.size} x {f}, {phase} x {phase} phases per pixel"
         )
     if shift and (crops is None or crops.shape != (n, 2)):
         shape = None if crops is None else crops.shape
         raise ValueError(f"a shift needs crop offsets of shape {(n, 2)}, got {shape}")
-    if labels.dtype == jnp.bool_:
-        labels = labels.astype(jnp.uint8)
-    target = _Labels(side, channels, phase, out, shift)
-    args = [labels.reshape(-1)]
+    if targets.dtype == jnp.bool_:
+        targets = targets.astype(jnp.uint8)
+    spec = _Targets(side, channels, phase, out, shift, loss)
+    args = [targets.reshape(-1)]
     if shift:
         args.append(crops.reshape(-1).astype(jnp.int32))
-    (grad, sums), acts = _forward(x, layers, pads, False, dtype, 1, 0, None, (target, args))
+    (grad, sums), acts = _forward(x, layers, pads, False, dtype, 1, 0, None, (spec, args))
     return jnp.sum(sums), (acts, grad, layers, _like(x))
 
 
-def _conv_stack_bce_bwd(pads, dtype, phase, shift, residuals, g):
+def _conv_stack_loss_bwd(pads, dtype, phase, shift, loss, residuals, g):
     acts, grad, layers, x_like = residuals
     _, passes = _plan(x_like.shape[:-1], layers, _pads(pads, len(layers)), 1)
     dx, grads = _backward(acts, layers, passes, grad, x_like, scale=g)
     return dx, grads, None, None
 
 
-conv_stack_bce.defvjp(_bce_forward, _conv_stack_bce_bwd)
+conv_stack_loss.defvjp(_loss_forward, _conv_stack_loss_bwd)

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dear_jax import augment, losses, networks, update, wideconv
+from dear_jax import augment, networks, update, wideconv
 
 
 def _lax_stack(x, layers, pads, relu_last=True, stride=1):
@@ -125,30 +125,39 @@ def _value_and_grad(stack, argnums, scale):
     return jax.jit(jax.value_and_grad(loss, argnums, has_aux=True))
 
 
-@pytest.mark.parametrize("phase, shift", [(2, 4), (1, 0)])
-def test_conv_stack_bce_is_the_loss_of_the_stacks_logits(monkeypatch, phase, shift):
-    """The fused loss is the summed BCE of conv_stack's logits against the labels laid out as
-    the last layer's phases (read through a random shift, its extreme offsets included), in
-    value and in every gradient; the output's lanes past the labels' get no loss."""
+@pytest.mark.parametrize(
+    "phase, shift, loss", [(2, 4, "bce"), (1, 0, "bce"), (2, 4, "clipped_squares")]
+)
+def test_conv_stack_loss_is_the_loss_of_the_stacks_output(monkeypatch, phase, shift, loss):
+    """The fused loss is the decoder's loss (summed over images) of conv_stack's output against
+    the targets laid out as the last layer's phases (read through a random shift, its extreme
+    offsets included), in value and in every gradient; the output's lanes past the targets'
+    get no loss. The mask's BCE takes {0, 1} labels, the reconstruction uint8 pixels."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
     monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
     x = _normal(0, (2, 5, 5, 16))
     layers = _layers(1, (3, 3, 2), (16, 32, 16, 16))
     pads = (2, 2, 1)  # sides 5 -> 7 -> 9 -> 10
     side = 10 * phase
-    labels = _bernoulli(2, 0.3, (2, side, side, 3)).astype(jnp.uint8)
+    shape = (2, side, side, 3)
+    targets = _bernoulli(2, 0.3, shape).astype(jnp.uint8) if loss == "bce" else _pixels(2, shape)
     crops = jnp.array([[0, 2 * shift], [shift + 1, 1]]) if shift else None
     lanes = phase**2 * 3
 
     def ours(x, ws):
-        return wideconv.conv_stack_bce(x, ws, labels, pads, None, phase, shift, crops)
+        return wideconv.conv_stack_loss(x, ws, targets, pads, None, phase, shift, crops, loss)
+
+    def output(x, ws):
+        return wideconv.conv_stack(x, ws, pads, False)[..., :lanes]
 
     def theirs(x, ws):
-        logits = wideconv.conv_stack(x, ws, pads, False)[..., :lanes]
-        y = augment.Crops(crops, shift, "gather").apply(labels) if shift else labels
-        y = networks.space_to_depth(y, phase).astype(jnp.float32)
-        return jnp.sum(losses.sigmoid_cross_entropy(logits, y))
+        y = augment.Crops(crops, shift, "gather").apply(targets) if shift else targets
+        y = networks.space_to_depth(y, phase)
+        return 2 * networks.DECODER_LOSSES[loss](output(x, ws), y)  # a mean over 2 images
 
+    if loss == "clipped_squares":  # the clip both passes and stops gradients here
+        out = np.abs(jax.jit(output)(x, layers))
+        assert (out < 0.5).mean() > 0.05 and (out > 0.5).mean() > 0.05
     # c * the loss, for the cotangents c = 1 and 2: one program, compiled once
     scaled = jax.jit(jax.value_and_grad(lambda x, ws, c: c * ours(x, ws), (0, 1)))
     value, got = scaled(x, layers, 1.0)
@@ -161,19 +170,23 @@ def test_conv_stack_bce_is_the_loss_of_the_stacks_logits(monkeypatch, phase, shi
     _, double = scaled(x, layers, 2.0)
     for a, b in zip(jax.tree.leaves(double), jax.tree.leaves(got), strict=True):
         np.testing.assert_allclose(a, 2 * b, rtol=1e-6, atol=1e-6)
-    small = labels[:, 1:, 1:]
-    with pytest.raises(ValueError, match=rf"labels \(2, {side - 1}, .* match.*10 x 10 x 16"):
-        wideconv.conv_stack_bce(x, layers, small, pads, None, phase, shift, crops)
+    if loss != "bce":
+        return
+    small = targets[:, 1:, 1:]
+    with pytest.raises(ValueError, match=rf"targets \(2, {side - 1}, .* match.*10 x 10 x 16"):
+        wideconv.conv_stack_loss(x, layers, small, pads, None, phase, shift, crops)
     wide = jnp.zeros((2, side, side, 5), jnp.uint8)  # phase**2 * 5 lanes: more than 16 if phased
     if phase == 2:
         with pytest.raises(ValueError, match="do not match"):
-            wideconv.conv_stack_bce(x, layers, wide, pads, None, phase, shift, crops)
+            wideconv.conv_stack_loss(x, layers, wide, pads, None, phase, shift, crops)
     else:
         with pytest.raises(ValueError, match=r"a shift needs crop offsets of shape \(2, 2\)"):
-            wideconv.conv_stack_bce(x, layers, labels, pads, None, phase, 4, None)
+            wideconv.conv_stack_loss(x, layers, targets, pads, None, phase, 4, None)
+    with pytest.raises(ValueError, match=r"unknown loss 'l1'; valid: \['bce', 'clipped_squares'\]"):
+        wideconv.conv_stack_loss(x, layers, targets, pads, None, phase, shift, crops, "l1")
 
 
-def test_conv_stack_bce_under_vmap_is_each_seed_on_its_own(monkeypatch):
+def test_conv_stack_loss_under_vmap_is_each_seed_on_its_own(monkeypatch):
     """Vmapped over seeds, each with its own weights, bool labels, crops and cotangent: every
     seed's loss and gradients are those of its stack alone, times its cotangent."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
@@ -184,7 +197,7 @@ def test_conv_stack_bce_under_vmap_is_each_seed_on_its_own(monkeypatch):
     weights = jnp.array([1.0, 3.0])
 
     def bce(x, ws, labels, crops):
-        return wideconv.conv_stack_bce(x, ws, labels, (2, 1), None, 2, 4, crops)
+        return wideconv.conv_stack_loss(x, ws, labels, (2, 1), None, 2, 4, crops)
 
     def weighted(x, ws):
         return jnp.sum(weights * jax.vmap(bce)(x, ws, labels, crops))
@@ -273,7 +286,7 @@ def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypat
     crops = jax.ShapeDtypeStruct((2, 8, 2), jnp.int32)
 
     def bce(x, ws, labels, crops):
-        return wideconv.conv_stack_bce(x, ws, labels, pads, jnp.bfloat16, 2, 4, crops)
+        return wideconv.conv_stack_loss(x, ws, labels, pads, jnp.bfloat16, 2, 4, crops)
 
     fn = jax.jit(jax.vmap(jax.value_and_grad(bce, (0, 1))))
     text = fn.trace(x, layers, labels, crops).lower(lowering_platforms=("cuda",)).as_text()
@@ -317,42 +330,48 @@ def test_networks_with_pallas_stacks_are_the_same_function(monkeypatch):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
 
 
-def test_decoder_with_a_target_is_the_mask_loss_on_either_stack(monkeypatch):
-    """PoolDecoder(target=(mask, crops)) is losses.mask_loss of its logits against the cropped
-    masks; with Pallas stacks (the loss fused into the last kernel) the same value and
-    gradients, for the parameters and the latent."""
+@pytest.mark.parametrize("channels, loss", [(3, "bce"), (9, "clipped_squares")])
+def test_decoder_with_a_target_is_its_loss_on_either_stack(monkeypatch, channels, loss):
+    """PoolDecoder(target=(images, crops)) is its loss of its output against the cropped images
+    (the mask decoder's BCE against {0, 1} masks, SEAR's reconstruction against uint8 frames);
+    with Pallas stacks (the loss fused into the last kernel) the same value and gradients, for
+    the parameters and the latent."""
     monkeypatch.setattr(wideconv, "BLOCK", 1024)
-    dec = networks.PoolDecoder(3)
+    dec = networks.PoolDecoder(channels, loss=loss)
+    definition_loss = networks.DECODER_LOSSES[loss]
     z = _normal(2, (2, 32))
     params = jax.jit(dec.init)(jax.random.key(0), z)
-    mask = _bernoulli(3, 0.2, (2, 84, 84, 3)).astype(jnp.uint8)
+    shape = (2, 84, 84, channels)
+    images = _bernoulli(3, 0.2, shape).astype(jnp.uint8) if loss == "bce" else _pixels(3, shape)
     crops = augment.Crops(jnp.array([[1, 7], [8, 0]]), 4, "gather")
 
-    def loss(p, z):
-        return dec.apply(p, z, target=(mask, crops))
+    def of(p, z):
+        return dec.apply(p, z, target=(images, crops))
 
-    def uncropped(p, z):  # two leading axes, masks taken as they are
-        return dec.apply(p, z, target=(mask[None], None))
+    def uncropped(p, z):  # two leading axes, images taken as they are
+        return dec.apply(p, z, target=(images[None], None))
 
     # Each path jitted on its own (the stack is chosen as the program is traced).
-    definition = jax.jit(lambda p, z: losses.mask_loss(dec.apply(p, z), crops.apply(mask)))
-    want = jax.jit(jax.value_and_grad(loss, (0, 1)))(params, z)
+    definition = jax.jit(lambda p, z: definition_loss(dec.apply(p, z), crops.apply(images)))
+    want = jax.jit(jax.value_and_grad(of, (0, 1)))(params, z)
     np.testing.assert_allclose(want[0], definition(params, z), rtol=1e-5)
     with networks.conv_settings(stack="pallas"):
-        got = jax.jit(jax.value_and_grad(loss, (0, 1)))(params, z)
+        got = jax.jit(jax.value_and_grad(of, (0, 1)))(params, z)
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
         scale = float(jnp.abs(b).max())
         np.testing.assert_allclose(a / scale, b / scale, atol=1e-5)
     # the mean over both axes of the loss per image
-    per_image = jax.jit(lambda p, z, m: losses.mask_loss(dec.apply(p, z), m))
-    want = jnp.mean(jnp.array([per_image(params, z[i : i + 1], mask[i : i + 1]) for i in (0, 1)]))
+    per_image = jax.jit(lambda p, z, m: definition_loss(dec.apply(p, z), m))
+    one = [per_image(params, z[i : i + 1], images[i : i + 1]) for i in (0, 1)]
+    want = jnp.mean(jnp.array(one))
     np.testing.assert_allclose(jax.jit(uncropped)(params, z[None]), want, rtol=1e-5)
     with networks.conv_settings(stack="pallas"):
         np.testing.assert_allclose(jax.jit(uncropped)(params, z[None]), want, rtol=1e-5)
     with pytest.raises(
-        ValueError, match=r"target masks are \(2, 84, 84, 1\), need \(2, 84, 84, 3\)"
+        ValueError,
+        match=rf"target images are \(2, 84, 84, 1\), need \(2, 84, 84, {channels}\)",
     ):
-        dec.apply(params, z, target=(mask[..., :1], crops))
+        dec.apply(params, z, target=(images[..., :1], crops))
 
 
 def test_unknown_stack_is_refused():

@@ -70,6 +70,9 @@ STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of 
 # and its pipeline's stages.
 TAP_LOOP = False
 CONV_STAGES = 3
+# A filter gradient's taps as a grid axis (a program per tap and block of rows) rather than
+# every tap in each program.
+WGRAD_TAP_GRID = False
 # The float32 dots' precision on GPUs: None lets them run in TF32, as XLA's float32 convolutions
 # do there by default; jax.lax.Precision.HIGHEST makes them IEEE float32 (the GPU tests).
 PRECISION: jax.lax.Precision | None = None
@@ -425,6 +428,33 @@ def _conv(x, w, layer, *, bias=None, relu=False, mask=None, targets=None):
     )(*args)
 
 
+def _wgrad_tap_kernel(*refs, layer):
+    """`_wgrad_kernel` for one tap: the program (p, t) sums tap t's products over its rows."""
+    x_ref, *refs, w_ref, b_ref = refs
+    crop_ref = refs.pop(0) if isinstance(layer, _Pixels) and layer.shift else None
+    g_ref = refs.pop(0)
+    f, c = g_ref.shape[-1], w_ref.shape[-2]
+    t, p = pl.program_id(0), pl.program_id(1)
+
+    def step(s, carry):
+        acc, bacc = carry
+        start = (p * WGRAD_STEPS + s) * WGRAD_BLOCK
+        rows = start + jnp.arange(WGRAD_BLOCK, dtype=jnp.int32)
+        inside = jnp.broadcast_to((rows < layer.out.rows)[:, None], (WGRAD_BLOCK, f))
+        g = plt.load(g_ref.at[pl.ds(start, WGRAD_BLOCK), :], mask=inside, other=0)
+        x = _loader(x_ref, crop_ref, rows, layer, c, g.dtype)(t)
+        acc += plt.dot(x, g, trans_a=True, precision=PRECISION)
+        return acc, bacc + jnp.sum(g.astype(jnp.float32), axis=0)
+
+    zeros = (jnp.zeros((c, f), jnp.float32), jnp.zeros((f,), jnp.float32))
+    acc, bacc = jax.lax.fori_loop(0, WGRAD_STEPS, step, zeros)
+    w_ref[p, t] = acc
+
+    @pl.when(t == 0)
+    def _():
+        b_ref[p] = bacc
+
+
 def _wgrad_kernel(*refs, layer):
     x_ref, *refs, w_ref, b_ref = refs
     crop_ref = refs.pop(0) if isinstance(layer, _Pixels) and layer.shift else None
@@ -467,13 +497,14 @@ def _wgrad(x, g, layer):
     c, f = (layer.width if pixels else x.shape[-1]), g.shape[-1]
     taps = layer.kernel if pixels else layer.kernel**2
     programs = -(-layer.out.rows // (WGRAD_BLOCK * WGRAD_STEPS))
+    kernel = _wgrad_tap_kernel if WGRAD_TAP_GRID else _wgrad_kernel
     w, b = pl.pallas_call(
-        functools.partial(_wgrad_kernel, layer=layer),
+        functools.partial(kernel, layer=layer),
         out_shape=(
             jax.ShapeDtypeStruct((programs, taps, c, f), jnp.float32),
             jax.ShapeDtypeStruct((programs, f), jnp.float32),
         ),
-        grid=(programs,),
+        grid=(taps, programs) if WGRAD_TAP_GRID else (programs,),
         interpret=_interpret(),
         compiler_params=plt.CompilerParams(num_warps=WGRAD_WARPS, num_stages=STAGES),
     )(*_pixel_args(x, layer), g)

@@ -40,7 +40,8 @@ PYTORCH_ANCHOR_FPS = (
 
 
 def bench_config(args):
-    c = runpy.run_path(args.config)["get_config"]()
+    path, *spec = args.config.split(":", 1)  # e.g. configs/paper.py:walker,dear
+    c = runpy.run_path(path)["get_config"](*spec)
     c.seeds, c.envs_per_seed = args.seeds, args.envs
     c.replay.seed_frames = args.warmup_frames // 2
     c.total_frames = args.warmup_frames + args.frames

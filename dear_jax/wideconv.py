@@ -36,6 +36,13 @@ sweeps and removed: loads of 4-pixel windows (3 taps and a zero-weighted pixel p
 programs of several image rows that share their windows, several blocks per program with the
 weights loaded once (commit 6d204e7), and eviction policies on the loads.
 
+A convolution's taps then became a loop, which Triton software-pipelines (each tap's gathered
+rows are fetched while the previous tap's product runs), in programs of 128 rows: the same
+update took 2.61-2.62 ms per seed against 2.89-2.90 with the taps unrolled in programs of 256
+(`python -m benchmarks.update ... --kernels`, benchmarks/results/kernels/). Slower there: the
+loop's 2 or 4 stages, 8 warps, programs of 64 or 512 rows; and filter gradients with a program
+per tap and block of rows (3.56 ms; commit f4ae598).
+
 `conv_stack(x, layers, pads)` is the function of
 `for (k, b), p in zip(layers, pads): x = relu(VALID conv of x zero-padded by p with k, + b)`,
 the last ReLU optional. PyTorch's ConvTranspose2d(k=3, stride=1) is such a layer with pad 2
@@ -60,19 +67,16 @@ import jax.numpy as jnp
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
-BLOCK = 256  # rows of one program of a convolution
+BLOCK = 128  # rows of one program of a convolution
 NUM_WARPS = 4
 WGRAD_BLOCK = 64  # rows per step of a filter gradient
 WGRAD_STEPS = 32  # steps of one program of a filter gradient
 WGRAD_WARPS = 2
 STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of looped taps)
-# A convolution's taps as a loop (which Triton may software-pipeline) rather than unrolled,
-# and its pipeline's stages.
-TAP_LOOP = False
+# A convolution's taps as a loop (which Triton software-pipelines) rather than unrolled, and
+# its pipeline's stages.
+TAP_LOOP = True
 CONV_STAGES = 3
-# A filter gradient's taps as a grid axis (a program per tap and block of rows) rather than
-# every tap in each program.
-WGRAD_TAP_GRID = False
 # The float32 dots' precision on GPUs: None lets them run in TF32, as XLA's float32 convolutions
 # do there by default; jax.lax.Precision.HIGHEST makes them IEEE float32 (the GPU tests).
 PRECISION: jax.lax.Precision | None = None
@@ -428,33 +432,6 @@ def _conv(x, w, layer, *, bias=None, relu=False, mask=None, targets=None):
     )(*args)
 
 
-def _wgrad_tap_kernel(*refs, layer):
-    """`_wgrad_kernel` for one tap: the program (p, t) sums tap t's products over its rows."""
-    x_ref, *refs, w_ref, b_ref = refs
-    crop_ref = refs.pop(0) if isinstance(layer, _Pixels) and layer.shift else None
-    g_ref = refs.pop(0)
-    f, c = g_ref.shape[-1], w_ref.shape[-2]
-    t, p = pl.program_id(0), pl.program_id(1)
-
-    def step(s, carry):
-        acc, bacc = carry
-        start = (p * WGRAD_STEPS + s) * WGRAD_BLOCK
-        rows = start + jnp.arange(WGRAD_BLOCK, dtype=jnp.int32)
-        inside = jnp.broadcast_to((rows < layer.out.rows)[:, None], (WGRAD_BLOCK, f))
-        g = plt.load(g_ref.at[pl.ds(start, WGRAD_BLOCK), :], mask=inside, other=0)
-        x = _loader(x_ref, crop_ref, rows, layer, c, g.dtype)(t)
-        acc += plt.dot(x, g, trans_a=True, precision=PRECISION)
-        return acc, bacc + jnp.sum(g.astype(jnp.float32), axis=0)
-
-    zeros = (jnp.zeros((c, f), jnp.float32), jnp.zeros((f,), jnp.float32))
-    acc, bacc = jax.lax.fori_loop(0, WGRAD_STEPS, step, zeros)
-    w_ref[p, t] = acc
-
-    @pl.when(t == 0)
-    def _():
-        b_ref[p] = bacc
-
-
 def _wgrad_kernel(*refs, layer):
     x_ref, *refs, w_ref, b_ref = refs
     crop_ref = refs.pop(0) if isinstance(layer, _Pixels) and layer.shift else None
@@ -497,14 +474,13 @@ def _wgrad(x, g, layer):
     c, f = (layer.width if pixels else x.shape[-1]), g.shape[-1]
     taps = layer.kernel if pixels else layer.kernel**2
     programs = -(-layer.out.rows // (WGRAD_BLOCK * WGRAD_STEPS))
-    kernel = _wgrad_tap_kernel if WGRAD_TAP_GRID else _wgrad_kernel
     w, b = pl.pallas_call(
-        functools.partial(kernel, layer=layer),
+        functools.partial(_wgrad_kernel, layer=layer),
         out_shape=(
             jax.ShapeDtypeStruct((programs, taps, c, f), jnp.float32),
             jax.ShapeDtypeStruct((programs, f), jnp.float32),
         ),
-        grid=(taps, programs) if WGRAD_TAP_GRID else (programs,),
+        grid=(programs,),
         interpret=_interpret(),
         compiler_params=plt.CompilerParams(num_warps=WGRAD_WARPS, num_stages=STAGES),
     )(*_pixel_args(x, layer), g)

@@ -193,7 +193,7 @@ def main():
         choices=["default", "tensorfloat32", "float32", "highest"],
         help="jax_default_matmul_precision for float32 matmuls and convolutions",
     )
-    parser.add_argument("--kernels", nargs="+", default=["default"], type=kernel_setting)
+    parser.add_argument("--kernels", nargs="+", default=[{}], type=kernel_setting)
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     if args.precision:

@@ -161,11 +161,7 @@ def stage_split(config, reps) -> dict:
         held = {"agent": agent, "buffer": buffer}
 
         def learn():
-            keys = jax.random.split(key, n_updates)
-            if experiment.update_launch(config) != "calls":
-                held["agent"], metrics = programs.learn_scan(held["agent"], held["buffer"], keys)
-                return metrics
-            for k in keys:
+            for k in jax.random.split(key, n_updates):
                 held["agent"], metrics = programs.learn(held["agent"], held["buffer"], k)
             return metrics
 

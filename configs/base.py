@@ -136,11 +136,6 @@ def get_config() -> ConfigDict:
     c.agent.nstep = 3
     c.agent.discount = 0.99
     c.agent.update_every_steps = 2  # one update per this many agent steps per seed
-    # How a step's E / update_every_steps updates are launched: "calls" (a call each), "scan"
-    # (one program, a lax.scan over them), "unrolled" (one program, the scan unrolled) or
-    # "auto": "unrolled" on GPUs, "calls" elsewhere (XLA:CPU ran the rolled scan of two tiny
-    # updates 8x slower than two calls). The same updates.
-    c.agent.update_launch = "auto"
 
     # Settings trained side by side as lanes of one program, crossed with the seeds: comma-
     # separated values of agent fields, e.g. --config.sweep.beta=-1,0,1,10,100 (dear_jax/lanes.py).

@@ -47,7 +47,6 @@ RESUMABLE_CHANGES = (
     "agent.shift_impl",
     "agent.filter_gradient",
     "agent.conv_stack",
-    "agent.update_launch",
     "replay.disk",
     "devices",
 )
@@ -71,18 +70,6 @@ def _get(config: ConfigDict, dotted: str):
     return config
 
 
-UPDATE_LAUNCHES = ("auto", "calls", "scan", "unrolled")
-
-
-def update_launch(config: ConfigDict) -> str:
-    """How a step's updates are launched (agent.update_launch, "auto" resolved): "calls",
-    "scan" or "unrolled"."""
-    launch = config.agent.update_launch
-    if launch == "auto":
-        return "unrolled" if jax.default_backend() == "gpu" else "calls"
-    return launch
-
-
 def validate(config: ConfigDict) -> None:
     """Fail early, naming the field and the valid choices."""
     if config.env.task not in envs.names():
@@ -95,7 +82,6 @@ def validate(config: ConfigDict) -> None:
         "agent.shift_impl": augment.SHIFT_IMPLS,
         "agent.filter_gradient": networks.FILTER_GRADIENTS,
         "agent.conv_stack": networks.STACKS,
-        "agent.update_launch": UPDATE_LAUNCHES,
         "env.backend": ("auto", "mjx", "cpu"),
         "env.eval_backend": ("cpu", "train"),
         "eval_device": EVAL_DEVICES,

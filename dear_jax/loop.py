@@ -32,7 +32,7 @@ from dear_jax.checkpoint import Checkpointer
 from dear_jax.devices import Hosts, seed_sharding, uncommitted
 from dear_jax.evaluations import Evaluations, eval_due
 from dear_jax.evaluator import EvalProcess, LocalEvaluator
-from dear_jax.experiment import agent_config, update_launch
+from dear_jax.experiment import agent_config
 from dear_jax.logger import RunLogger
 from dear_jax.programs import cached_programs
 from dear_jax.progress import Progress, TrainLog
@@ -64,7 +64,6 @@ class Loop:
         num_seeds, num_envs = len(self.lanes), config.envs_per_seed
         self.acfg = agent_config(config, spec.action_dim)
         self.programs = cached_programs(self.acfg, config, mesh)
-        self.scan_updates = update_launch(config) != "calls"
         root = jax.random.key(config.seed)
         # Lanes of one seed (a sweep's settings) start from the same parameters.
         lane_seeds = jnp.array([lane.seed for lane in self.lanes])
@@ -244,19 +243,14 @@ class Loop:
             # dispatched only once the one before it has finished, so they wait for one update,
             # not for all. (An evaluation in a process of its own queues nothing here.)
             short_queue = self.evals.beside_training
-            keys = jax.random.split(k_learn, n) if n else []
-            # The same n updates: one program scanning over their keys, or a call per key.
-            learn, calls = (
-                (programs.learn_scan, [keys]) if n and self.scan_updates else (programs.learn, keys)
-            )
-            for k in calls:
+            for k in jax.random.split(k_learn, n) if n else ():
                 if short_queue and c.metric_sum is not None:
                     jax.block_until_ready(c.metric_sum)
-                c.agent, metrics = learn(c.agent, c.buffer, k)
+                c.agent, metrics = programs.learn(c.agent, c.buffer, k)
                 c.metric_sum = (
                     metrics if c.metric_sum is None else programs.add_metrics(c.metric_sum, metrics)
                 )
-            lv["metric_count"] += n
+                lv["metric_count"] += 1
             counters["updates"] += n
         c.state, ts = future.result()
         c.ts = hosts.to_global(ts)

@@ -14,7 +14,7 @@ from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as P
 from ml_collections import ConfigDict
 
-from dear_jax import experiment, lanes, losses, replay, update
+from dear_jax import lanes, losses, replay, update
 from dear_jax.experiment import hparams
 
 
@@ -24,9 +24,6 @@ class Programs:
 
     act: callable  # (agent, obs [S,E,...], key, stepping [S,E]) -> (actions [S,E,A], agent)
     learn: callable  # (agent, replay, key) -> (agent, metrics [S]): one update per seed
-    # (agent, replay, keys [n]) -> (agent, metrics [S] summed over the n): n updates per seed
-    # as one program (a lax.scan, unrolled where agent.update_launch says; compiled once per n)
-    learn_scan: callable
     add: callable  # (replay, ts, action) -> replay
     # (params, obs) -> (actions, {cos_agent_env, abs_cos_agent_env: [S]}, predicted mask of env 0
     # [S,H,W])
@@ -110,9 +107,11 @@ def build_programs(
         return update.update(agent, batch, key, hp_seed, cfg=acfg)
 
     # One update per seed per call; the loop calls it E / update_every_steps times (dispatch is
-    # asynchronous), or calls learn_scan once (agent.update_launch). A lax.scan over the updates
-    # made tests/test_run.py's tiny runs ~3x slower on CPU (its fixture: 298 s with the scan,
-    # 97 s without; pytest --durations).
+    # asynchronous). A lax.scan over the updates made tests/test_run.py's tiny runs ~3x slower
+    # on CPU (its fixture: 298 s with the scan, 97 s without; pytest --durations). On an H100 a
+    # step's 8 updates of one DEAR seed took 32.1 ms as one program (the scan unrolled) against
+    # 31.9 ms as 8 calls: the GPU, not the launches, sets their pace (commit 4bc20e4,
+    # benchmarks/results/kernels/train_paper_dear_1seed_{calls,unrolled}_h100.json).
     # Batches are drawn for all seeds at once (vmapped gathers from the [S, T, E, ...] replay);
     # only the updates follow agent.seed_axis. Looping the sampling too, which slices each
     # seed's replay out of the buffer first, made DEAR's learn program on an H100 take 395
@@ -125,15 +124,6 @@ def build_programs(
     def learn(agent, buffer, key):
         keys = jax.random.split(key, num_seeds)
         return per_device(learn_block)(agent, buffer, keys, hp)
-
-    unroll = experiment.update_launch(config) == "unrolled"
-
-    def learn_scan(agent, buffer, keys):
-        def body(agent, k):
-            return learn(agent, buffer, k)
-
-        agent, metrics = jax.lax.scan(body, agent, keys, unroll=unroll)
-        return agent, jax.tree.map(lambda m: jnp.sum(m, axis=0), metrics)
 
     def add(buffer, ts, action):
         return per_device(jax.vmap(replay.add))(
@@ -163,7 +153,6 @@ def build_programs(
     return Programs(
         act=jax.jit(act, donate_argnums=0),
         learn=jax.jit(learn, donate_argnums=0),
-        learn_scan=jax.jit(learn_scan, donate_argnums=0),
         add=jax.jit(add, donate_argnums=0),
         evaluate_step=jax.jit(over_seeds(evaluate_step(nets))),
         evaluate_step_host=jax.jit(update.over_seeds(evaluate_step(nets_f32), a.seed_axis)),

@@ -18,17 +18,7 @@ import numpy as np
 import pytest
 
 from configs import smoke
-from dear_jax import (
-    evaluations,
-    evaluator,
-    experiment,
-    lanes,
-    replay,
-    replay_disk,
-    report,
-    train,
-    update,
-)
+from dear_jax import evaluations, evaluator, experiment, lanes, replay_disk, report, train, update
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.config import resolve_config_path
 from dear_jax.devices import Hosts
@@ -308,50 +298,6 @@ def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
     np.testing.assert_allclose(a_host, a, atol=0.03)
     np.testing.assert_allclose(pred_host, pred, atol=0.03)
     assert not np.array_equal(a_host, a)  # two programs, not one
-
-
-def test_scanned_updates_are_the_calls_updates(monkeypatch):
-    """agent.update_launch: a step's updates as one program (a scan, unrolled: XLA:CPU runs a
-    rolled one slowly) give the agent and the summed metrics of a call per update with the same
-    keys; "auto" is that on GPUs only."""
-    config = tiny_config(**{"agent.update_launch": "unrolled"})
-    acfg = experiment.agent_config(config, action_dim=6)
-    programs = build_programs(acfg, experiment.hparams(config), config)
-    seeds, num_envs = config.seeds, config.envs_per_seed
-    rng = np.random.default_rng(0)
-    buffer = replay.init(64, num_envs, (84, 84, 3), 6, leading=(seeds,))
-    add = jax.jit(jax.vmap(replay.add))
-    for row in range(12):  # two episodes of random transitions
-        frame = rng.integers(0, 256, (seeds, num_envs, 84, 84, 3), np.uint8)
-        buffer = add(
-            buffer,
-            frame,
-            (frame[..., 0] > 200).astype(np.uint8),  # the agent's mask
-            rng.uniform(-1, 1, (seeds, num_envs, 6)).astype(np.float32),
-            rng.uniform(size=(seeds, num_envs)).astype(np.float32),
-            np.ones((seeds, num_envs), np.float32),
-            np.full((seeds, num_envs), row % 6 == 0),
-        )
-
-    def fresh():
-        return update.init_seeds(acfg, jax.random.split(jax.random.key(0), seeds))
-
-    keys = jax.random.split(jax.random.key(1), 2)
-    called, summed = fresh(), None
-    for k in keys:
-        called, metrics = programs.learn(called, buffer, k)
-        summed = metrics if summed is None else jax.tree.map(jnp.add, summed, metrics)
-    scanned, scan_metrics = programs.learn_scan(fresh(), buffer, keys)
-    # (Adam's first steps move each parameter by ~lr = 1e-4: a skipped or repeated update shows)
-    for a, b in zip(jax.tree.leaves(scanned), jax.tree.leaves(called), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
-    assert scan_metrics.keys() == summed.keys()
-    for name in summed:
-        np.testing.assert_allclose(scan_metrics[name], summed[name], rtol=1e-4, atol=1e-5)
-    config.agent.update_launch = "auto"
-    assert experiment.update_launch(config) == "calls"  # on a CPU
-    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    assert experiment.update_launch(config) == "unrolled"
 
 
 def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):

@@ -1,5 +1,5 @@
-"""A roofline of one DEAR seed-update: FLOPs and minimal bytes per layer and pass, the floor
-they imply on an H100 SXM, and XLA's own FLOP count to check them.
+"""A roofline of one seed-update of any method (pool encoder): FLOPs and minimal bytes per layer
+and pass, the floor they imply on an H100 SXM, and XLA's own FLOP count to check them.
 
 python -m benchmarks.roofline [--method dear] [--batch 512] [--dtype bfloat16] [--out FILE]
     [--no-xla]
@@ -8,8 +8,11 @@ Nothing is timed: every figure is computed from the layer shapes, which are read
 parameters (`jax.eval_shape` of `update.init_params`), so they follow any change of width. One
 seed-update at batch B does (`update.update`):
   * encoder on obs (forward and backward) and on next_obs (forward only: its latent is stopped);
+    TED also on an observation of the same episode (forward only);
   * critic on (z, action), forward and backward (input gradients to z, weight gradients);
-  * mask decoder on z_agent, forward and backward, and the mask loss;
+  * DEAR and SEAR: the mask decoder on z_agent, forward and backward, and the mask loss; DEAR:
+    the orthogonality loss; SEAR: the reconstruction decoder on z_env, forward and backward, and
+    its loss; TED: its classifier on three pairs of latents per sample;
   * target critic and actor on z_next, forward only (the TD target);
   * actor step: actor and the updated critic on the stopped z, forward; backward through the
     critic's Q heads to the action (input gradients only) and through the actor (weight
@@ -32,8 +35,10 @@ Counting:
     float32, as the code keeps them. Weights are read as stored (float32: the cast to the
     compute dtype is fused into the read) and weight gradients written as float32. The mask
     loss and its gradient are one elementwise pass: read the logits and the uint8 masks, write
-    the logits' gradient. Adam reads parameter, gradient and both moments and writes parameter
-    and moments (7 float32 accesses per parameter); the EMA reads two and writes one.
+    the logits' gradient; SEAR's reconstruction loss likewise, with the uint8 frames. TED's
+    classifier is elementwise on float32 latents (no FLOPs counted). Adam reads parameter,
+    gradient and both moments and writes parameter and moments (7 float32 accesses per
+    parameter); the EMA reads two and writes one.
   * Compute peaks: bf16 products on tensor cores; float32 products (the actor's and critic's
     gradients, every product with --dtype float32) in TF32 on tensor cores, as XLA runs float32
     products on GPUs by default.
@@ -160,48 +165,19 @@ def _heads(part, params, n, fwd, bwd, *, trunk_dx, dw, mlp_dx) -> list[Layer]:
     return rows
 
 
-def layers(cfg: update.AgentConfig, batch: int) -> list[Layer]:
-    """Every layer of one seed-update of DEAR at `batch`, forward and backward."""
-    if cfg.method != "dear" or cfg.encoder != "pool":
-        raise ValueError("the roofline models DEAR's update (pool encoder, mask decoder) only")
-    p = param_shapes(cfg)
-    bf16 = cfg.compute_dtype == "bfloat16"
-    a = 2 if bf16 else 4  # encoder / decoder activations and their gradients
-    conv = "bf16" if bf16 else "tf32"  # convolutions, encoder and decoder Linear layers
-    head_fwd = conv  # actor and critic forward products (bf16 operands in the bf16 path)
-    head_bwd = "tf32"  # their gradients' products: float32 cotangents
-    B, f32 = batch, 4
+# ms per seed-update measured for each method: 5 seeds, batch 512, bf16, Pallas stacks, H100
+# (commit 4bc20e4, benchmarks/results/methods/update_methods_pallas_taploop_h100.json).
+MEASURED_MS = {"dear": 2.62, "drqv2": 1.64, "sear": 3.81, "ted": 2.00}
+
+
+def _decoder(part: str, dec: dict, B: int, a: int, conv: str, loss: str) -> list[Layer]:
+    """A PoolDecoder on half the latent (float32), forward and backward, and its loss as one
+    elementwise pass: read the output and the uint8 targets, write the output's gradient."""
+    f32 = 4
     out: list[Layer] = []
-
-    # Encoder: on obs (forward, backward) and next_obs (forward only: its latent is stopped).
-    enc = p["encoder"]
-    trunk = enc["ConvTrunk_0"]
-    side, in_b = cfg.obs_shape[0], 1  # uint8 frames, read through the random shift's crops
-    for i in range(len(trunk)):
-        k, _, cin, cout = trunk[f"Conv_{i}"]["kernel"].shape
-        stride = 2 if i == 0 else 1
-        cost = conv_cost(side, cin, cout, k, stride, in_b, a)
-        row = f"conv {i + 1} ({side}->{cost['side_out']}, {cin}->{cout}, s{stride})"
-        # the first layer has no input gradient: the pixels are not differentiated
-        out += passes("encoder", row, row, 2 * B, B, cost, conv, conv, dx=i > 0)
-        side, in_b = cost["side_out"], a
-    pooled = side // 4
-    pool = dict(flops=0, x=side * side * cout * a, y=pooled * pooled * cout * a, w=0)
-    out += passes("encoder", "avg pool 4x4", "avg pool", 2 * B, B, pool, "none", "none", dw=False)
-    din, latent = enc["Dense_0"]["kernel"].shape
-    assert din == pooled * pooled * cout, (din, pooled, cout)
-    row = f"Dense ({din}->{latent})"
-    out += passes("encoder", row, row, 2 * B, B, dense_cost(din, latent, a, f32), conv, conv)
-
-    # Critic (learner step): forward and backward, gradients to z and to its weights.
-    crit = p["critic"]
-    out += _heads("critic", crit, B, head_fwd, head_bwd, trunk_dx=True, dw=True, mlp_dx=True)
-
-    # Mask decoder on z_agent (half the latent, float32), forward and backward.
-    dec = p["mask_decoder"]
     half, hidden = dec["Dense_0"]["kernel"].shape
     row = f"Dense ({half}->{hidden})"
-    out += passes("mask decoder", row, row, B, B, dense_cost(half, hidden, f32, a), conv, conv)
+    out += passes(part, row, row, B, B, dense_cost(half, hidden, f32, a), conv, conv)
     names = sorted((k for k in dec if k.startswith("ConvTranspose_")), key=lambda s: int(s[14:]))
     side = math.isqrt(hidden // dec[names[0]]["kernel"].shape[2])
     for i, name in enumerate(names):
@@ -225,28 +201,76 @@ def layers(cfg: update.AgentConfig, batch: int) -> list[Layer]:
         )
         cost["y"] = size * size * cout * a
         row = f"ConvT {i + 1} ({side}->{size}, {cin}->{cout}, k{kh} s{s})"
-        out += passes("mask decoder", row, row, B, B, cost, conv, conv)
+        out += passes(part, row, row, B, B, cost, conv, conv)
         side = size
-    # The mask loss and its gradient, one elementwise pass: read logits and uint8 masks, write
-    # the logits' gradient.
-    out.append(
-        Layer(
-            "mask decoder",
-            "mask loss",
-            "BCE",
-            "backward",
-            0,
-            B * side * side * cout * (a + 1 + a),
-            "none",
-        )
-    )
-    # Orthogonality loss: read z; its gradient: read z, write dz (float32).
-    out += [
-        Layer("losses", "orthogonality", "orthogonality", "forward", 0, B * latent * f32, "none"),
-        Layer(
-            "losses", "orthogonality", "orthogonality", "backward", 0, 2 * B * latent * f32, "none"
-        ),
-    ]
+    out.append(Layer(part, loss, loss, "backward", 0, B * side * side * cout * (a + 1 + a), "none"))
+    return out
+
+
+def layers(cfg: update.AgentConfig, batch: int) -> list[Layer]:
+    """Every layer of one seed-update of cfg.method at `batch`, forward and backward."""
+    if cfg.encoder != "pool":
+        raise ValueError("the roofline models the pool encoder's update only")
+    p = param_shapes(cfg)
+    bf16 = cfg.compute_dtype == "bfloat16"
+    a = 2 if bf16 else 4  # encoder / decoder activations and their gradients
+    conv = "bf16" if bf16 else "tf32"  # convolutions, encoder and decoder Linear layers
+    head_fwd = conv  # actor and critic forward products (bf16 operands in the bf16 path)
+    head_bwd = "tf32"  # their gradients' products: float32 cotangents
+    B, f32 = batch, 4
+    out: list[Layer] = []
+
+    # Encoder: on obs (forward, backward) and next_obs (forward only: its latent is stopped), and
+    # for TED on a frame of the same episode (forward only).
+    n_fwd = (3 if cfg.method == "ted" else 2) * B
+    enc = p["encoder"]
+    trunk = enc["ConvTrunk_0"]
+    side, in_b = cfg.obs_shape[0], 1  # uint8 frames, read through the random shift's crops
+    for i in range(len(trunk)):
+        k, _, cin, cout = trunk[f"Conv_{i}"]["kernel"].shape
+        stride = 2 if i == 0 else 1
+        cost = conv_cost(side, cin, cout, k, stride, in_b, a)
+        row = f"conv {i + 1} ({side}->{cost['side_out']}, {cin}->{cout}, s{stride})"
+        # the first layer has no input gradient: the pixels are not differentiated
+        out += passes("encoder", row, row, n_fwd, B, cost, conv, conv, dx=i > 0)
+        side, in_b = cost["side_out"], a
+    pooled = side // 4
+    pool = dict(flops=0, x=side * side * cout * a, y=pooled * pooled * cout * a, w=0)
+    out += passes("encoder", "avg pool 4x4", "avg pool", n_fwd, B, pool, "none", "none", dw=False)
+    din, latent = enc["Dense_0"]["kernel"].shape
+    assert din == pooled * pooled * cout, (din, pooled, cout)
+    row = f"Dense ({din}->{latent})"
+    out += passes("encoder", row, row, n_fwd, B, dense_cost(din, latent, a, f32), conv, conv)
+
+    # Critic (learner step): forward and backward, gradients to z and to its weights.
+    crit = p["critic"]
+    out += _heads("critic", crit, B, head_fwd, head_bwd, trunk_dx=True, dw=True, mlp_dx=True)
+
+    if cfg.uses_mask:  # DEAR, SEAR: the mask decoder on z_agent
+        out += _decoder("mask decoder", p["mask_decoder"], B, a, conv, "mask loss")
+    if cfg.method == "sear":  # the reconstruction decoder on z_env, against the 9-channel frames
+        out += _decoder("recon decoder", p["recon_decoder"], B, a, conv, "reconstruction loss")
+    if cfg.method == "dear":  # orthogonality loss: read z; its gradient: read z, write dz
+        out += [
+            Layer(
+                "losses", "orthogonality", "orthogonality", "forward", 0, B * latent * f32, "none"
+            ),
+            Layer(
+                "losses",
+                "orthogonality",
+                "orthogonality",
+                "backward",
+                0,
+                2 * B * latent * f32,
+                "none",
+            ),
+        ]
+    if cfg.method == "ted":  # three pairs per sample: read both latents; backward to z_t only
+        pairs = 3 * B * 2 * latent * f32
+        out += [
+            Layer("losses", "TED classifier", "TED classifier", "forward", 0, pairs, "none"),
+            Layer("losses", "TED classifier", "TED classifier", "backward", 0, 2 * pairs, "none"),
+        ]
 
     # TD target: actor and target critic on z_next, forward only.
     none = dict(trunk_dx=False, dw=False, mlp_dx=False)
@@ -322,7 +346,9 @@ def xla_cost(cfg: update.AgentConfig, batch: int) -> dict:
 
     key = jax.random.key(0)
     state = jax.eval_shape(functools.partial(update.init, cfg), key)
-    data = jax.eval_shape(lambda k: random_batch(k, batch, cfg.action_dim, False), key)
+    data = jax.eval_shape(
+        lambda k: random_batch(k, batch, cfg.action_dim, cfg.method == "ted"), key
+    )
     hp = jax.tree.map(jnp.float32, update.HParams())
     step = jax.jit(functools.partial(update.update, cfg=cfg))
     cost = step.lower(state, data, key, hp).compile().cost_analysis()
@@ -368,7 +394,7 @@ def markdown(summary: dict) -> str:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--method", default="dear", choices=["dear"])
+    parser.add_argument("--method", default="dear", choices=update.METHODS)
     parser.add_argument("--batch", type=int, default=512)
     parser.add_argument("--dtype", default="bfloat16", choices=["float32", "bfloat16"])
     parser.add_argument("--action-dim", type=int, default=6)
@@ -376,12 +402,13 @@ def main():
     parser.add_argument(
         "--measured-ms",
         type=float,
-        default=2.92,
-        help="measured ms per seed-update to set against the floor (default: DEAR, 5 seeds, batch "
-        "512, bf16, Pallas stacks, H100: benchmarks/results/methods/update_methods_pallas_h100.json)",
+        default=None,
+        help="measured ms per seed-update to set against the floor (default: MEASURED_MS, the "
+        "method at 5 seeds, batch 512, bf16, Pallas stacks, on an H100)",
     )
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
+    args.measured_ms = args.measured_ms or MEASURED_MS[args.method]
     cfg = update.AgentConfig(
         action_dim=args.action_dim, method=args.method, compute_dtype=args.dtype, conv_stack="xla"
     )

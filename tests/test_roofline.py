@@ -46,3 +46,31 @@ def test_totals_add_up():
         assert sum(x[key] for x in summary["layers"]) == pytest.approx(total[key])
     for x in summary["layers"]:
         assert x["floor_us"] == pytest.approx(max(x["compute_us"], x["memory_us"]))
+
+
+def test_each_method_counts_its_own_parts():
+    """DrQ-v2 is DEAR's encoder, critic and actor without its decoder and orthogonality loss;
+    SEAR adds a reconstruction decoder of the 9-channel frames; TED encodes a third batch."""
+    batch = 4
+    rows = {
+        m: roofline.layers(AgentConfig(action_dim=6, method=m, compute_dtype="bfloat16"), batch)
+        for m in ("dear", "drqv2", "sear", "ted")
+    }
+    parts = {m: {r.part for r in r_} for m, r_ in rows.items()}
+    assert {m for m, p in parts.items() if "mask decoder" in p} == {"dear", "sear"}
+    assert {m for m, p in parts.items() if "recon decoder" in p} == {"sear"}
+    drqv2 = {(r.part, r.name, r.phase): r for r in rows["drqv2"]}
+    shared = [r for r in rows["dear"] if r.part not in ("mask decoder", "losses", "optimizer")]
+    assert shared and all(drqv2[(r.part, r.name, r.phase)] == r for r in shared)
+    assert sum(r.bytes for r in rows["dear"]) > sum(r.bytes for r in rows["drqv2"])
+
+    def conv2_forward(method):
+        return next(r for r in rows[method] if r.row.startswith("conv 2 ") and r.phase == "forward")
+
+    assert conv2_forward("ted").flops == 3 * batch * 28_035_072  # obs, next_obs, a far frame
+    assert conv2_forward("sear").flops == conv2_forward("dear").flops
+    # SEAR's loss pass: read the bf16 output and the uint8 frames, write the output's gradient
+    (loss,) = [r for r in rows["sear"] if r.row == "reconstruction loss"]
+    assert loss.bytes == batch * 84 * 84 * 9 * (2 + 1 + 2)
+    (mask_loss,) = [r for r in rows["sear"] if r.row == "mask loss"]
+    assert mask_loss.bytes == batch * 84 * 84 * 3 * (2 + 1 + 2)

@@ -346,16 +346,16 @@ def _conv_kernel(*refs, layer, relu, has_bias, has_mask, targets):
     start = pl.program_id(0) * BLOCK
     rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
     taps = _loader(x_ref, crop_ref, rows, layer, c, w_ref.dtype)
+
+    def tap(t, acc):
+        return acc + plt.dot(taps(t), w_ref[t], precision=PRECISION)
+
     acc = jnp.zeros((BLOCK, f), jnp.float32)
     if TAP_LOOP:
-        acc = jax.lax.fori_loop(
-            0,
-            w_ref.shape[0],
-            lambda t, acc: acc + plt.dot(taps(t), w_ref[t], precision=PRECISION),
-            acc,
-        )
-    for t in range(0 if TAP_LOOP else w_ref.shape[0]):
-        acc += plt.dot(taps(t), w_ref[t], precision=PRECISION)
+        acc = jax.lax.fori_loop(0, w_ref.shape[0], tap, acc)
+    else:
+        for t in range(w_ref.shape[0]):
+            acc = tap(t, acc)
     if has_bias:
         acc += b_ref[...][None, :]
     if relu:

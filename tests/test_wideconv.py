@@ -114,6 +114,31 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
         assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads))
 
 
+@pytest.mark.parametrize("name", ["encoder_shifted", "decoder"])
+def test_looped_taps_are_the_unrolled_taps(monkeypatch, name):
+    """A convolution's taps as a loop (traced tap indices, every padding check at run time)
+    give the values and gradients of the taps unrolled (the checks a tap needs, fixed)."""
+    monkeypatch.setattr(wideconv, "BLOCK", 16)
+    monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
+    size, kernels, pads, channels, relu_last, stride, shift = STACKS[name]
+    pixels = stride > 1
+    shape = (2, size, size, channels[0])
+    x = _pixels(0, shape) if pixels else _normal(0, shape)
+    layers = _layers(1, kernels, channels)
+    crops = jnp.array([[0, 2 * shift], [shift + 1, 1]]) if shift else None
+
+    def stack(x, ws):
+        dtype = jnp.float32 if pixels else None
+        return wideconv.conv_stack(x, ws, pads, relu_last, dtype, stride, shift, crops)
+
+    got = {}
+    for looped in (True, False):
+        monkeypatch.setattr(wideconv, "TAP_LOOP", looped)
+        got[looped] = _value_and_grad(stack, 1 if pixels else (0, 1), 1.0)(x, layers)
+    for a, b in zip(jax.tree.leaves(got[True]), jax.tree.leaves(got[False]), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
+
+
 def _value_and_grad(stack, argnums, scale):
     """jit of (x, layers) -> ((sum(sin(stack(x, layers) / scale)), stack(x, layers)), the
     gradients of that sum)."""

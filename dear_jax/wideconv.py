@@ -72,6 +72,9 @@ NUM_WARPS = 4
 WGRAD_BLOCK = 64  # rows per step of a filter gradient
 WGRAD_STEPS = 32  # steps of one program of a filter gradient
 WGRAD_WARPS = 2
+# A filter gradient's products as g^T x (the output gradient's block transposed once per step)
+# rather than x^T g (each tap's block transposed); its result is then transposed in XLA.
+WGRAD_G_FIRST = False
 STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of looped taps)
 # A convolution's taps as a loop (which Triton software-pipelines) rather than unrolled, and
 # its pipeline's stages.
@@ -436,8 +439,15 @@ def _wgrad_kernel(*refs, layer):
     x_ref, *refs, w_ref, b_ref = refs
     crop_ref = refs.pop(0) if isinstance(layer, _Pixels) and layer.shift else None
     g_ref = refs.pop(0)
-    f, c, n = g_ref.shape[-1], w_ref.shape[2], w_ref.shape[1]
+    n, *acc_shape = w_ref.shape[1:]  # taps, then [c, f] ([f, c] with WGRAD_G_FIRST)
+    f = g_ref.shape[-1]
+    c = acc_shape[1] if WGRAD_G_FIRST else acc_shape[0]
     p = pl.program_id(0)
+
+    def product(x, g):
+        if WGRAD_G_FIRST:
+            return plt.dot(g, x, trans_a=True, precision=PRECISION)
+        return plt.dot(x, g, trans_a=True, precision=PRECISION)
 
     def step(s, carry):
         accs, bacc = carry
@@ -447,13 +457,10 @@ def _wgrad_kernel(*refs, layer):
         inside = jnp.broadcast_to((rows < layer.out.rows)[:, None], (WGRAD_BLOCK, f))
         g = plt.load(g_ref.at[pl.ds(start, WGRAD_BLOCK), :], mask=inside, other=0)
         taps = _loader(x_ref, crop_ref, rows, layer, c, g.dtype)
-        out = tuple(
-            acc + plt.dot(taps(t), g, trans_a=True, precision=PRECISION)
-            for t, acc in enumerate(accs)
-        )
+        out = tuple(acc + product(taps(t), g) for t, acc in enumerate(accs))
         return out, bacc + jnp.sum(g.astype(jnp.float32), axis=0)
 
-    zeros = tuple(jnp.zeros((c, f), jnp.float32) for _ in range(n))
+    zeros = tuple(jnp.zeros(acc_shape, jnp.float32) for _ in range(n))
     accs, bacc = jax.lax.fori_loop(0, WGRAD_STEPS, step, (zeros, jnp.zeros((f,), jnp.float32)))
     for t in range(n):
         w_ref[p, t] = accs[t]
@@ -474,17 +481,19 @@ def _wgrad(x, g, layer):
     c, f = (layer.width if pixels else x.shape[-1]), g.shape[-1]
     taps = layer.kernel if pixels else layer.kernel**2
     programs = -(-layer.out.rows // (WGRAD_BLOCK * WGRAD_STEPS))
+    acc_shape = (f, c) if WGRAD_G_FIRST else (c, f)
     w, b = pl.pallas_call(
         functools.partial(_wgrad_kernel, layer=layer),
         out_shape=(
-            jax.ShapeDtypeStruct((programs, taps, c, f), jnp.float32),
+            jax.ShapeDtypeStruct((programs, taps, *acc_shape), jnp.float32),
             jax.ShapeDtypeStruct((programs, f), jnp.float32),
         ),
         grid=(programs,),
         interpret=_interpret(),
         compiler_params=plt.CompilerParams(num_warps=WGRAD_WARPS, num_stages=STAGES),
     )(*_pixel_args(x, layer), g)
-    return w.sum(0), b.sum(0)
+    w = w.sum(0)
+    return (jnp.swapaxes(w, 1, 2) if WGRAD_G_FIRST else w), b.sum(0)
 
 
 def _plan(x_shape, layers, pads, stride, shift=0) -> tuple[list[int], list]:

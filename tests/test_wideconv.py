@@ -114,10 +114,18 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
         assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(grads))
 
 
-@pytest.mark.parametrize("name", ["encoder_shifted", "decoder"])
-def test_looped_taps_are_the_unrolled_taps(monkeypatch, name):
-    """A convolution's taps as a loop (traced tap indices, every padding check at run time)
-    give the values and gradients of the taps unrolled (the checks a tap needs, fixed)."""
+@pytest.mark.parametrize(
+    "name, setting, value",
+    [
+        ("encoder_shifted", "TAP_LOOP", False),
+        ("decoder", "TAP_LOOP", False),
+        ("encoder_shifted", "WGRAD_G_FIRST", True),
+    ],
+)
+def test_kernel_settings_compute_the_same(monkeypatch, name, setting, value):
+    """The kernels' settings change how, not what: a convolution's taps as a loop (traced tap
+    indices, every padding check at run time) or unrolled (the checks a tap needs, fixed);
+    filter gradients as x^T g or g^T x. The same values and gradients."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
     monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
     size, kernels, pads, channels, relu_last, stride, shift = STACKS[name]
@@ -131,11 +139,11 @@ def test_looped_taps_are_the_unrolled_taps(monkeypatch, name):
         dtype = jnp.float32 if pixels else None
         return wideconv.conv_stack(x, ws, pads, relu_last, dtype, stride, shift, crops)
 
-    got = {}
-    for looped in (True, False):
-        monkeypatch.setattr(wideconv, "TAP_LOOP", looped)
-        got[looped] = _value_and_grad(stack, 1 if pixels else (0, 1), 1.0)(x, layers)
-    for a, b in zip(jax.tree.leaves(got[True]), jax.tree.leaves(got[False]), strict=True):
+    default = _value_and_grad(stack, 1 if pixels else (0, 1), 1.0)(x, layers)
+    assert getattr(wideconv, setting) != value
+    monkeypatch.setattr(wideconv, setting, value)
+    changed = _value_and_grad(stack, 1 if pixels else (0, 1), 1.0)(x, layers)
+    for a, b in zip(jax.tree.leaves(changed), jax.tree.leaves(default), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
 
 

@@ -115,17 +115,16 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
 
 
 @pytest.mark.parametrize(
-    "name, setting, value",
+    "name, settings",
     [
-        ("encoder_shifted", "TAP_LOOP", False),
-        ("decoder", "TAP_LOOP", False),
-        ("encoder_shifted", "WGRAD_G_FIRST", True),
+        ("decoder", {"TAP_LOOP": False}),
+        ("encoder_shifted", {"TAP_LOOP": False, "WGRAD_G_FIRST": True}),
     ],
 )
-def test_kernel_settings_compute_the_same(monkeypatch, name, setting, value):
+def test_kernel_settings_compute_the_same(monkeypatch, name, settings):
     """The kernels' settings change how, not what: a convolution's taps as a loop (traced tap
     indices, every padding check at run time) or unrolled (the checks a tap needs, fixed);
-    filter gradients as x^T g or g^T x. The same values and gradients."""
+    filter gradients as x^T g or g^T x. The same values and gradients as the defaults."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
     monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
     size, kernels, pads, channels, relu_last, stride, shift = STACKS[name]
@@ -140,8 +139,9 @@ def test_kernel_settings_compute_the_same(monkeypatch, name, setting, value):
         return wideconv.conv_stack(x, ws, pads, relu_last, dtype, stride, shift, crops)
 
     default = _value_and_grad(stack, 1 if pixels else (0, 1), 1.0)(x, layers)
-    assert getattr(wideconv, setting) != value
-    monkeypatch.setattr(wideconv, setting, value)
+    for setting, value in settings.items():
+        assert getattr(wideconv, setting) != value
+        monkeypatch.setattr(wideconv, setting, value)
     changed = _value_and_grad(stack, 1 if pixels else (0, 1), 1.0)(x, layers)
     for a, b in zip(jax.tree.leaves(changed), jax.tree.leaves(default), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)

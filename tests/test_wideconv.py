@@ -60,6 +60,23 @@ STACKS = dict(
 )
 
 
+def _case(name):
+    """A STACKS case: (its input, its layers, each image's crop offsets with the shift's
+    extremes among them (edge pixels repeated), conv_stack of (x, layers) as the case computes
+    it, the arguments that get gradients: an integer input gets none)."""
+    size, kernels, pads, channels, relu_last, stride, shift = STACKS[name]
+    pixels = stride > 1
+    shape = (2, size, size, channels[0])
+    x = _pixels(0, shape) if pixels else _normal(0, shape)
+    crops = jnp.array([[0, 2 * shift], [shift + 1, 1]]) if shift else None
+    dtype = jnp.float32 if pixels else None
+
+    def stack(x, ws):
+        return wideconv.conv_stack(x, ws, pads, relu_last, dtype, stride, shift, crops)
+
+    return x, _layers(1, kernels, channels), crops, stack, 1 if pixels else (0, 1)
+
+
 @pytest.mark.parametrize("name", STACKS)
 def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     """Encoder-like and decoder-like stacks: the values and every gradient (input, kernels,
@@ -70,27 +87,17 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     # other side of its ReLU, a gradient differs by much more.
     monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
     size, kernels, pads, channels, relu_last, stride, shift = STACKS[name]
-    pixels = stride > 1
-    shape = (2, size, size, channels[0])
-    x = _pixels(0, shape) if pixels else _normal(0, shape)
-    layers = _layers(1, kernels, channels)
+    x, layers, crops, ours, argnums = _case(name)
     assert wideconv.supported(x, layers, pads, stride, shift)
-    dtype = jnp.float32 if pixels else None
-    # each image's crop offsets, the shift's extremes among them (edge pixels repeated)
-    crops = jnp.array([[0, 2 * shift], [shift + 1, 1]]) if shift else None
 
     def shifted(x):
         return augment.Crops(crops, shift, "gather").apply(x) if shift else x
-
-    def ours(x, ws):
-        return wideconv.conv_stack(x, ws, pads, relu_last, dtype, stride, shift, crops)
 
     def theirs(x, ws):
         return _lax_stack(shifted(x), ws, pads, relu_last, stride)
 
     want = jax.jit(theirs)(x, layers)
     scale = float(jnp.abs(want).max())
-    argnums = 1 if pixels else (0, 1)
     # The output and the gradients of sum(sin(output / scale)), each stack one program: the
     # kernels are compiled once, for the values, the gradients and the dead layers below.
     ours_and_grads = _value_and_grad(ours, argnums, scale)
@@ -127,22 +134,12 @@ def test_kernel_settings_compute_the_same(monkeypatch, name, settings):
     filter gradients as x^T g or g^T x. The same values and gradients as the defaults."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
     monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
-    size, kernels, pads, channels, relu_last, stride, shift = STACKS[name]
-    pixels = stride > 1
-    shape = (2, size, size, channels[0])
-    x = _pixels(0, shape) if pixels else _normal(0, shape)
-    layers = _layers(1, kernels, channels)
-    crops = jnp.array([[0, 2 * shift], [shift + 1, 1]]) if shift else None
-
-    def stack(x, ws):
-        dtype = jnp.float32 if pixels else None
-        return wideconv.conv_stack(x, ws, pads, relu_last, dtype, stride, shift, crops)
-
-    default = _value_and_grad(stack, 1 if pixels else (0, 1), 1.0)(x, layers)
+    x, layers, _, stack, argnums = _case(name)
+    default = _value_and_grad(stack, argnums, 1.0)(x, layers)
     for setting, value in settings.items():
         assert getattr(wideconv, setting) != value
         monkeypatch.setattr(wideconv, setting, value)
-    changed = _value_and_grad(stack, 1 if pixels else (0, 1), 1.0)(x, layers)
+    changed = _value_and_grad(stack, argnums, 1.0)(x, layers)
     for a, b in zip(jax.tree.leaves(changed), jax.tree.leaves(default), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
 

@@ -408,7 +408,8 @@ def main():
     )
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
-    args.measured_ms = args.measured_ms or MEASURED_MS[args.method]
+    if args.measured_ms is None:
+        args.measured_ms = MEASURED_MS[args.method]
     cfg = update.AgentConfig(
         action_dim=args.action_dim, method=args.method, compute_dtype=args.dtype, conv_stack="xla"
     )

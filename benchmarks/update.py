@@ -196,6 +196,8 @@ def main():
     parser.add_argument("--kernels", nargs="+", default=[{}], type=kernel_setting)
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
+    if any(args.kernels) and "pallas" not in args.conv_stacks:
+        parser.error("--kernels sets the Pallas stacks' constants: give --conv-stacks pallas")
     if args.precision:
         jax.config.update("jax_default_matmul_precision", args.precision)
     device = jax.devices()[0]

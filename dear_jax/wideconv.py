@@ -387,7 +387,8 @@ def _bce(logits, y):
 def _clipped_squares(out, y):
     """(the gradient for the output, the squared error (clip(out, -0.5, 0.5) - (y / 255 -
     0.5))^2), float32, elementwise, for pixels y in [0, 255]: `losses.reconstruction_loss`
-    summed. The clip passes the gradient strictly inside (-0.5, 0.5)."""
+    summed. The clip passes the gradient strictly inside (-0.5, 0.5) (autodiff of `jnp.clip`
+    passes half of it at exactly +-0.5)."""
     err = jnp.clip(out, -0.5, 0.5) - (y / 255.0 - 0.5)
     inside = (out > -0.5) & (out < 0.5)
     return jnp.where(inside, 2.0 * err, 0.0), err * err

@@ -37,6 +37,15 @@ def test_layer_rows_by_hand():
     assert dense["forward"].bytes == 2 * batch * (2048 * 2 + 4096 * 4) + (2048 * 4096 + 4096) * 4
 
 
+def test_dear_floor_at_batch_512():
+    """DEAR's totals as benchmarks/RESULTS.md gives them (roofline_dear_bf16_b512.json)."""
+    cfg = AgentConfig(action_dim=6, compute_dtype="bfloat16")
+    total = roofline.summarize(roofline.layers(cfg, 512))["total"]
+    assert total["flops"] == 348_708_765_696
+    assert total["bytes"] == 3_591_116_952
+    assert total["floor_us"] == pytest.approx(1073.058, abs=1e-3)
+
+
 def test_totals_add_up():
     summary = roofline.summarize(roofline.layers(AgentConfig(action_dim=6), 8))
     total = summary["total"]
@@ -69,6 +78,14 @@ def test_each_method_counts_its_own_parts():
 
     assert conv2_forward("ted").flops == 3 * batch * 28_035_072  # obs, next_obs, a far frame
     assert conv2_forward("sear").flops == conv2_forward("dear").flops
+
+    def conv2_backward(method):
+        return next(
+            r for r in rows[method] if r.row.startswith("conv 2 ") and r.phase == "backward"
+        )
+
+    # only z_t is differentiated: one backward pass in every method
+    assert conv2_backward("ted") == conv2_backward("dear") == conv2_backward("drqv2")
     # SEAR's loss pass: read the bf16 output and the uint8 frames, write the output's gradient
     (loss,) = [r for r in rows["sear"] if r.row == "reconstruction loss"]
     assert loss.bytes == batch * 84 * 84 * 9 * (2 + 1 + 2)

@@ -70,7 +70,13 @@ from jax.experimental.pallas import triton as plt
 BLOCK = 128  # rows of one program of a convolution
 NUM_WARPS = 4
 WGRAD_BLOCK = 64  # rows per step of a filter gradient
-WGRAD_STEPS = 32  # steps of one program of a filter gradient
+WGRAD_STEPS = 32  # steps of one program of a filter gradient (at most; see below)
+# On GPUs, a filter gradient's programs may take fewer steps (halving WGRAD_STEPS, down to 1)
+# until its grid, over every vmapped seed, has at least WGRAD_MIN_PROGRAMS programs; 0: always
+# WGRAD_STEPS. A lone seed's 35 x 35 layer at batch 512 has 307 programs of 32 steps, ~2 per SM of
+# an H100, where five seeds have 1,535; more programs also mean more partial sums to add up.
+# Not yet timed: `benchmarks/update.py --kernels WGRAD_MIN_PROGRAMS=N` compares settings.
+WGRAD_MIN_PROGRAMS = 0
 WGRAD_WARPS = 2
 # A filter gradient's products as g^T x (the output gradient's block transposed once per step)
 # rather than x^T g (each tap's block transposed); its result is then transposed in XLA.
@@ -436,7 +442,7 @@ def _conv(x, w, layer, *, bias=None, relu=False, mask=None, targets=None):
     )(*args)
 
 
-def _wgrad_kernel(*refs, layer):
+def _wgrad_kernel(*refs, layer, steps):
     x_ref, *refs, w_ref, b_ref = refs
     crop_ref = refs.pop(0) if isinstance(layer, _Pixels) and layer.shift else None
     g_ref = refs.pop(0)
@@ -452,7 +458,7 @@ def _wgrad_kernel(*refs, layer):
 
     def step(s, carry):
         accs, bacc = carry
-        start = (p * WGRAD_STEPS + s) * WGRAD_BLOCK
+        start = (p * steps + s) * WGRAD_BLOCK
         rows = start + jnp.arange(WGRAD_BLOCK, dtype=jnp.int32)
         # The last program's steps past the rows read zeros (whole blocks: see _Grid).
         inside = jnp.broadcast_to((rows < layer.out.rows)[:, None], (WGRAD_BLOCK, f))
@@ -462,7 +468,7 @@ def _wgrad_kernel(*refs, layer):
         return out, bacc + jnp.sum(g.astype(jnp.float32), axis=0)
 
     zeros = tuple(jnp.zeros(acc_shape, jnp.float32) for _ in range(n))
-    accs, bacc = jax.lax.fori_loop(0, WGRAD_STEPS, step, (zeros, jnp.zeros((f,), jnp.float32)))
+    accs, bacc = jax.lax.fori_loop(0, steps, step, (zeros, jnp.zeros((f,), jnp.float32)))
     for t in range(n):
         w_ref[p, t] = accs[t]
     b_ref[p] = bacc
@@ -475,16 +481,51 @@ def _pixel_args(x, layer) -> list:
     return [x.reshape(-1)]
 
 
+def _wgrad_steps(rows: int, batch: int) -> int:
+    """Steps per program of a filter gradient over `rows` output rows, for `batch` vmapped
+    copies of it (WGRAD_MIN_PROGRAMS)."""
+    steps, target = WGRAD_STEPS, 0 if _interpret() else WGRAD_MIN_PROGRAMS
+    while steps > 1 and batch * -(-rows // (WGRAD_BLOCK * steps)) < target:
+        steps //= 2
+    return steps
+
+
 def _wgrad(x, g, layer):
     """(sum_q (tap t of x for q)^T g[q] for each t, sum_q g[q]) over the rows of layer.out,
     in float32."""
-    pixels = isinstance(layer, _Pixels)
-    c, f = (layer.width if pixels else x.shape[-1]), g.shape[-1]
-    taps = layer.kernel if pixels else layer.kernel**2
-    programs = -(-layer.out.rows // (WGRAD_BLOCK * WGRAD_STEPS))
+    c = layer.width if isinstance(layer, _Pixels) else x.shape[-1]
+    return _wgrad_over(layer, c, ())(*_pixel_args(x, layer), g)
+
+
+def _wgrad_over(layer, c: int, axes: tuple[int, ...]):
+    """`_wgrad` of the flat arguments, each with leading axes of these sizes (the vmapped axes
+    met so far, outermost first), so that the kernel's steps follow the size of its whole grid.
+    Under a further jax.vmap it becomes the same with that axis in front."""
+
+    @jax.custom_batching.custom_vmap
+    def wgrad(*args):
+        fn = functools.partial(_wgrad_call, layer, c, _wgrad_steps(layer.out.rows, math.prod(axes)))
+        for _ in axes:
+            fn = jax.vmap(fn)
+        return fn(*args)
+
+    @wgrad.def_vmap
+    def _rule(axis_size, in_batched, *args):
+        args = [
+            a if b else jnp.broadcast_to(a, (axis_size, *a.shape)) for a, b in zip(args, in_batched)
+        ]
+        return _wgrad_over(layer, c, (axis_size, *axes))(*args), (True, True)
+
+    return wgrad
+
+
+def _wgrad_call(layer, c: int, steps: int, *args):
+    f = args[-1].shape[-1]
+    taps = layer.kernel if isinstance(layer, _Pixels) else layer.kernel**2
+    programs = -(-layer.out.rows // (WGRAD_BLOCK * steps))
     acc_shape = (f, c) if WGRAD_G_FIRST else (c, f)
     w, b = pl.pallas_call(
-        functools.partial(_wgrad_kernel, layer=layer),
+        functools.partial(_wgrad_kernel, layer=layer, steps=steps),
         out_shape=(
             jax.ShapeDtypeStruct((programs, taps, *acc_shape), jnp.float32),
             jax.ShapeDtypeStruct((programs, f), jnp.float32),
@@ -492,7 +533,7 @@ def _wgrad(x, g, layer):
         grid=(programs,),
         interpret=_interpret(),
         compiler_params=plt.CompilerParams(num_warps=WGRAD_WARPS, num_stages=STAGES),
-    )(*_pixel_args(x, layer), g)
+    )(*args)
     w = w.sum(0)
     return (jnp.swapaxes(w, 1, 2) if WGRAD_G_FIRST else w), b.sum(0)
 

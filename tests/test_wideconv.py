@@ -261,6 +261,86 @@ def test_conv_stack_under_vmap_is_each_seed_on_its_own():
             np.testing.assert_array_equal(np.asarray(a[s], np.float32), np.asarray(b, np.float32))
 
 
+def _filter_gradient_grids(fn, *args) -> list[tuple[int, ...]]:
+    """The grids of the filter-gradient kernels (those whose first output holds one [c, f]
+    matrix per program and tap) in the program of fn(*args), traced, not run."""
+    grids = []
+
+    def walk(jaxpr):
+        for eqn in jaxpr.eqns:
+            if eqn.primitive.name == "pallas_call":
+                mapping = eqn.params["grid_mapping"]
+                if eqn.outvars[0].aval.ndim - len(mapping.vmapped_dims) == 4:
+                    grids.append(tuple(mapping.grid))
+                continue
+            for param in eqn.params.values():
+                for sub in param if isinstance(param, (tuple, list)) else (param,):
+                    sub = getattr(sub, "jaxpr", sub)
+                    if hasattr(sub, "eqns"):
+                        walk(sub)
+
+    walk(jax.make_jaxpr(fn)(*args).jaxpr)
+    return grids
+
+
+def test_filter_gradient_programs_follow_the_number_of_seeds(monkeypatch):
+    """With WGRAD_MIN_PROGRAMS set, a filter gradient's programs on GPUs take fewer steps when
+    few seeds are vmapped, so that its grid keeps that many programs; five seeds keep 32 steps.
+    The encoder's 35 x 35 layer at batch 512: 627,200 rows, 307 programs of 32 steps of 64
+    rows, 1,225 of 8."""
+    monkeypatch.setattr(wideconv, "INTERPRET", False)  # traced only
+    monkeypatch.setattr(wideconv, "WGRAD_MIN_PROGRAMS", 1024)
+    assert (wideconv.WGRAD_STEPS, wideconv.WGRAD_BLOCK) == (32, 64)
+    layers = lambda seeds: (  # noqa: E731
+        (
+            jax.ShapeDtypeStruct((seeds, 3, 3, 32, 32), jnp.float32),
+            jax.ShapeDtypeStruct((seeds, 32), jnp.float32),
+        ),
+    )
+
+    def loss(x, ws):
+        return jnp.sum(wideconv.conv_stack(x, ws, 0, True, jnp.bfloat16).astype(jnp.float32))
+
+    grad = jax.vmap(jax.grad(loss, 1))
+    # (a vmapped axis of size 1 is no grid axis)
+    for seeds, grid in ((1, (1225,)), (2, (2, 613)), (5, (5, 307))):
+        x = jax.ShapeDtypeStruct((seeds, 512, 37, 37, 32), jnp.bfloat16)
+        assert _filter_gradient_grids(grad, x, layers(seeds)) == [grid]
+    # lanes x seeds: both vmapped axes count; not vmapped, one image set alone
+    x = jax.ShapeDtypeStruct((2, 2, 512, 37, 37, 32), jnp.bfloat16)
+    ws = jax.tree.map(lambda a: jax.ShapeDtypeStruct((2, *a.shape), a.dtype), layers(2))
+    assert _filter_gradient_grids(jax.vmap(grad), x, ws) == [(2, 2, 307)]
+    x = jax.ShapeDtypeStruct((512, 37, 37, 32), jnp.bfloat16)
+    one = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), layers(1))
+    assert _filter_gradient_grids(jax.grad(loss, 1), x, one) == [(1225,)]
+    monkeypatch.setattr(wideconv, "WGRAD_MIN_PROGRAMS", 0)
+    assert _filter_gradient_grids(jax.grad(loss, 1), x, one) == [(307,)]
+
+
+def test_filter_gradients_of_any_steps_are_the_same_under_nested_vmap(monkeypatch):
+    """Lanes x seeds vmapped, with steps that differ with the vmapped sizes: every lane's and
+    seed's gradients are those of its stack alone (taken with other steps)."""
+    monkeypatch.setattr(wideconv, "BLOCK", 16)
+    monkeypatch.setattr(wideconv, "WGRAD_BLOCK", 16)
+    monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
+    steps_of = wideconv._wgrad_steps
+    monkeypatch.setattr(wideconv, "_wgrad_steps", lambda rows, batch: 8 // batch)
+    x = _normal(6, (2, 2, 2, 7, 7, 16))
+    layers = _layers(7, (3, 2), (16, 32, 16), lead=(2, 2))
+
+    def f(x, ws):
+        return jnp.sum(jnp.sin(wideconv.conv_stack(x, ws, (0, 1), True)))
+
+    nested = jax.jit(jax.vmap(jax.vmap(jax.grad(f, (0, 1)))))(x, layers)
+    one = jax.jit(jax.grad(f, (0, 1)))  # 8 steps per program, against 2 when nested
+    for i in range(2):
+        for j in range(2):
+            alone = one(x[i, j], jax.tree.map(lambda a, i=i, j=j: a[i, j], layers))
+            for a, b in zip(jax.tree.leaves(nested), jax.tree.leaves(alone), strict=True):
+                np.testing.assert_allclose(a[i, j], b, rtol=1e-5, atol=1e-5)
+    assert steps_of(10**6, 1) == wideconv.WGRAD_STEPS  # in the interpreter: always WGRAD_STEPS
+
+
 def test_supported_shapes():
     k = lambda c, f, n=3: (jnp.zeros((n, n, c, f)), jnp.zeros(f))  # noqa: E731
     x = lambda *shape, dtype=jnp.bfloat16: jax.ShapeDtypeStruct(shape, dtype)  # noqa: E731

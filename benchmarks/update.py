@@ -11,7 +11,6 @@ The same update in PyTorch, timed on the same GPU: `python -m benchmarks.torch_r
 from __future__ import annotations
 
 import argparse
-import contextlib
 import functools
 import itertools
 import time
@@ -138,28 +137,11 @@ def time_update(
 
 
 def kernel_setting(text: str) -> dict:
-    """ "NAME=INT,..." (constants of dear_jax.wideconv) or "default" -> {NAME: INT}."""
-    if text == "default":
-        return {}
-    setting = dict(item.split("=", 1) for item in text.split(","))
-    unknown = sorted(n for n in setting if not isinstance(getattr(wideconv, n, None), int))
-    if unknown:
-        raise argparse.ArgumentTypeError(f"not an integer constant of dear_jax.wideconv: {unknown}")
-    return {n: int(v) for n, v in setting.items()}
-
-
-@contextlib.contextmanager
-def kernel_constants(setting: dict):
-    """dear_jax.wideconv's constants set to `setting` while the block runs (they are read as
-    programs are traced)."""
-    old = {n: getattr(wideconv, n) for n in setting}
+    """ "NAME=INT,..." (wideconv.TUNABLE) or "default" -> {NAME: INT}."""
     try:
-        for n, v in setting.items():
-            setattr(wideconv, n, type(old[n])(v))
-        yield
-    finally:
-        for n, v in old.items():
-            setattr(wideconv, n, v)
+        return {} if text == "default" else wideconv.parse_constants(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def main():
@@ -213,7 +195,7 @@ def main():
                     args.kernels,
                 ):
                     encoder = args.drqv2_encoder if m == "drqv2" else "pool"
-                    with kernel_constants(kernels):
+                    with wideconv.constants(kernels):
                         r = time_update(
                             m, s, args.batch, args.iters, d, 6, how, impl, encoder, fg, cs
                         )

@@ -121,6 +121,10 @@ def get_config() -> ConfigDict:
     # instead of 5.01 ms per seed, and DEAR walker runs with it learned within the spread of
     # those with cuDNN (benchmarks/RESULTS.md).
     c.agent.conv_stack = "auto"
+    # The Pallas stacks' kernel constants for the update, "NAME=INT,..." (dear_jax.wideconv:
+    # TUNABLE, e.g. "WGRAD_MIN_PROGRAMS=1024,BLOCK=256"); "": the module's values, the fastest
+    # of the H100 sweeps. Same function; `benchmarks/update.py --kernels` times settings.
+    c.agent.kernels = ""
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
     c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)
     c.agent.beta = 100.0  # orthogonality loss weight (DEAR)

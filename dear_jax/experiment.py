@@ -17,7 +17,7 @@ from jax.sharding import Mesh
 from ml_collections import ConfigDict
 
 import envs
-from dear_jax import augment, lanes, losses, networks, replay, replay_disk, update
+from dear_jax import augment, lanes, losses, networks, replay, replay_disk, update, wideconv
 from dear_jax.devices import Hosts, lanes_per_host, num_devices
 from envs import distractions
 
@@ -47,6 +47,7 @@ RESUMABLE_CHANGES = (
     "agent.shift_impl",
     "agent.filter_gradient",
     "agent.conv_stack",
+    "agent.kernels",
     "replay.disk",
     "devices",
 )
@@ -95,6 +96,10 @@ def validate(config: ConfigDict) -> None:
         distractions.parse_types(config.env.distraction_types)
     except ValueError as e:
         raise ValueError(f"env.distraction_types: {e}") from None
+    try:
+        wideconv.parse_constants(config.agent.kernels)
+    except ValueError as e:
+        raise ValueError(f"agent.kernels: {e}") from None
     positive = (
         "seeds",
         "envs_per_seed",
@@ -156,6 +161,7 @@ def agent_config(config: ConfigDict, action_dim: int) -> update.AgentConfig:
         shift_impl=a.shift_impl,
         filter_gradient=a.filter_gradient,
         conv_stack=a.conv_stack,
+        kernels=a.kernels,
     )
 
 

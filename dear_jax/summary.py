@@ -95,6 +95,7 @@ def write_summary(
         "backend": spec.backend,
         "device": jax.devices()[0].device_kind,
         "conv_stack": networks.stack_for(config.agent.conv_stack),
+        "kernels": config.agent.kernels,
         "render": config.env.render.to_dict(),
         "render_quality": config.env.render.quality,
         "eval_device": evaluated_on,
@@ -110,11 +111,12 @@ def write_summary(
     columns += ["final eval success"] if spec.has_success else []
     table = format_table(columns, rows)
     until = f"stopped by {stopped} at " if stopped else ""
+    kernels = f" ({config.agent.kernels})" if config.agent.kernels else ""
     text = (
         f"# {config.agent.method} on {config.env.task}\n\n"
         f"{until}{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, "
         f"{wall:.0f} s of training ({fps:.0f} frames/s in all) on {summary['device']} "
-        f"({spec.backend} physics, {summary['conv_stack']} conv stacks, evaluations on "
+        f"({spec.backend} physics, {summary['conv_stack']} conv stacks{kernels}, evaluations on "
         f"{summary['eval_device']}); {_distraction_line(spec)}; render "
         f"settings {summary['render']}; commit {summary['provenance']['commit']}, jax "
         f"{summary['provenance']['jax']}\n\n{table}\n"

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from dear_jax import augment, losses, networks
+from dear_jax import augment, losses, networks, wideconv
 from dear_jax.replay import Batch
 
 METHODS = ("drqv2", "dear", "sear", "ted")
@@ -50,6 +50,7 @@ class AgentConfig:
     shift_impl: str = "gather"  # how the random shift is computed (augment.SHIFT_IMPLS)
     filter_gradient: str = "cudnn"  # convolutions' filter gradients (networks.FILTER_GRADIENTS)
     conv_stack: str = "auto"  # how the conv stacks run (networks.STACKS; "auto": Pallas on GPUs)
+    kernels: str = ""  # the Pallas stacks' constants for the update, "NAME=INT,..." (wideconv)
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -73,6 +74,7 @@ class AgentConfig:
             )
         if self.conv_stack not in networks.STACKS:
             raise ValueError(f"unknown conv_stack {self.conv_stack!r}; valid: {networks.STACKS}")
+        wideconv.parse_constants(self.kernels)
         if self.method != "drqv2" and self.encoder != "pool":
             raise ValueError(
                 f"method {self.method!r} needs encoder='pool' (its heads read the latent)"
@@ -401,7 +403,10 @@ def update(
     state: AgentState, batch: Batch, key: jax.Array, hp: HParams, *, cfg: AgentConfig
 ) -> tuple[AgentState, dict]:
     """One DrQ-v2 update for one seed; bind `cfg` (functools.partial) before jit/vmap."""
-    with networks.conv_settings(filter_gradient=cfg.filter_gradient, stack=cfg.conv_stack):
+    with (
+        networks.conv_settings(filter_gradient=cfg.filter_gradient, stack=cfg.conv_stack),
+        wideconv.constants(cfg.kernels),
+    ):
         return _update(state, batch, key, hp, cfg)
 
 

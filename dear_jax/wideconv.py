@@ -58,6 +58,7 @@ kernel's epilogue costs ~0.2 ms, and the update went from 3.01 to 2.95 ms per se
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import math
@@ -90,6 +91,52 @@ CONV_STAGES = 3
 # do there by default; jax.lax.Precision.HIGHEST makes them IEEE float32 (the GPU tests).
 PRECISION: jax.lax.Precision | None = None
 INTERPRET: bool | None = None  # Pallas' interpreter; None: off GPUs
+
+
+# The constants above that `constants` sets (integers; 0/1 for the switches).
+TUNABLE = (
+    "BLOCK",
+    "NUM_WARPS",
+    "WGRAD_BLOCK",
+    "WGRAD_STEPS",
+    "WGRAD_MIN_PROGRAMS",
+    "WGRAD_WARPS",
+    "WGRAD_G_FIRST",
+    "STAGES",
+    "TAP_LOOP",
+    "CONV_STAGES",
+)
+
+
+def parse_constants(text: str) -> dict[str, int]:
+    """ "NAME=INT,..." ("" for none) -> {NAME: INT}, each NAME one of TUNABLE."""
+    setting = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        name, eq, value = item.partition("=")
+        if name not in TUNABLE or not eq:
+            raise ValueError(
+                f"kernel constant {item!r}: give NAME=INT with NAME one of {', '.join(TUNABLE)}"
+            )
+        try:
+            setting[name] = int(value)
+        except ValueError:
+            raise ValueError(f"kernel constant {item!r}: {value!r} is not an integer") from None
+    return setting
+
+
+@contextlib.contextmanager
+def constants(setting: str | dict):
+    """This module's constants set as `setting` says ("NAME=INT,..." or a dict) while the block
+    runs, then restored. They are read as programs are traced (a jitted function traced
+    before keeps what it was traced with)."""
+    setting = parse_constants(setting) if isinstance(setting, str) else setting
+    old = {name: globals()[name] for name in setting}
+    try:
+        for name, value in setting.items():
+            globals()[name] = type(old[name])(value)
+        yield
+    finally:
+        globals().update(old)
 
 
 def _interpret() -> bool:

@@ -145,6 +145,8 @@ def test_outputs_exist_and_parse(run):
     summary = json.loads((workdir / "summary.json").read_text())  # rewritten by the resume
     assert summary["frames_per_seed"] == 280 and len(summary["per_seed"]) == 2
     assert (summary["distraction_types"], summary["backgrounds"]) == ([], "none")
+    assert (summary["conv_stack"], summary["kernels"]) == ("xla", "")
+    assert "(cpu physics, xla conv stacks, evaluations on" in text
     # Where the run comes from: this checkout's commit, the device, the library versions.
     import jax
 
@@ -540,6 +542,10 @@ def test_benchmarks_set_any_config_field_typed_and_by_known_name():
         (
             {"agent.nstep": 21},
             r"agent.nstep=21 is longer than an episode of walker-walk \(20 agent steps\)",
+        ),
+        (
+            {"agent.kernels": "BLOK=64"},
+            r"agent.kernels: kernel constant 'BLOK=64': give NAME=INT with NAME one of BLOCK, ",
         ),
     ],
 )

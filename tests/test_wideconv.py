@@ -1,5 +1,6 @@
 """dear_jax.wideconv: stride-1 conv stacks as Pallas kernels (here in Pallas' interpreter)."""
 
+import functools
 import re
 
 import jax
@@ -339,6 +340,60 @@ def test_filter_gradients_of_any_steps_are_the_same_under_nested_vmap(monkeypatc
             for a, b in zip(jax.tree.leaves(nested), jax.tree.leaves(alone), strict=True):
                 np.testing.assert_allclose(a[i, j], b, rtol=1e-5, atol=1e-5)
     assert steps_of(10**6, 1) == wideconv.WGRAD_STEPS  # in the interpreter: always WGRAD_STEPS
+
+
+def test_kernel_constants_hold_inside_their_block_only():
+    """`wideconv.constants` sets the named constants (a switch keeps its bool type) for the
+    block, and restores them after it, also when it raises; bad settings name the problem."""
+    before = (wideconv.WGRAD_STEPS, wideconv.TAP_LOOP, wideconv.BLOCK)
+    with wideconv.constants("WGRAD_STEPS=8, TAP_LOOP=0"):
+        assert (wideconv.WGRAD_STEPS, wideconv.TAP_LOOP, wideconv.BLOCK) == (8, False, before[2])
+        assert wideconv.TAP_LOOP is False
+    assert (wideconv.WGRAD_STEPS, wideconv.TAP_LOOP, wideconv.BLOCK) == before
+    with pytest.raises(RuntimeError), wideconv.constants({"BLOCK": 64}):
+        assert wideconv.BLOCK == 64
+        raise RuntimeError
+    assert wideconv.BLOCK == before[2]
+    assert wideconv.parse_constants("") == {}
+    with pytest.raises(ValueError, match=r"'BLOK=64': give NAME=INT with NAME one of BLOCK, "):
+        wideconv.parse_constants("BLOK=64")
+    with pytest.raises(ValueError, match="'PRECISION=1': give NAME=INT"):  # not an integer one
+        wideconv.parse_constants("PRECISION=1")
+    with pytest.raises(ValueError, match="'BLOCK=big': 'big' is not an integer"):
+        wideconv.parse_constants("BLOCK=big")
+    with pytest.raises(ValueError, match="'BLOCK': give NAME=INT"):
+        update.AgentConfig(action_dim=6, kernels="BLOCK")
+
+
+def test_the_update_is_traced_with_its_configs_kernel_constants(monkeypatch):
+    """AgentConfig.kernels holds while the update is traced, for its backward pass too: with
+    WGRAD_MIN_PROGRAMS=1024 a lone seed's filter gradients (batch 8: 9,800 rows at 35 x 35)
+    take 1 step per program rather than 32, and the module's value is back after."""
+    monkeypatch.setattr(wideconv, "INTERPRET", False)  # traced only
+    small = dict(action_dim=2, latent_dim=64, hidden_dim=32, feature_dim=8, conv_stack="pallas")
+    batch = 8
+    images = jax.ShapeDtypeStruct((batch, 84, 84, 9), jnp.uint8)
+    data = update.Batch(
+        obs=images,
+        action=jax.ShapeDtypeStruct((batch, 2), jnp.float32),
+        reward=jax.ShapeDtypeStruct((batch,), jnp.float32),
+        discount=jax.ShapeDtypeStruct((batch,), jnp.float32),
+        next_obs=images,
+        mask=jax.ShapeDtypeStruct((batch, 84, 84, 3), jnp.uint8),
+    )
+
+    def grids(kernels):
+        cfg = update.AgentConfig(method="dear", kernels=kernels, **small)
+        state = jax.eval_shape(functools.partial(update.init, cfg), jax.random.key(0))
+        fn = functools.partial(update.update, cfg=cfg)
+        return _filter_gradient_grids(fn, state, data, jax.random.key(1), update.HParams())
+
+    default, many = grids(""), grids("WGRAD_MIN_PROGRAMS=1024")
+    assert wideconv.WGRAD_MIN_PROGRAMS == 0
+    # the encoder's 4 layers and the mask decoder's 4 Pallas layers
+    assert len(default) == len(many) == 8
+    assert (5,) in default and (154,) in many  # the 35 x 35 layers: ceil(9,800 / 64 / steps)
+    assert all(m[0] > d[0] for d, m in zip(default, many))
 
 
 def test_supported_shapes():

@@ -11,6 +11,9 @@
 #   bench NAME ARGS...  `python3 -m benchmarks.NAME ARGS...` (takes the rest of the line: last
 #                       stage), e.g. a figure's command from benchmarks/RESULTS.md with
 #                       `--out $OUT/NAME.json`
+#   gpu N               the bench stages after it run on GPU number N alone, pinned to that
+#                       GPU's share of the cores (as `start` pins a run), e.g. to measure on
+#                       one GPU while runs train on the others
 #   start NAME GPU ARGS  a detached `run.py ARGS --workdir runs/NAME` on GPU number GPU ("all":
 #                       every GPU), its console in runs/NAME.out; it outlives this call. ARGS
 #                       are the words that start with `--` (write `--config=FILE`). A run on
@@ -43,6 +46,12 @@ export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-/tmp/jax_cache}
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | sed 's/^/gpu: /'
 
 running() { pgrep -f "python3 run.py" >/dev/null; }
+gpus() { nvidia-smi --query-gpu=index --format=csv,noheader | wc -l; }
+cores_of() {  # the cores of GPU $1's share of the machine: "first-last"
+  local share=$(($(nproc) / $(gpus)))
+  echo "$(($1 * share))-$(($1 * share + share - 1))"
+}
+bench_pin=()
 
 while [ $# -gt 0 ]; do
   stage=$1; shift
@@ -56,9 +65,13 @@ while [ $# -gt 0 ]; do
     multihost)
       python3 -m benchmarks.multihost --out "$out/multihost.json"
       ;;
+    gpu)
+      export CUDA_VISIBLE_DEVICES=$1
+      bench_pin=(taskset -c "$(cores_of "$1")"); shift
+      ;;
     bench)
       name=$1; shift
-      python3 -m "benchmarks.$name" "$@"
+      "${bench_pin[@]}" python3 -m "benchmarks.$name" "$@"
       set --
       ;;
     start)
@@ -67,10 +80,7 @@ while [ $# -gt 0 ]; do
       while [ $# -gt 0 ] && [[ $1 == --* ]]; do args+=("$1"); shift; done
       visible=$([ "$gpu" = all ] && nvidia-smi --query-gpu=index --format=csv,noheader | paste -sd, || echo "$gpu")
       pin=()
-      if [ "$gpu" != all ]; then
-        share=$(($(nproc) / $(nvidia-smi --query-gpu=index --format=csv,noheader | wc -l)))
-        pin=(taskset -c "$((gpu * share))-$((gpu * share + share - 1))")
-      fi
+      [ "$gpu" != all ] && pin=(taskset -c "$(cores_of "$gpu")")
       CUDA_VISIBLE_DEVICES=$visible setsid nohup "${pin[@]}" python3 run.py "${args[@]}" --workdir "runs/$name" \
         >"runs/$name.out" 2>&1 </dev/null &
       echo "started runs/$name on GPU $visible ${pin[*]}: run.py ${args[*]}"
@@ -90,7 +100,7 @@ while [ $# -gt 0 ]; do
       ls -la "$out"
       ;;
     *)
-      echo "unknown stage '$stage'; valid: scaling multihost bench start wait stop collect" >&2
+      echo "unknown stage '$stage'; valid: scaling multihost gpu bench start wait stop collect" >&2
       exit 2
       ;;
   esac

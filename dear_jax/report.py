@@ -3,6 +3,7 @@
     python -m dear_jax.report params [--action-dim 6]
     python -m dear_jax.report table RUN [RUN ...] [--threshold 500] [--at FRAMES] [--out PREFIX]
     python -m dear_jax.report curves RUN [RUN ...] [--out results/curves.png] [--band std]
+    python -m dear_jax.report claims RUN [RUN ...] [--threshold 500] [--at FRAMES] [--last 11] [--out PREFIX]
 
 `params` prints the parameter count of every module per method (walker: |A| = 6), computed from
 shapes only (jax.eval_shape), so it is instant and allocates nothing.
@@ -29,6 +30,11 @@ and devices (`sources` in the CSV):
 It prints Markdown and, with --out PREFIX, writes PREFIX.md and PREFIX.csv. A sweep's run
 (`dear_jax/lanes.py`) gives one row per setting.
 
+`claims` checks the paper's claims one by one on the runs' pooled seeds (`dear_jax/claims.py`):
+DEAR's return >= SEAR's; DEAR >= 25% more sample-efficient than each baseline; TED's return >
+SEAR's on the DMC tasks; DEAR's |cos| far below SEAR's. Each says whether it holds, with the
+spread over seeds, or that the runs it needs are missing.
+
 `curves` is the paper's learning-curve figure (`dear_jax/plot.py`): one panel per task, one line
 per experiment (per setting of a sweep: the beta-sweep figure from the sweep's run), the mean
 over its pooled seeds with the spread shaded.
@@ -46,7 +52,7 @@ import pathlib
 import jax
 import numpy as np
 
-from dear_jax import lanes, plot
+from dear_jax import claims, lanes, plot
 from dear_jax.logger import format_table, read_csv
 from dear_jax.update import METHODS, AgentConfig, init_params
 
@@ -311,7 +317,18 @@ def main(argv=None):
     c.add_argument("--out", default="curves.png", help="PNG path")
     c.add_argument("--metric", default="episode_return", help="eval.csv column (e.g. success)")
     c.add_argument("--band", default="std", choices=plot.BANDS, help="shaded spread over seeds")
+    k = sub.add_parser("claims", help="the paper's claims, checked on finished runs")
+    k.add_argument("runs", nargs="+", help="run workdirs")
+    k.add_argument("--threshold", type=float, default=500.0, help="return for sample efficiency")
+    k.add_argument("--at", type=int, default=None, help="read evaluations up to this frame")
+    k.add_argument("--last", type=int, default=11, help="evaluations a seed's return averages")
+    k.add_argument("--out", default=None, help="also write OUT.md and OUT.json")
     args = parser.parse_args(argv)
+    if args.command == "claims":
+        try:
+            print(claims.claims_table(args.runs, args.threshold, args.at, args.last, args.out)[1])
+        except (FileNotFoundError, ValueError) as e:
+            parser.error(str(e))
     if args.command == "curves":
         try:
             path = plot.plot(args.runs, args.out, metric=args.metric, band=args.band)

@@ -16,7 +16,7 @@ import pytest
 from ml_collections import ConfigDict
 from tensorboardX.proto import event_pb2
 
-from dear_jax import lanes, plot, report, update
+from dear_jax import claims, lanes, plot, report, update
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.logger import RunLogger, format_table, read_csv
 from dear_jax.video import SEPARATOR_RGB, side_by_side, write_video
@@ -390,9 +390,12 @@ def test_video_errors(tmp_path, monkeypatch):
 # ---------------------------------------------------------------- plots
 
 
-def _fake_workdir(root, name, method, task="walker-walk", offset=0.0, sweep=None, **fields):
+def _fake_workdir(
+    root, name, method, task="walker-walk", offset=0.0, sweep=None, abs_cos=None, **fields
+):
     """A workdir as the trainer leaves it: config.json, and eval logs of 3 seeds per setting
-    (seed s of setting i returns offset + 100 i + frame / 100 + (0, 10, 50)[s])."""
+    (seed s of setting i returns offset + 100 i + frame / 100 + (0, 10, 50)[s]; with
+    abs_cos, its |cos| column is abs_cos * (1, 2, 3)[s])."""
     workdir = root / name
     workdir.mkdir()
     config = {"seeds": 3, "agent": {"method": method}, "env": {"task": task}, **fields}
@@ -403,7 +406,10 @@ def _fake_workdir(root, name, method, task="walker-walk", offset=0.0, sweep=None
         for frame in (10_000, 20_000, 30_000):
             returns = offset + frame / 100 + np.array([0.0, 10.0, 50.0] * (len(names) // 3))
             returns += np.repeat(100.0 * np.arange(len(names) // 3), 3)
-            log.write("eval", frame, {"episode_return": returns, "cos_agent_env": 0.01})
+            row = {"episode_return": returns, "cos_agent_env": 0.01}
+            if abs_cos is not None:
+                row["abs_cos_agent_env"] = abs_cos * np.tile([1.0, 2.0, 3.0], len(names) // 3)
+            log.write("eval", frame, row)
             log.write("train", frame, {"fps": 900.0 + offset})
     return workdir
 
@@ -489,6 +495,68 @@ def test_plot_draws_a_line_per_setting_of_a_sweep(tmp_path):
     np.testing.assert_array_equal(curves[1].y[:, 0], [200, 210, 250])
     out = report.main(["curves", str(run), "--out", str(tmp_path / "beta.png")])
     assert cv2.imread(str(out)).std() > 0
+
+
+def test_the_papers_claims_are_checked_per_task_on_the_seeds(tmp_path):
+    """`report claims`: per task, each claim's figures from the seeds' logs (returns are
+    each seed's mean over its last 2 evaluations here; frames to a return of 200) and whether
+    it holds, with the spread. Returns at 10k/20k/30k frames: offset + 100/200/300 + (0, 10,
+    50) per seed."""
+    runs = [
+        _fake_workdir(tmp_path, "dear", "dear", abs_cos=1e-3),
+        _fake_workdir(tmp_path, "sear", "sear", offset=-50, abs_cos=2e-2),
+        _fake_workdir(tmp_path, "ted", "ted", offset=-20),
+        _fake_workdir(tmp_path, "drqv2", "drqv2", offset=-150),
+    ]
+    rows = {(r["claim"], r["task"]): r for r in claims.check(runs, threshold=200, last=2)}
+    assert len(rows) == 6 and {t for _, t in rows} == {"walker-walk"}
+    row = lambda claim: rows[claim, "walker-walk"]  # noqa: E731
+    # DEAR's seeds: 250, 260, 300; SEAR's 200, 210, 250 (DEAR's lowest is not above SEAR's best)
+    assert row("DEAR's return >= SEAR's") == {
+        "claim": "DEAR's return >= SEAR's",
+        "task": "walker-walk",
+        "evidence": "DEAR 270.0 ± 21.6 (n=3) against SEAR 220.0 ± 21.6 (n=3)",
+        "verdict": "holds (seeds overlap)",
+    }
+    assert row("TED's return > SEAR's")["verdict"] == "holds (seeds overlap)"  # 250 against 220
+    # Frames to 200: DEAR 20k for every seed; TED and SEAR 30k, 30k, 20k; DrQ-v2 only its
+    # third seed, at 30k: its median seed never reaches it in the 30k frames it ran.
+    ted = row("DEAR >= 25% more sample-efficient than TED")
+    assert ted["evidence"] == (
+        "frames to 200: DEAR 20k (3/3 reach 200), TED 30k (3/3 reach 200); ratio 0.67"
+    )
+    assert ted["verdict"] == "holds"
+    drqv2 = row("DEAR >= 25% more sample-efficient than DrQ-v2")
+    assert drqv2["evidence"].endswith("DrQ-v2 never (1/3 reach 200) by 30k")
+    assert drqv2["verdict"] == "holds"  # 20k <= 0.75 x 30k
+    # |cos| of the last evaluation: DEAR 1e-3 x (1, 2, 3), SEAR 2e-2 x (1, 2, 3)
+    cos = row("DEAR's |cos| far below SEAR's")
+    assert cos["evidence"] == "DEAR 2.0e-03, SEAR 4.0e-02: 20.0x"
+    assert cos["verdict"] == "holds (seeds separate)"
+
+    # Higher thresholds: at 260 every DEAR and TED seed first reaches it at 30k (ratio 1.00);
+    # at 300 every DEAR seed at 30k, one TED seed (its median seed never in its 30k frames);
+    # at 360 no seed.
+    def efficiency_vs_ted(threshold):
+        rows = claims.check(runs, threshold=threshold, last=2)
+        return {r["claim"]: r for r in rows}["DEAR >= 25% more sample-efficient than TED"]
+
+    assert efficiency_vs_ted(260)["verdict"] == "does not hold"
+    assert efficiency_vs_ted(260)["evidence"].endswith("ratio 1.00")
+    assert efficiency_vs_ted(300)["verdict"] == "undecided: the baseline ran too short"
+    assert efficiency_vs_ted(360)["verdict"] == "undecided: neither reaches it"
+    # Without SEAR, its claims say so; a second DEAR experiment on the task is refused.
+    without = {r["claim"]: r["verdict"] for r in claims.check(runs[::2], threshold=200)}
+    assert without["DEAR's return >= SEAR's"] == "no data: no SEAR run"
+    assert without["DEAR's |cos| far below SEAR's"] == "no data: no SEAR run"
+    other = _fake_workdir(tmp_path, "dear_beta", "dear", agent={"method": "dear", "beta": 1.0})
+    with pytest.raises(ValueError, match="dear_beta: a second experiment of dear on walker-walk"):
+        claims.check([runs[0], other])
+    out = tmp_path / "claims"
+    report.main(["claims", *map(str, runs), "--threshold", "200", "--last", "2", "--out", str(out)])
+    saved = json.loads(out.with_suffix(".json").read_text())
+    assert saved["threshold"] == 200 and len(saved["claims"]) == 6
+    assert "| DEAR's return >= SEAR's" in out.with_suffix(".md").read_text()
 
 
 def test_table_ii_reads_logs_older_than_a_column_and_marks_mixed_frames():

@@ -15,7 +15,11 @@ and actions are the same, only the goal differs. Action modes:
   training's "dm_control" quality); each episode keeps one seed's mean, cycling over the seeds.
   `--actor-trajectory` steps of uniform actions measure how much that mean changes as the robot
   moves (`actor_mean.drift`): the untrained mean is nearly constant, a drift over an episode;
-- `zero`: the zero action (one episode: it is deterministic), the controller alone.
+- `zero`: the zero action (one episode: it is deterministic), the controller alone;
+- `ou`: temporally correlated noise around a zero mean, a_t = clamp(n_t) with
+  n_t = rho n_{t-1} + sqrt(1 - rho^2) std eps_t (`--rho`; n_0 ~ N(0, std^2)), as a trained
+  actor's slowly changing mean would correlate actions: not what the agent does (a counterfactual
+  for how far correlated actions carry the hand against the controller's creep).
 `--std` is the exploration std (1.0 after the uniform phase; 0.91 at 47.6k agent steps per seed
 on the 500k-step schedule). `--repeat` k holds each sampled action for k agent steps (SEAR's
 training config, from which DEAR's code derives, defaults to action repeat 2; an episode stays
@@ -43,6 +47,10 @@ Timing: CPU MuJoCo ms per agent step (40 physics steps), one env on one thread s
         --robot-gravcomp --out benchmarks/results/kitchen_exploration_gravcomp_cpu.json
     python -m benchmarks.kitchen_exploration --modes noise --episodes 200 --repeat 2 \
         --out benchmarks/results/kitchen_exploration_repeat2_cpu.json
+    python -m benchmarks.kitchen_exploration --modes ou --episodes 200 --rho 0.9 \
+        --out benchmarks/results/kitchen_exploration_ou_cpu.json
+    python -m benchmarks.kitchen_exploration --modes uniform --episodes 200 --repeat 10 \
+        --out benchmarks/results/kitchen_exploration_repeat10_cpu.json
 """
 
 from __future__ import annotations
@@ -64,7 +72,7 @@ from benchmarks.common import save_json  # noqa: E402
 from envs import kitchen  # noqa: E402
 from envs.physics import CpuPhysics  # noqa: E402
 
-MODES = ("uniform", "noise", "actor", "zero")
+MODES = ("uniform", "noise", "actor", "zero", "ou")
 TASKS = ("kitchen-light", "kitchen-kettle")
 SWITCH, SLIDE, KETTLE_POS, KETTLE_QUAT = 17, 18, slice(23, 26), slice(26, 30)
 HAND_SITE = "end_effector"
@@ -184,6 +192,7 @@ def rollout(
     first_episode: int,
     repeat: int = 1,
     gravcomp: bool = False,
+    rho: float = 0.9,
 ) -> dict:
     """`n` episodes of `mode` in one batch of n envs, each sampled action held for `repeat`
     steps; per-episode records [n]."""
@@ -217,9 +226,14 @@ def rollout(
         "tilt": np.zeros(n),
     }
     wall = 0.0
+    ou = rng.normal(0.0, std, (1, n, model.nu))
     for t in range(steps):
         if t % repeat:
             pass  # hold the last action
+        elif mode == "ou":
+            if t:
+                ou = rho * ou + np.sqrt(1 - rho**2) * std * rng.normal(size=ou.shape)
+            action = np.clip(ou, -1 + 1e-6, 1 - 1e-6).astype(np.float32)
         elif mode == "uniform":
             action = rng.uniform(-1, 1, (1, n, model.nu)).astype(np.float32)
         elif mode == "zero":
@@ -368,7 +382,8 @@ def main(argv=None):
     p.add_argument("--batch", type=int, default=50, help="episodes stepped together (one thread)")
     p.add_argument("--repeat", type=int, default=1, help="agent steps each action is held")
     p.add_argument("--robot-gravcomp", action="store_true", help="counterfactual: no creep")
-    p.add_argument("--std", type=float, default=1.0, help="exploration std (noise, actor)")
+    p.add_argument("--std", type=float, default=1.0, help="exploration std (noise, actor, ou)")
+    p.add_argument("--rho", type=float, default=0.9, help="ou: correlation of successive steps")
     p.add_argument("--actor-seeds", type=int, default=16)
     p.add_argument("--actor-trajectory", type=int, default=60)
     p.add_argument("--thresholds", type=float, nargs="+", default=[0.05, 0.15, 0.39])
@@ -397,7 +412,9 @@ def main(argv=None):
         while done < episodes:
             n = min(args.batch, episodes - done)
             parts.append(
-                rollout(mode, n, rng, means, args.std, done, args.repeat, args.robot_gravcomp)
+                rollout(
+                    mode, n, rng, means, args.std, done, args.repeat, args.robot_gravcomp, args.rho
+                )
             )
             done += n
             light = sum(int((q["first_success"]["kitchen-light"] > 0).sum()) for q in parts)

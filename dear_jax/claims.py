@@ -11,7 +11,7 @@ side beyond every seed of the other) or overlap:
                seed that never does counts as infinite (it ran to its last evaluation without)
   |cos|        the mean |cos(z_A, z_E)| of a seed's last evaluation
 
-Claims (the paper's, as the issue tracker words them):
+The paper's claims, as checked here:
   1. DEAR's return >= SEAR's, on every task.
   2. DEAR is at least 25% more sample-efficient than each baseline: the median over seeds of
      DEAR's frames to T is at most 0.75 x the baseline's (a baseline whose median seed never

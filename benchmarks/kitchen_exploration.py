@@ -226,7 +226,7 @@ def rollout(
         "tilt": np.zeros(n),
     }
     wall = 0.0
-    ou = rng.normal(0.0, std, (1, n, model.nu))
+    ou = rng.normal(0.0, std, (1, n, model.nu)) if mode == "ou" else None
     for t in range(steps):
         if t % repeat:
             pass  # hold the last action

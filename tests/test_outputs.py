@@ -523,12 +523,12 @@ def test_the_papers_claims_are_checked_per_task_on_the_seeds(tmp_path):
     # third seed, at 30k: its median seed never reaches it in the 30k frames it ran.
     ted = row("DEAR >= 25% more sample-efficient than TED")
     assert ted["evidence"] == (
-        "frames to 200: DEAR 20k (3/3 reach 200), TED 30k (3/3 reach 200); ratio 0.67"
+        "median frames to 200: DEAR 20k (3/3 reach 200), TED 30k (3/3 reach 200); ratio 0.67"
     )
     assert ted["verdict"] == "holds"
     drqv2 = row("DEAR >= 25% more sample-efficient than DrQ-v2")
-    assert drqv2["evidence"].endswith("DrQ-v2 never (1/3 reach 200) by 30k")
-    assert drqv2["verdict"] == "holds"  # 20k <= 0.75 x 30k
+    assert drqv2["evidence"].endswith("DrQ-v2 not by 30k (1/3 reach 200)")
+    assert drqv2["verdict"] == "holds"  # 20k <= 0.75 x 30k, its median's lower bound
     # |cos| of the last evaluation: DEAR 1e-3 x (1, 2, 3), SEAR 2e-2 x (1, 2, 3)
     cos = row("DEAR's |cos| far below SEAR's")
     assert cos["evidence"] == "DEAR 2.0e-03, SEAR 4.0e-02: 20.0x"
@@ -543,8 +543,8 @@ def test_the_papers_claims_are_checked_per_task_on_the_seeds(tmp_path):
 
     assert efficiency_vs_ted(260)["verdict"] == "does not hold"
     assert efficiency_vs_ted(260)["evidence"].endswith("ratio 1.00")
-    assert efficiency_vs_ted(300)["verdict"] == "undecided: the baseline ran too short"
-    assert efficiency_vs_ted(360)["verdict"] == "undecided: neither reaches it"
+    assert efficiency_vs_ted(300)["verdict"] == "undecided: the runs are too short to tell"
+    assert efficiency_vs_ted(360)["verdict"] == "undecided: neither's median seed reaches it"
     # Without SEAR, its claims say so; a second DEAR experiment on the task is refused.
     without = {r["claim"]: r["verdict"] for r in claims.check(runs[::2], threshold=200)}
     assert without["DEAR's return >= SEAR's"] == "no data: no SEAR run"
@@ -557,6 +557,39 @@ def test_the_papers_claims_are_checked_per_task_on_the_seeds(tmp_path):
     saved = json.loads(out.with_suffix(".json").read_text())
     assert saved["threshold"] == 200 and len(saved["claims"]) == 6
     assert "| DEAR's return >= SEAR's" in out.with_suffix(".md").read_text()
+
+
+def test_sample_efficiency_is_decided_only_where_the_censored_median_allows():
+    """A seed that never reached the threshold took more than its last evaluated frame: the
+    median over seeds lies between bounds, and the claim (DEAR's median <= 0.75 x the
+    baseline's) is decided only where the bounds decide it."""
+
+    def seeds(frames_to, last):
+        n = len(frames_to)
+        return claims.Seeds(np.zeros(n), np.array(frames_to, float), np.full(n, last), np.ones(n))
+
+    def verdict(dear, baseline):
+        return claims._efficiency("t", "ted", {"dear": dear, "ted": baseline}, 500)
+
+    never = np.inf
+    # TED's median of (10k, never by 100k) is between 55k and infinity: DEAR's 70k may or
+    # may not be 25% below it; against a baseline that ran to 1M it is.
+    row = verdict(seeds([70e3, 70e3], 1e6), seeds([10e3, never], 100e3))
+    assert row["verdict"] == "undecided: the runs are too short to tell"
+    assert row["evidence"] == (
+        "median frames to 500: DEAR 70k (2/2 reach 500), TED not by 55k (1/2 reach 500)"
+    )
+    assert verdict(seeds([70e3, 70e3], 1e6), seeds([10e3, never], 1e6))["verdict"] == "holds"
+    # DEAR's (10k, never by 100k) against TED's 900k: at most 0.75 x 900k needs more frames
+    assert verdict(seeds([10e3, never], 100e3), seeds([900e3] * 2, 1e6))["verdict"] == (
+        "undecided: the runs are too short to tell"
+    )
+    # DEAR never by 1M against TED at 800k: 1M > 0.75 x 800k
+    row = verdict(seeds([never] * 3, 1e6), seeds([800e3] * 3, 1e6))
+    assert row["verdict"] == "does not hold"
+    # three seeds, one censored beyond the other two: the median is exact (ratio 0.60)
+    row = verdict(seeds([300e3, 300e3, never], 1e6), seeds([500e3, 500e3, 600e3], 1e6))
+    assert row["verdict"] == "holds" and row["evidence"].endswith("; ratio 0.60")
 
 
 def test_table_ii_reads_logs_older_than_a_column_and_marks_mixed_frames():

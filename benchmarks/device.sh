@@ -66,8 +66,8 @@ while [ $# -gt 0 ]; do
       python3 -m benchmarks.multihost --out "$out/multihost.json"
       ;;
     gpu)
-      export CUDA_VISIBLE_DEVICES=$1
-      bench_pin=(taskset -c "$(cores_of "$1")"); shift
+      [[ $1 =~ ^[0-9]+$ ]] || { echo "gpu takes a GPU number, got '$1'" >&2; exit 2; }
+      bench_pin=(env CUDA_VISIBLE_DEVICES="$1" taskset -c "$(cores_of "$1")"); shift
       ;;
     bench)
       name=$1; shift

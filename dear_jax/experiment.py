@@ -100,6 +100,13 @@ def validate(config: ConfigDict) -> None:
         wideconv.parse_constants(config.agent.kernels)
     except ValueError as e:
         raise ValueError(f"agent.kernels: {e}") from None
+    if config.agent.kernels and networks.stack_for(config.agent.conv_stack) != "pallas":
+        log.warning(
+            "agent.kernels=%r sets the Pallas stacks' constants, but the conv stacks run in XLA "
+            "here (agent.conv_stack=%r): it changes nothing",
+            config.agent.kernels,
+            config.agent.conv_stack,
+        )
     positive = (
         "seeds",
         "envs_per_seed",

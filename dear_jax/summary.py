@@ -111,7 +111,11 @@ def write_summary(
     columns += ["final eval success"] if spec.has_success else []
     table = format_table(columns, rows)
     until = f"stopped by {stopped} at " if stopped else ""
-    kernels = f" ({config.agent.kernels})" if config.agent.kernels else ""
+    kernels = (
+        f" ({config.agent.kernels})"
+        if config.agent.kernels and summary["conv_stack"] == "pallas"
+        else ""
+    )
     text = (
         f"# {config.agent.method} on {config.env.task}\n\n"
         f"{until}{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, "

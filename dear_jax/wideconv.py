@@ -76,7 +76,9 @@ WGRAD_STEPS = 32  # steps of one program of a filter gradient (at most; see belo
 # until its grid, over every vmapped seed, has at least WGRAD_MIN_PROGRAMS programs; 0: always
 # WGRAD_STEPS. A lone seed's 35 x 35 layer at batch 512 has 307 programs of 32 steps, ~2 per SM of
 # an H100, where five seeds have 1,535; more programs also mean more partial sums to add up.
-# Not yet timed: `benchmarks/update.py --kernels WGRAD_MIN_PROGRAMS=N` compares settings.
+# Not yet timed: `benchmarks/update.py --kernels WGRAD_MIN_PROGRAMS=N` compares settings. With it
+# set, how many seeds share a device changes a filter gradient's summation order (its rounding):
+# the seed axes and splits over devices are then no longer the same bit for bit.
 WGRAD_MIN_PROGRAMS = 0
 WGRAD_WARPS = 2
 # A filter gradient's products as g^T x (the output gradient's block transposed once per step)
@@ -108,28 +110,52 @@ TUNABLE = (
 )
 
 
-def parse_constants(text: str) -> dict[str, int]:
-    """ "NAME=INT,..." ("" for none) -> {NAME: INT}, each NAME one of TUNABLE."""
-    setting = {}
-    for item in filter(None, (part.strip() for part in text.split(","))):
-        name, eq, value = item.partition("=")
+# Constants that must be powers of two (Triton's block shapes, warps) or at least 1; switches 0/1.
+_POWERS_OF_TWO = ("BLOCK", "NUM_WARPS", "WGRAD_BLOCK", "WGRAD_STEPS", "WGRAD_WARPS")
+_SWITCHES = ("WGRAD_G_FIRST", "TAP_LOOP")
+
+
+def parse_constants(setting: str | dict) -> dict[str, int]:
+    """ "NAME=INT,..." ("" for none) or {NAME: INT} -> {NAME: INT}, each NAME one of TUNABLE
+    and each value one it can take; otherwise a ValueError naming the item."""
+    if isinstance(setting, str):
+        items = [part.strip() for part in setting.split(",") if part.strip()]
+        pairs = [item.partition("=") for item in items]
+    else:
+        items = [f"{name}={value}" for name, value in setting.items()]
+        pairs = [(name, "=", str(value)) for name, value in setting.items()]
+    parsed = {}
+    for item, (name, eq, value) in zip(items, pairs):
+        name = name.strip()
         if name not in TUNABLE or not eq:
             raise ValueError(
                 f"kernel constant {item!r}: give NAME=INT with NAME one of {', '.join(TUNABLE)}"
             )
         try:
-            setting[name] = int(value)
+            number = int(value)
         except ValueError:
-            raise ValueError(f"kernel constant {item!r}: {value!r} is not an integer") from None
-    return setting
+            raise ValueError(
+                f"kernel constant {item!r}: {value.strip()!r} is not an integer"
+            ) from None
+        if name in _SWITCHES and number not in (0, 1):
+            raise ValueError(f"kernel constant {item!r}: {name} is a switch, 0 or 1")
+        if name in _POWERS_OF_TWO and (number < 1 or number & (number - 1)):
+            raise ValueError(f"kernel constant {item!r}: {name} must be a power of two")
+        minimum = 1 if name.endswith("STAGES") else 0
+        if number < minimum:
+            raise ValueError(f"kernel constant {item!r}: {name} must be at least {minimum}")
+        parsed[name] = number
+    return parsed
 
 
 @contextlib.contextmanager
 def constants(setting: str | dict):
-    """This module's constants set as `setting` says ("NAME=INT,..." or a dict) while the block
-    runs, then restored. They are read as programs are traced (a jitted function traced
-    before keeps what it was traced with)."""
-    setting = parse_constants(setting) if isinstance(setting, str) else setting
+    """This module's constants set as `setting` says ("NAME=INT,..." or a dict: `parse_constants`)
+    while the block runs, then restored, also when it raises. They are read as programs are
+    traced (a jitted function traced before keeps what it was traced with), and they are the
+    process's: programs traced in other threads meanwhile see them too (the trainer traces its
+    Pallas stacks in the update only, on the main thread)."""
+    setting = parse_constants(setting)
     old = {name: globals()[name] for name in setting}
     try:
         for name, value in setting.items():

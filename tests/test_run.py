@@ -555,6 +555,21 @@ def test_configs_that_cannot_work_are_refused_by_name(overrides, message, tmp_pa
     assert not (tmp_path / "checkpoints").exists()  # refused before anything was allocated
 
 
+def test_kernel_constants_with_the_xla_stack_are_named_as_doing_nothing(caplog):
+    """agent.kernels sets the Pallas stacks' constants: with XLA's convolutions (this CPU
+    machine's "auto") the run is told it changes nothing; set, they are accepted."""
+    with caplog.at_level("WARNING", logger="dear_jax"):
+        experiment.validate(tiny_config(**{"agent.kernels": "BLOCK=64"}))
+    assert "agent.kernels='BLOCK=64' sets the Pallas stacks' constants" in caplog.text
+    assert "agent.conv_stack='auto'): it changes nothing" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="dear_jax"):
+        experiment.validate(
+            tiny_config(**{"agent.kernels": "BLOCK=64", "agent.conv_stack": "pallas"})
+        )
+    assert "agent.kernels" not in caplog.text
+
+
 def _overrides(config) -> list[str]:
     """--config.key=value arguments that make configs/smoke.py into `config`."""
     base = lanes.flatten(smoke.get_config().to_dict())

@@ -339,7 +339,22 @@ def test_filter_gradients_of_any_steps_are_the_same_under_nested_vmap(monkeypatc
             alone = one(x[i, j], jax.tree.map(lambda a, i=i, j=j: a[i, j], layers))
             for a, b in zip(jax.tree.leaves(nested), jax.tree.leaves(alone), strict=True):
                 np.testing.assert_allclose(a[i, j], b, rtol=1e-5, atol=1e-5)
-    assert steps_of(10**6, 1) == wideconv.WGRAD_STEPS  # in the interpreter: always WGRAD_STEPS
+    # A filter gradient whose input is shared by the vmapped seeds (unbatched), its output
+    # gradients not: each seed's is its own.
+    layer = wideconv._Pass(images=2, size_in=7, size=5, kernel=3, pad=0)
+    acts = wideconv._Grid(2, 7).flatten(x[0, 0])
+    grads = jnp.stack([layer.out.flatten(_normal(8 + s, (2, 5, 5, 32))) for s in range(2)])
+    shared = jax.jit(jax.vmap(lambda g: wideconv._wgrad(acts, g, layer)))(grads)
+    for s in range(2):
+        alone = jax.jit(lambda g: wideconv._wgrad(acts, g, layer))(grads[s])
+        for a, b in zip(shared, alone, strict=True):
+            np.testing.assert_allclose(a[s], b, rtol=1e-5, atol=1e-5)
+    # 10^5 rows in steps of 16: 196 programs of 32 steps; >= 1,024 programs over 1 / 3 / 16
+    # vmapped copies take 4 / 16 / 32 steps, on GPUs only
+    monkeypatch.setattr(wideconv, "WGRAD_MIN_PROGRAMS", 1024)
+    assert steps_of(10**5, 1) == 32  # the interpreter: always WGRAD_STEPS
+    monkeypatch.setattr(wideconv, "INTERPRET", False)
+    assert (steps_of(10**5, 1), steps_of(10**5, 3), steps_of(10**5, 16)) == (4, 16, 32)
 
 
 def test_kernel_constants_hold_inside_their_block_only():
@@ -361,6 +376,21 @@ def test_kernel_constants_hold_inside_their_block_only():
         wideconv.parse_constants("PRECISION=1")
     with pytest.raises(ValueError, match="'BLOCK=big': 'big' is not an integer"):
         wideconv.parse_constants("BLOCK=big")
+    assert wideconv.parse_constants(" BLOCK = 64 ,WGRAD_MIN_PROGRAMS=0") == {
+        "BLOCK": 64,
+        "WGRAD_MIN_PROGRAMS": 0,
+    }
+    for bad, why in [
+        ("BLOCK=96", "BLOCK must be a power of two"),
+        ("WGRAD_STEPS=0", "WGRAD_STEPS must be a power of two"),
+        ("TAP_LOOP=7", "TAP_LOOP is a switch, 0 or 1"),
+        ("CONV_STAGES=0", "CONV_STAGES must be at least 1"),
+        ("WGRAD_MIN_PROGRAMS=-1", "WGRAD_MIN_PROGRAMS must be at least 0"),
+    ]:
+        with pytest.raises(ValueError, match=why):
+            wideconv.parse_constants(bad)
+    with pytest.raises(ValueError, match="'jax=1': give NAME=INT"), wideconv.constants({"jax": 1}):
+        pass
     with pytest.raises(ValueError, match="'BLOCK': give NAME=INT"):
         update.AgentConfig(action_dim=6, kernels="BLOCK")
 

@@ -83,6 +83,7 @@ def main():
     parser.add_argument("--dtype", default="float32", choices=["float32", "bfloat16"])
     parser.add_argument("--iters", type=int, default=10)
     parser.add_argument("--conv-stack", default="xla", choices=networks.STACKS)
+    parser.add_argument("--kernels", default="", help="the Pallas stacks' constants, NAME=INT,...")
     parser.add_argument("--top", type=int, default=25)
     parser.add_argument("--out", default=None)
     parser.add_argument("--hlo-out", default=None, help="write the compiled HLO text here")
@@ -91,7 +92,13 @@ def main():
         parser.error("it reads the GPU's kernel events from a profile: run it on a GPU machine")
 
     step, states, batches, hp = update_setup(
-        args.method, args.seeds, args.batch, args.dtype, args.seed_axis, conv_stack=args.conv_stack
+        args.method,
+        args.seeds,
+        args.batch,
+        args.dtype,
+        args.seed_axis,
+        conv_stack=args.conv_stack,
+        kernels=args.kernels,
     )
     keys = jax.random.split(jax.random.key(0), args.seeds)
     compiled_text = step.lower(states, batches, keys, hp).compile().as_text()

@@ -52,8 +52,10 @@ def update_setup(
     encoder="pool",
     filter_gradient="cudnn",
     conv_stack="xla",
+    kernels="",
 ):
-    """(jitted update over all seeds, fresh agent states, random batches, hparams)."""
+    """(jitted update over all seeds, fresh agent states, random batches, hparams); `kernels`:
+    the Pallas stacks' constants, as a run's agent.kernels sets them."""
     cfg = update.AgentConfig(
         action_dim=action_dim,
         method=method,
@@ -62,6 +64,7 @@ def update_setup(
         encoder=encoder,
         filter_gradient=filter_gradient,
         conv_stack=conv_stack,
+        kernels=kernels,
     )
     states = jax.jit(functools.partial(update.init_seeds, cfg))(
         jax.random.split(jax.random.key(0), seeds)
@@ -88,6 +91,7 @@ def time_update(
     encoder: str = "pool",
     filter_gradient: str = "cudnn",
     conv_stack: str = "xla",
+    kernels: str = "",
 ) -> dict:
     """Milliseconds per call, and the host's dispatch per call (`common.timed_calls`)."""
     step, states, batches, hp = update_setup(
@@ -101,6 +105,7 @@ def time_update(
         encoder,
         filter_gradient,
         conv_stack,
+        kernels,
     )
     keys = jax.random.split(jax.random.key(2), (iters + 1, seeds))
     t0 = time.perf_counter()
@@ -195,10 +200,10 @@ def main():
                     args.kernels,
                 ):
                     encoder = args.drqv2_encoder if m == "drqv2" else "pool"
-                    with wideconv.constants(kernels):
-                        r = time_update(
-                            m, s, args.batch, args.iters, d, 6, how, impl, encoder, fg, cs
-                        )
+                    setting = ",".join(f"{n}={v}" for n, v in kernels.items())
+                    r = time_update(
+                        m, s, args.batch, args.iters, d, 6, how, impl, encoder, fg, cs, setting
+                    )
                     rows.append(dict(r, kernels=kernels))
                     print(
                         f"{m} {d} {how} {impl} {fg} {cs} {kernels or ''} seeds={s}: "

@@ -1,5 +1,5 @@
-"""Where a run's arrays live: the 1-D mesh ("seeds") its lanes are split over, and each process's
-share of them (`Hosts`).
+"""Where a run's arrays live: the mesh its lanes are split over, and each process's share of them
+(`Hosts`).
 
 Several devices (`config.devices`): the seeds axis of every array the loop carries (agent,
 replay, env states and timesteps, returns) is split over a 1-D mesh of N local devices, axis
@@ -7,6 +7,12 @@ replay, env states and timesteps, returns) is split over a 1-D mesh of N local d
 (`dear_jax/programs.py`), physics and the env's device half stay where their seeds live, and
 one render pool on the host feeds them all. `devices=1` keeps arrays uncommitted on the default
 device, with no mesh.
+
+Several devices per lane (`config.devices_per_seed` = k > 1, one process): the mesh is 2-D,
+("seeds", "batch"), N / k devices by k. Each lane lives whole on each of its k devices (every
+array is replicated over "batch"); each device draws its own k-th of the lane's batch and the
+update averages the gradients over "batch" (`lax.pmean`), so the k replicas stay equal and
+learn as one lane of the whole batch would. For a lane too slow on one device (a lone SEAR seed).
 
 Several processes (`jax.distributed`): the mesh spans every process's `config.devices` devices
 and the loop's arrays are global; each process steps, renders, logs and stores its own block of
@@ -22,10 +28,15 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+BATCH = "batch"  # the mesh axis a lane's batch is split over (devices_per_seed > 1)
 
-def num_devices(devices, seeds: int, available: int) -> int:
+
+def num_devices(devices, seeds: int, available: int, per_seed: int = 1) -> int:
     """`config.devices` ("all" or an int) as a device count, refused unless it fits the host's
-    `available` devices and splits the `seeds` evenly (a sweep's lanes: seeds x settings)."""
+    `available` devices, splits into groups of `per_seed` (`config.devices_per_seed`) and the
+    groups split the `seeds` evenly (a sweep's lanes: seeds x settings)."""
+    if not isinstance(per_seed, int) or isinstance(per_seed, bool) or per_seed < 1:
+        raise ValueError(f"devices_per_seed must be an int >= 1, got {per_seed!r}")
     if devices == "all":
         n = available
     elif isinstance(devices, int) and not isinstance(devices, bool) and devices >= 1:
@@ -38,23 +49,39 @@ def num_devices(devices, seeds: int, available: int) -> int:
             f"devices={devices} but {available} {jax.default_backend()} device(s) exist here; "
             f"valid: {counts}, or 'all'"
         )
-    if seeds % n:
-        valid = [d for d in range(1, available + 1) if seeds % d == 0]
+    if n % per_seed:
         raise ValueError(
-            f"seeds={seeds} cannot be split evenly over devices={devices} ({n} devices); valid "
-            f"devices for {seeds} seeds: {', '.join(map(str, valid))}; or make seeds a multiple "
-            f"of {n}"
+            f"devices={devices} ({n} devices) cannot be split into groups of "
+            f"devices_per_seed={per_seed}; make devices a multiple of {per_seed}"
+        )
+    groups = n // per_seed  # the lanes' blocks
+    if seeds % groups:
+        valid = [g * per_seed for g in range(1, available // per_seed + 1) if seeds % g == 0]
+        grouped = f" in groups of devices_per_seed={per_seed}" if per_seed > 1 else ""
+        raise ValueError(
+            f"seeds={seeds} cannot be split evenly over devices={devices} ({n} devices{grouped}); "
+            f"valid devices for {seeds} seeds: {', '.join(map(str, valid))}; or make seeds a "
+            f"multiple of {groups}"
         )
     return n
 
 
-def seed_mesh(devices, num_lanes: int) -> Mesh | None:
+def seed_mesh(devices, num_lanes: int, per_seed: int = 1) -> Mesh | None:
     """The 1-D mesh ("seeds") of the first `devices` (`config.devices`) local devices; None for
     one device. With several processes, of the first `devices` devices of every process, in
-    process order: process p holds the p-th block of the `num_lanes` lanes."""
+    process order: process p holds the p-th block of the `num_lanes` lanes. With `per_seed`
+    (`config.devices_per_seed`) > 1, the 2-D mesh ("seeds", "batch") of those devices."""
     hosts = jax.process_count()
     per_host = lanes_per_host(num_lanes, hosts)
-    n = num_devices(devices, per_host, jax.local_device_count())
+    n = num_devices(devices, per_host, jax.local_device_count(), per_seed)
+    if per_seed > 1:
+        if hosts > 1:
+            raise ValueError(
+                f"devices_per_seed={per_seed} needs one process; this run has {hosts} "
+                "(split lanes over processes with devices_per_seed=1)"
+            )
+        grid = np.array(jax.local_devices()[:n]).reshape(n // per_seed, per_seed)
+        return Mesh(grid, ("seeds", BATCH))
     if hosts == 1:
         return None if n == 1 else Mesh(np.array(jax.local_devices()[:n]), ("seeds",))
     devices = [[d for d in jax.devices() if d.process_index == p][:n] for p in range(hosts)]
@@ -71,6 +98,16 @@ def lanes_per_host(num_lanes: int, hosts: int) -> int:
             f"a multiple of {hosts}"
         )
     return num_lanes // hosts
+
+
+def batch_split(mesh: Mesh | None) -> int:
+    """The devices each lane's batch is split over (1: none)."""
+    return 1 if mesh is None else mesh.shape.get(BATCH, 1)
+
+
+def seed_groups(mesh: Mesh | None) -> int:
+    """The blocks the lanes are split into: one per device, or per group of `batch_split`."""
+    return 1 if mesh is None else mesh.shape["seeds"]
 
 
 def seed_sharding(mesh: Mesh | None) -> NamedSharding | None:

@@ -50,6 +50,7 @@ RESUMABLE_CHANGES = (
     "agent.kernels",
     "replay.disk",
     "devices",
+    "devices_per_seed",
 )
 
 
@@ -143,7 +144,12 @@ def validate(config: ConfigDict) -> None:
         )
     lanes.sweep_values(config)  # unknown or ineffective sweep keys
     per_host = lanes_per_host(lanes.num_lanes(config), jax.process_count())
-    num_devices(config.devices, per_host, jax.local_device_count())
+    if a.batch_size % config.devices_per_seed:
+        raise ValueError(
+            f"agent.batch_size={a.batch_size} cannot be split evenly over devices_per_seed="
+            f"{config.devices_per_seed} devices; make it a multiple of {config.devices_per_seed}"
+        )
+    num_devices(config.devices, per_host, jax.local_device_count(), config.devices_per_seed)
     if config.env.background_dir and not pathlib.Path(config.env.background_dir).is_dir():
         raise FileNotFoundError(
             f"env.background_dir {config.env.background_dir!r} is not a folder; give a DAVIS-2017 "

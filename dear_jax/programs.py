@@ -1,6 +1,7 @@
 """The loop's jitted programs (act, learn, add, the evaluation's policy step), each over all
 lanes at once; with a mesh, act, learn and add run each device's block of lanes on that device
-(`jax.shard_map`, no collectives: lanes are independent).
+(`jax.shard_map`; lanes are independent, so the only collective is the gradients' mean over a
+lane's devices where its batch is split, `config.devices_per_seed`).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as P
 from ml_collections import ConfigDict
 
-from dear_jax import lanes, losses, replay, update
+from dear_jax import devices, lanes, losses, replay, update
 from dear_jax.experiment import hparams
 
 
@@ -62,14 +63,15 @@ def build_programs(
     a = config.agent
     num_seeds = lanes.num_lanes(config)
     nets = update.make_networks(acfg)
+    split = devices.batch_split(mesh)  # devices per lane, each drawing 1 / split of its batch
 
     def per_device(fn):
         """`fn` of a block of seeds ([S / N, ...] arguments), run where the block lives."""
         if mesh is None:
             return fn
-        # check_vma=False: the bodies hold no collectives (each device runs its own seeds), so
-        # there is nothing for shard_map's varying-axes types to check, and every output varies
-        # over "seeds" by construction. With the check on, each pallas_call (wideconv, wgrad)
+        # check_vma=False: the bodies hold no collectives across "seeds" (each device runs its
+        # own seeds), and over "batch" (a 2-D mesh) every output is the same on a lane's devices
+        # by construction (the gradients are averaged over them). With the check on, each pallas_call (wideconv, wgrad)
         # would have to state its outputs' varying axes in its out_shape, a jax-version-specific
         # annotation kernels meant for one device do not carry; without it, tracing fails.
         return jax.shard_map(
@@ -96,7 +98,7 @@ def build_programs(
         return replay.sample(
             buffer,
             key,
-            a.batch_size,
+            a.batch_size // split,
             nstep=a.nstep,
             gamma=a.discount,
             frame_stack=acfg.frame_stack,
@@ -104,7 +106,8 @@ def build_programs(
         )
 
     def update_one(agent, batch, key, hp_seed):
-        return update.update(agent, batch, key, hp_seed, cfg=acfg)
+        axis = devices.BATCH if split > 1 else None
+        return update.update(agent, batch, key, hp_seed, cfg=acfg, mean_over=axis)
 
     # One update per seed per call; the loop calls it E / update_every_steps times (dispatch is
     # asynchronous). A lax.scan over the updates made tests/test_run.py's tiny runs ~3x slower
@@ -117,6 +120,8 @@ def build_programs(
     # seed's replay out of the buffer first, made DEAR's learn program on an H100 take 395
     # instead of 295 ms per 5 x 16 iteration (benchmarks/RESULTS.md, "The training loop").
     def learn_block(agent, buffer, keys, hp):
+        if split > 1:  # each of a lane's devices draws (and crops) its own part of the batch
+            keys = jax.vmap(jax.random.fold_in, (0, None))(keys, jax.lax.axis_index(devices.BATCH))
         k_sample, k_update = jnp.moveaxis(jax.vmap(jax.random.split)(keys), 1, 0)
         batches = jax.vmap(sample_one)(buffer, k_sample)
         return update.over_seeds(update_one, a.seed_axis)(agent, batches, k_update, hp)

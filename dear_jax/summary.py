@@ -86,6 +86,7 @@ def write_summary(
         "lanes": len(runs),
         "sweep": {k: list(v) for k, v in lanes.sweep_values(config).items()},
         "devices": devices,
+        "devices_per_seed": config.devices_per_seed,
         "processes": jax.process_count(),
         "envs_per_seed": config.envs_per_seed,
         "frames_per_seed": counters["frame"],
@@ -116,10 +117,13 @@ def write_summary(
         if config.agent.kernels and summary["conv_stack"] == "pallas"
         else ""
     )
+    on = summary["device"] if devices == 1 else f"{devices} x {summary['device']}"
+    if config.devices_per_seed > 1:
+        on += f", {config.devices_per_seed} per {unit}"
     text = (
         f"# {config.agent.method} on {config.env.task}\n\n"
         f"{until}{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, "
-        f"{wall:.0f} s of training ({fps:.0f} frames/s in all) on {summary['device']} "
+        f"{wall:.0f} s of training ({fps:.0f} frames/s in all) on {on} "
         f"({spec.backend} physics, {summary['conv_stack']} conv stacks{kernels}, evaluations on "
         f"{summary['eval_device']}); {_distraction_line(spec)}; render "
         f"settings {summary['render']}; commit {summary['provenance']['commit']}, jax "

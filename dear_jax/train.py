@@ -23,7 +23,7 @@ from ml_collections import ConfigDict
 
 from dear_jax import lanes, replay
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
-from dear_jax.devices import Hosts, seed_mesh
+from dear_jax.devices import Hosts, batch_split, seed_groups, seed_mesh
 from dear_jax.evaluator import EvalProcess, LocalEvaluator
 from dear_jax.experiment import (
     OWN_PROCESS,
@@ -52,7 +52,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
     (`"stopped"`: the signal's name) and raises signals.Stopped.
     """
     validate(config)
-    mesh = seed_mesh(config.devices, lanes.num_lanes(config))
+    mesh = seed_mesh(config.devices, lanes.num_lanes(config), config.devices_per_seed)
     hosts = Hosts(mesh, lanes.num_lanes(config))
     workdir = pathlib.Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
@@ -154,7 +154,7 @@ def _check_fits(config: ConfigDict, spec, mesh) -> None:
             f"agent.nstep={config.agent.nstep} is longer than an episode of {spec.name} "
             f"({spec.episode_steps} agent steps); lower agent.nstep"
         )
-    lanes_per_device = lanes.num_lanes(config) // (1 if mesh is None else mesh.size)
+    lanes_per_device = lanes.num_lanes(config) // seed_groups(mesh)
     replay.check_fits(lanes_per_device, config.replay.capacity, spec.frame_shape, spec.action_dim)
 
 
@@ -172,10 +172,12 @@ def _log_split(mesh, hosts: Hosts, num_lanes: int) -> None:
     if mesh is None:
         return
     log.info(
-        "%d lanes split over %d devices (%d each) of %d process(es): %s; here lanes %d to %d",
+        "%d lanes split over %d devices (%d each, each lane's batch over %d) of %d process(es): "
+        "%s; here lanes %d to %d",
         num_lanes,
         mesh.size,
-        num_lanes // mesh.size,
+        num_lanes // seed_groups(mesh),
+        batch_split(mesh),
         hosts.count,
         ", ".join(str(d) for d in mesh.devices),
         hosts.lanes[0],

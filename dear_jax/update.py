@@ -400,17 +400,28 @@ def actor_loss(
 
 
 def update(
-    state: AgentState, batch: Batch, key: jax.Array, hp: HParams, *, cfg: AgentConfig
+    state: AgentState,
+    batch: Batch,
+    key: jax.Array,
+    hp: HParams,
+    *,
+    cfg: AgentConfig,
+    mean_over: str | None = None,
 ) -> tuple[AgentState, dict]:
-    """One DrQ-v2 update for one seed; bind `cfg` (functools.partial) before jit/vmap."""
+    """One DrQ-v2 update for one seed; bind `cfg` (functools.partial) before jit/vmap.
+
+    mean_over: a mapped axis (shard_map's) whose members each hold an equal part of the seed's
+    batch: the gradients and metrics are averaged over it (`lax.pmean`), so every member takes
+    the step of the whole batch and the states stay equal."""
     with (
         networks.conv_settings(filter_gradient=cfg.filter_gradient, stack=cfg.conv_stack),
         wideconv.constants(cfg.kernels),
     ):
-        return _update(state, batch, key, hp, cfg)
+        return _update(state, batch, key, hp, cfg, mean_over)
 
 
-def _update(state, batch, key, hp, cfg):
+def _update(state, batch, key, hp, cfg, mean_over=None):
+    mean = (lambda x: x) if mean_over is None else (lambda x: jax.lax.pmean(x, mean_over))
     main_opt, actor_opt = _optimizers(cfg)
     k_learner, k_actor = jax.random.split(key)
     std = std_schedule(state.steps, hp)
@@ -419,6 +430,7 @@ def _update(state, batch, key, hp, cfg):
     grads, (metrics, z) = jax.grad(learner_loss, has_aux=True)(
         learner, state.params["actor"], state.target_critic, batch, k_learner, hp, std, cfg=cfg
     )
+    grads, metrics = mean((grads, metrics))
     updates, opt_state = main_opt.update(grads, state.opt_state, learner)
     learner = optax.apply_updates(learner, updates)
 
@@ -427,6 +439,7 @@ def _update(state, batch, key, hp, cfg):
     actor_grads, actor_metrics = jax.grad(actor_loss, has_aux=True)(
         state.params["actor"], learner["critic"], z, k_actor, hp, std, cfg=cfg
     )
+    actor_grads, actor_metrics = mean((actor_grads, actor_metrics))
     actor_updates, actor_opt_state = actor_opt.update(actor_grads, state.actor_opt_state)
     actor_params = optax.apply_updates(state.params["actor"], actor_updates)
 

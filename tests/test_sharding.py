@@ -70,6 +70,7 @@ def _child(root: pathlib.Path) -> None:
     from jax.sharding import PartitionSpec as P
 
     from dear_jax import loop, train
+    from dear_jax.devices import batch_split
     from envs import dmc
     from envs.physics import MjxPhysics
 
@@ -79,7 +80,8 @@ def _child(root: pathlib.Path) -> None:
 
     def recording_save(run, wall_s):  # every checkpoint: after the start and after resuming
         devices = 1 if run.mesh is None else run.mesh.size
-        placements.append({"devices": devices, **_placements(run)})
+        per_seed = batch_split(run.mesh)
+        placements.append({"devices": devices, "per_seed": per_seed, **_placements(run)})
         save(run, wall_s)
 
     loop.Loop.save = recording_save
@@ -89,6 +91,9 @@ def _child(root: pathlib.Path) -> None:
     train.train(config(total_frames=CUT, devices=2), root / "from_split")
     train.train(config(total_frames=END, devices=2), root / "to_split")
     train.train(config(total_frames=END), root / "from_split")
+    # Each seed's batch over 2 devices, then resumed on one.
+    train.train(config(total_frames=CUT, devices=2, devices_per_seed=2), root / "per_seed")
+    train.train(config(total_frames=END), root / "per_seed")
 
     # MJX physics keeps each seed's state on its device (CPU runs use CPU physics).
     mesh = Mesh(np.array(jax.devices()), ("seeds",))
@@ -165,6 +170,87 @@ def _pallas_child(root: pathlib.Path) -> None:
         )
 
 
+def _batch_child(root: pathlib.Path) -> None:
+    """One learn call with each lane's batch split over 2 devices (devices_per_seed=2), and the
+    same update on one device of the batch the two devices drew, gathered; with nothing random
+    inside the update (no shift, no action noise), the two must agree. Writes root/batch.npz:
+    the split run's parameters and metrics (its two replicas' equality under "replicas"), and
+    the gathered batch's."""
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    from dear_jax import devices, experiment, replay, update
+    from dear_jax.programs import build_programs
+
+    seeds, envs, action_dim, rows = 2, 2, 6, 12
+    no_noise = {"agent.std_init": 0.0, "agent.std_final": 0.0}
+    c = config(seeds=seeds, devices=2, devices_per_seed=2, **no_noise)
+    experiment.validate(c)
+    a = c.agent
+    acfg = dataclasses.replace(experiment.agent_config(c, action_dim), augment_pad=0)
+    hp = experiment.hparams(c)
+    rng = np.random.default_rng(0)
+    buffer = replay.init(100, envs, (84, 84, 3), action_dim, leading=(seeds,))
+    add = jax.jit(jax.vmap(replay.add))
+    for r in range(rows):
+        buffer = add(
+            buffer,
+            rng.integers(0, 256, (seeds, envs, 84, 84, 3), np.uint8),
+            rng.integers(0, 2, (seeds, envs, 84, 84), np.uint8),
+            rng.uniform(-1, 1, (seeds, envs, action_dim)).astype(np.float32),
+            rng.uniform(0, 1, (seeds, envs)).astype(np.float32),
+            np.ones((seeds, envs), np.float32),
+            np.full((seeds, envs), r == 0),
+        )
+    agent = update.init_seeds(acfg, jax.random.split(jax.random.key(0), seeds))
+    key = jax.random.key(2)
+
+    # The draws of the learn program (programs.build_programs), gathered into one batch.
+    def draw(buffer, seed_key, device):
+        k_sample, _ = jax.random.split(jax.random.fold_in(seed_key, device))
+        return replay.sample(
+            buffer, k_sample, a.batch_size // 2, nstep=a.nstep, gamma=a.discount, frame_stack=3
+        )
+
+    seed_keys = jax.random.split(key, seeds)
+    halves = [jax.vmap(draw, (0, 0, None))(buffer, seed_keys, d) for d in (0, 1)]
+    gather = lambda x, y: jnp.concatenate([x, y], axis=1)  # noqa: E731
+    one = jax.jit(jax.vmap(lambda s, b, k, h: update.update(s, b, k, h, cfg=acfg)))
+    whole = one(agent, jax.tree.map(gather, *halves), seed_keys, hp)
+    # Had both devices drawn the same half: what the split run must not equal.
+    repeated = one(agent, jax.tree.map(gather, halves[0], halves[0]), seed_keys, hp)
+
+    # learn donates the agent, whose device-0 buffers the split's may share: it runs last.
+    mesh = devices.seed_mesh(c.devices, seeds, c.devices_per_seed)
+    assert dict(mesh.shape) == {"seeds": 1, "batch": 2}, mesh.shape
+    put = lambda x: jax.device_put(x, devices.seed_sharding(mesh))  # noqa: E731
+    split_agent, split_metrics = build_programs(acfg, hp, c, mesh).learn(
+        put(agent), put(buffer), key
+    )
+    leaves = jax.tree.leaves((split_agent, split_metrics))
+    replicas = all(
+        len(x.addressable_shards) == 2
+        and np.asarray(x.addressable_shards[0].data).tobytes()
+        == np.asarray(x.addressable_shards[1].data).tobytes()
+        for x in leaves
+    )
+
+    out = {"replicas": replicas}
+    for name, (state, metrics) in [
+        ("split", (split_agent, split_metrics)),
+        ("whole", whole),
+        ("repeated", repeated),
+    ]:
+        # The optimisers' first moments are the (averaged) gradients themselves: Adam's first
+        # step, about lr * sign(gradient), would hide a wrong mean from the parameters alone.
+        moments = (state.opt_state, state.actor_opt_state)
+        for path, x in jax.tree_util.tree_leaves_with_path((state.params, metrics, moments)):
+            out[name + jax.tree_util.keystr(path)] = np.asarray(x)
+    np.savez(root / "batch.npz", **out)
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("sharding")
@@ -173,8 +259,8 @@ def runs(tmp_path_factory):
 
 
 def _run_child(what: str, root: pathlib.Path) -> None:
-    """This file as a script in a process with 4 CPU devices: `_child` ("runs") or
-    `_pallas_child` ("pallas")."""
+    """This file as a script in a process with 4 CPU devices: `_child` ("runs"), `_pallas_child`
+    ("pallas") or `_batch_child` ("batch")."""
     flags = RUNS_FLAGS if what == "runs" else FLAGS
     env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu", MUJOCO_GL="egl")
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(ROOT / "tests")])
@@ -208,6 +294,26 @@ def test_pallas_stacks_run_split_over_devices(pallas_programs):
     assert np.all(np.isfinite(one["mask_loss"])) and np.all(one["mask_loss"] > 0)
     for name in names:
         assert one[name].tobytes() == split[name].tobytes(), name
+
+
+def test_a_lanes_batch_split_over_devices_takes_the_whole_batchs_step(tmp_path):
+    """devices_per_seed=2: each device draws its own half of a lane's batch, and the averaged
+    gradients give both devices the step that one device takes on the two halves together
+    (float32 sums in another order: close, not equal); the replicas stay bit for bit equal."""
+    _run_child("batch", tmp_path)
+    out = np.load(tmp_path / "batch.npz")
+    assert bool(out["replicas"])
+    names = [k.removeprefix("split") for k in out.files if k.startswith("split")]
+    assert len(names) > 20 and "[1]['mask_loss']" in names
+    for name in names:
+        np.testing.assert_allclose(
+            out["split" + name], out["whole" + name], rtol=2e-5, atol=2e-6, err_msg=name
+        )
+    # Each device drew its own half: one half taken twice gives other losses and gradients.
+    moments = [n for n in names if n.startswith("[2]") and "mu" in n and "critic" in n]
+    assert moments, names
+    for name in ("[1]['critic_loss']", *moments):
+        assert not np.allclose(out["split" + name], out["repeated" + name], rtol=1e-3), name
 
 
 def test_a_split_run_is_the_same_run(runs):
@@ -253,7 +359,7 @@ def test_arrays_live_split_over_the_devices(runs):
 
     _, placements = runs
     seeds, everywhere = str(P("seeds")), str(P())
-    split = [p for p in placements["runs"] if p["devices"] > 1]
+    split = [p for p in placements["runs"] if p["devices"] > 1 and p["per_seed"] == 1]
     assert {p["devices"] for p in split} == {2}
     assert len(split) == 2  # one of a run that resumed on 2 devices
     for p in split:
@@ -269,6 +375,37 @@ def test_arrays_live_split_over_the_devices(runs):
         assert placements["mjx"][name] == [[seeds, 4]], name
 
 
+def test_a_run_with_each_seeds_batch_over_two_devices(runs):
+    """devices_per_seed=2: both seeds live whole on both devices (replicated over "batch"), the
+    run trains and says so in its summary, and it resumes on one device to the end."""
+    from jax.sharding import PartitionSpec as P
+
+    from dear_jax.checkpoint import Checkpointer
+    from dear_jax.logger import read_csv
+
+    root, placements = runs
+    [p] = [p for p in placements["runs"] if p["per_seed"] == 2]
+    # The mesh is 1 x 2 ("seeds" x "batch"): over a seeds axis of one device, P("seeds") and
+    # P() (XLA's name for some outputs) are the same layout, whole on both devices.
+    whole = {str(P("seeds")), str(P())}
+    for group in ("agent", "replay", "env", "timestep", "returns"):
+        assert {spec for spec, _ in p[group]} <= whole, (group, p)
+        assert {n for _, n in p[group]} == {2}, (group, p)
+    assert p["devices"] == 2
+    saved = Checkpointer(root / "per_seed" / "checkpoints", fingerprint={})
+    counters = saved.read_meta(CUT)[2]["counters"]
+    assert counters["updates"] >= 5 and counters["frame"] == CUT
+    arrays = saved.read_arrays(CUT)
+    import jax
+
+    assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(arrays) if x.dtype.kind == "f")
+    summary = json.loads((root / "per_seed" / "summary.json").read_text())
+    assert summary["devices"] == 1 and summary["frames_per_seed"] == END  # resumed on one
+    for seed in ("seed_0", "seed_1"):
+        frames = read_csv(root / "per_seed" / seed / "eval.csv")["frame"].tolist()
+        assert frames[-1] == END, frames
+
+
 def test_splits_that_cannot_work_are_refused_by_name(tmp_path):
     from dear_jax import devices, train
 
@@ -281,6 +418,23 @@ def test_splits_that_cannot_work_are_refused_by_name(tmp_path):
     with pytest.raises(ValueError, match=r"devices must be 'all' or an int >= 1, got 'two'"):
         devices.num_devices("two", 2, available=4)
     assert devices.num_devices("all", 8, available=4) == 4
+    with pytest.raises(
+        ValueError,
+        match=r"devices=3 \(3 devices\) cannot be split into groups of devices_per_seed=2",
+    ):
+        devices.num_devices(3, 1, available=4, per_seed=2)
+    with pytest.raises(
+        ValueError,
+        match=r"seeds=3 cannot be split evenly over devices=4 \(4 devices in groups of devices_per_seed=2\); valid devices for 3 seeds: 2;",
+    ):
+        devices.num_devices(4, 3, available=4, per_seed=2)
+    with pytest.raises(ValueError, match=r"devices_per_seed must be an int >= 1, got 0"):
+        devices.num_devices(2, 2, available=4, per_seed=0)
+    assert devices.num_devices(4, 1, available=4, per_seed=4) == 4
+    with pytest.raises(
+        ValueError, match=r"agent.batch_size=5 cannot be split evenly over devices_per_seed=2"
+    ):
+        train.train(config(devices=2, devices_per_seed=2, **{"agent.batch_size": 5}), tmp_path)
     assert devices.num_devices(1, 3, available=1) == 1
     # The trainer refuses before anything is written (this process has one device).
     with pytest.raises(ValueError, match=r"devices=2 but 1 cpu device\(s\) exist here"):
@@ -291,9 +445,13 @@ def test_splits_that_cannot_work_are_refused_by_name(tmp_path):
 def test_devices_may_change_on_resume():
     from dear_jax import experiment
 
-    assert "devices" in experiment.RESUMABLE_CHANGES
+    assert {"devices", "devices_per_seed"} <= set(experiment.RESUMABLE_CHANGES)
     assert experiment.fingerprint(config(devices="all")) == experiment.fingerprint(config())
+    split = config(devices=2, devices_per_seed=2)
+    assert experiment.fingerprint(split) == experiment.fingerprint(config())
 
 
 if __name__ == "__main__":
-    {"runs": _child, "pallas": _pallas_child}[sys.argv[1]](pathlib.Path(sys.argv[2]))
+    {"runs": _child, "pallas": _pallas_child, "batch": _batch_child}[sys.argv[1]](
+        pathlib.Path(sys.argv[2])
+    )

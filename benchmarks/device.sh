@@ -14,11 +14,12 @@
 #   gpu N               the bench stages after it run on GPU number N alone, pinned to that
 #                       GPU's share of the cores (as `start` pins a run), e.g. to measure on
 #                       one GPU while runs train on the others
-#   start NAME GPU ARGS  a detached `run.py ARGS --workdir runs/NAME` on GPU number GPU ("all":
-#                       every GPU), its console in runs/NAME.out; it outlives this call. ARGS
-#                       are the words that start with `--` (write `--config=FILE`). A run on
-#                       one GPU is pinned to that GPU's share of the cores (GPU i of G: the
-#                       i-th of G equal blocks), so runs side by side don't share cores. Several runs
+#   start NAME GPU ARGS  a detached `run.py ARGS --workdir runs/NAME` on GPU number GPU, or the
+#                       GPUs of a list ("0,1"; "all": every GPU), its console in runs/NAME.out;
+#                       it outlives this call. ARGS are the words that start with `--` (write
+#                       `--config=FILE`). A run on some GPUs is pinned to their shares of the
+#                       cores (GPU i of G: the i-th of G equal blocks), so runs side by side
+#                       don't share cores. Several runs
 #                       on one GPU: give each a share of its memory, e.g.
 #                       `XLA_PYTHON_CLIENT_MEM_FRACTION=0.22 bash benchmarks/device.sh start ...`
 #   wait S              sleep up to S seconds while runs train, printing their last log lines;
@@ -80,7 +81,7 @@ while [ $# -gt 0 ]; do
       while [ $# -gt 0 ] && [[ $1 == --* ]]; do args+=("$1"); shift; done
       visible=$([ "$gpu" = all ] && nvidia-smi --query-gpu=index --format=csv,noheader | paste -sd, || echo "$gpu")
       pin=()
-      [ "$gpu" != all ] && pin=(taskset -c "$(cores_of "$gpu")")
+      [ "$gpu" != all ] && pin=(taskset -c "$(for g in ${gpu//,/ }; do cores_of "$g"; done | paste -sd,)")
       CUDA_VISIBLE_DEVICES=$visible setsid nohup "${pin[@]}" python3 run.py "${args[@]}" --workdir "runs/$name" \
         >"runs/$name.out" 2>&1 </dev/null &
       echo "started runs/$name on GPU $visible ${pin[*]}: run.py ${args[*]}"

@@ -21,8 +21,9 @@ The paper's claims, as checked here:
      the baseline's upper bound, and is undecided between (runs too short to tell).
   3. TED's return > SEAR's on the DeepMind Control tasks.
   4. DEAR's |cos| is far below SEAR's: by at least 10x here (the paper: 1e-7 against 0.1).
-A claim without the runs it needs says so ("no data"); returns compared at different frames
-(runs stopped early, without `at`) say at which.
+A claim without the runs it needs says so ("no data"). Claims 1, 3 and 4 compare both sides at
+one frame: where a run stopped early, every seed's figures are taken up to the shortest run's
+last evaluation, and the evidence says at which frame.
 """
 
 from __future__ import annotations
@@ -42,6 +43,9 @@ BASELINES = ("drqv2", "sear", "ted")
 EFFICIENCY = 0.75  # claim 2: DEAR's frames to T at most this fraction of a baseline's
 COS_RATIO = 10.0  # claim 4: "far below" taken as at least this factor
 COLUMNS = ("claim", "task", "evidence", "verdict")
+# An evaluation starts at the first step at or after its mark (10,016 frames for 10,000): frames
+# this close count as the same point of training.
+SLACK = 1_000
 
 
 @dataclasses.dataclass
@@ -52,6 +56,20 @@ class Seeds:
     frames_to: np.ndarray  # inf where the seed never reached the threshold
     last_frame: np.ndarray
     abs_cos: np.ndarray  # NaN where a log has no such column
+    # Each seed's evaluations (frames, returns, |cos|), to take the figures at an earlier frame.
+    series: tuple = ()
+    last: int = 11
+
+    def upto(self, frame: float) -> Seeds:
+        """Returns and |cos| of the evaluations up to `frame` (within SLACK)."""
+        if not self.series:
+            return self
+        rows = []
+        for frames, returns, cos in self.series:
+            keep = frames <= frame + SLACK
+            rows.append((returns[keep][-self.last :].mean(), frames[keep][-1], cos[keep][-1]))
+        returns, last_frame, abs_cos = map(np.array, zip(*rows))
+        return dataclasses.replace(self, returns=returns, last_frame=last_frame, abs_cos=abs_cos)
 
     def median_bounds(self) -> tuple[float, float]:
         """(lower, upper) bounds of the median over seeds of the frames to T: a seed that never
@@ -75,7 +93,7 @@ def experiments(workdirs, threshold: float, at: int | None, last: int) -> dict:
                 f"{runs}: a second experiment of {method} on {task}; give the runs of one "
                 "experiment per method and task"
             )
-        rows = []
+        rows, series = [], []
         for _, lane in pool.seeds:
             evals = read_csv(lane / "eval.csv")
             if "episode_return" not in evals or not len(evals["episode_return"]):
@@ -85,17 +103,18 @@ def experiments(workdirs, threshold: float, at: int | None, last: int) -> dict:
                 raise ValueError(f"{lane / 'eval.csv'} has no evaluation at or before {at:,}")
             frames, returns = evals["frame"][keep], evals["episode_return"][keep]
             hit = np.nonzero(returns >= threshold)[0]
-            cos = evals.get("abs_cos_agent_env")
+            cos = evals.get("abs_cos_agent_env", np.full(len(keep), math.nan))[keep]
             rows.append(
                 (
                     float(returns[-last:].mean()),
                     float(frames[hit[0]]) if hit.size else math.inf,
                     float(frames[-1]),
-                    float(cos[keep][-1]) if cos is not None else math.nan,
+                    float(cos[-1]),
                 )
             )
+            series.append((frames, returns, cos))
         returns, frames_to, last_frame, abs_cos = map(np.array, zip(*rows))
-        found[task, method] = Seeds(returns, frames_to, last_frame, abs_cos)
+        found[task, method] = Seeds(returns, frames_to, last_frame, abs_cos, tuple(series), last)
     return found
 
 
@@ -125,18 +144,26 @@ def _frames(seeds: Seeds, threshold: float) -> str:
     return f"{text} ({reached}/{seeds.frames_to.size} reach {threshold:g})"
 
 
+def _at_one_frame(x: Seeds, y: Seeds) -> tuple[Seeds, Seeds, str]:
+    """x and y up to the last evaluation of the shortest run among them, and the evidence's
+    note of that frame ("" where every run ended there)."""
+    ends = np.concatenate([x.last_frame, y.last_frame])
+    if ends.max() <= ends.min() + SLACK:
+        return x, y, ""
+    end = ends.min()
+    return x.upto(end), y.upto(end), f", at {_k(end)} (the shortest run's last evaluation)"
+
+
 def _greater(claim, task, a, b, seeds, strict) -> dict:
     """Claim that method a's return is >= (strict: >) method b's on this task."""
     if a not in seeds or b not in seeds:
         missing = " and ".join(NAMES[m] for m in (a, b) if m not in seeds)
         return dict(claim=claim, task=task, evidence="-", verdict=f"no data: no {missing} run")
-    x, y = seeds[a].returns, seeds[b].returns
+    sa, sb, note = _at_one_frame(seeds[a], seeds[b])
+    x, y = sa.returns, sb.returns
     holds = x.mean() > y.mean() if strict else x.mean() >= y.mean()
     order = (x, y) if holds else (y, x)
-    evidence = f"{NAMES[a]} {_spread(x)} against {NAMES[b]} {_spread(y)}"
-    ends = np.concatenate([seeds[a].last_frame, seeds[b].last_frame])
-    if ends.min() != ends.max():
-        evidence += f", last evaluations at {_k(ends.min())}-{_k(ends.max())}"
+    evidence = f"{NAMES[a]} {_spread(x)} against {NAMES[b]} {_spread(y)}{note}"
     verdict = f"{'holds' if holds else 'does not hold'} ({_separate(*order)})"
     return dict(claim=claim, task=task, evidence=evidence, verdict=verdict)
 
@@ -168,11 +195,12 @@ def _cosine(task, seeds) -> dict:
     if "dear" not in seeds or "sear" not in seeds:
         missing = " and ".join(NAMES[m] for m in ("dear", "sear") if m not in seeds)
         return dict(claim=claim, task=task, evidence="-", verdict=f"no data: no {missing} run")
-    d, s = seeds["dear"].abs_cos, seeds["sear"].abs_cos
+    dear, sear, note = _at_one_frame(seeds["dear"], seeds["sear"])
+    d, s = dear.abs_cos, sear.abs_cos
     if np.isnan(d).any() or np.isnan(s).any():
         return dict(claim=claim, task=task, evidence="-", verdict="no data: logs without |cos|")
     ratio = s.mean() / d.mean()
-    evidence = f"DEAR {d.mean():.1e}, SEAR {s.mean():.1e}: {ratio:.1f}x"
+    evidence = f"DEAR {d.mean():.1e}, SEAR {s.mean():.1e}: {ratio:.1f}x{note}"
     holds = ratio >= COS_RATIO
     verdict = f"{'holds' if holds else 'does not hold'} ({_separate(s, d)})"
     return dict(claim=claim, task=task, evidence=evidence, verdict=verdict)

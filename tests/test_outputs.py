@@ -391,10 +391,18 @@ def test_video_errors(tmp_path, monkeypatch):
 
 
 def _fake_workdir(
-    root, name, method, task="walker-walk", offset=0.0, sweep=None, abs_cos=None, **fields
+    root,
+    name,
+    method,
+    task="walker-walk",
+    offset=0.0,
+    sweep=None,
+    abs_cos=None,
+    frames=(10_000, 20_000, 30_000),
+    **fields,
 ):
-    """A workdir as the trainer leaves it: config.json, and eval logs of 3 seeds per setting
-    (seed s of setting i returns offset + 100 i + frame / 100 + (0, 10, 50)[s]; with
+    """A workdir as the trainer leaves it: config.json, and eval logs of 3 seeds per setting at
+    `frames` (seed s of setting i returns offset + 100 i + frame / 100 + (0, 10, 50)[s]; with
     abs_cos, its |cos| column is abs_cos * (1, 2, 3)[s])."""
     workdir = root / name
     workdir.mkdir()
@@ -403,7 +411,7 @@ def _fake_workdir(
     (workdir / "config.json").write_text(json.dumps(config))
     names = [lane.name for lane in lanes.lanes(ConfigDict(config))]
     with RunLogger(workdir, len(names), tensorboard=False, names=names) as log:
-        for frame in (10_000, 20_000, 30_000):
+        for frame in frames:
             returns = offset + frame / 100 + np.array([0.0, 10.0, 50.0] * (len(names) // 3))
             returns += np.repeat(100.0 * np.arange(len(names) // 3), 3)
             row = {"episode_return": returns, "cos_agent_env": 0.01}
@@ -557,6 +565,32 @@ def test_the_papers_claims_are_checked_per_task_on_the_seeds(tmp_path):
     saved = json.loads(out.with_suffix(".json").read_text())
     assert saved["threshold"] == 200 and len(saved["claims"]) == 6
     assert "| DEAR's return >= SEAR's" in out.with_suffix(".md").read_text()
+
+
+def test_claims_compare_both_sides_at_the_shortest_runs_last_evaluation(tmp_path):
+    """A SEAR run stopped at 20,016 frames against DEAR's to 30k: DEAR's returns and |cos| are
+    taken up to SEAR's last evaluation (DEAR's at 20,000 is the same point), not at its own end,
+    where it would lead."""
+    dear = _fake_workdir(tmp_path, "dear", "dear", abs_cos=1e-3)
+    sear = _fake_workdir(tmp_path, "sear", "sear", offset=50, abs_cos=2e-3, frames=(10_000, 20_016))
+    rows = {r["claim"]: r for r in claims.check([dear, sear], threshold=200, last=1)}
+    # At 20k DEAR's seeds return 200, 210, 250; SEAR's 250.16, 260.16, 300.16 (at 30k DEAR's
+    # 300, 310, 350 would be ahead).
+    ahead = rows["DEAR's return >= SEAR's"]
+    assert ahead["evidence"] == (
+        "DEAR 220.0 ± 21.6 (n=3) against SEAR 270.2 ± 21.6 (n=3), at 20k (the shortest run's "
+        "last evaluation)"
+    )
+    assert ahead["verdict"] == "does not hold (seeds separate)"  # 250.16 > 250
+    assert rows["DEAR's |cos| far below SEAR's"]["evidence"].endswith(
+        "2.0x, at 20k (the shortest run's last evaluation)"
+    )
+    # Runs that end at the same evaluation say nothing of frames.
+    same = {
+        r["claim"]: r
+        for r in claims.check([dear, _fake_workdir(tmp_path, "s2", "sear")], threshold=200)
+    }
+    assert same["DEAR's return >= SEAR's"]["evidence"].endswith("(n=3)")
 
 
 def test_sample_efficiency_is_decided_only_where_the_censored_median_allows():

@@ -4,13 +4,18 @@
 # beside the others, this copies the installed package's suite models (XMLs
 # and common assets, ~0.2 MB) into .dmc/dm_control/ (git-ignored), a package that
 # `importlib.util.find_spec("dm_control")` finds: carry ".dmc" and put $PWD/.dmc on PYTHONPATH.
+# Likewise the kitchen's scene (D4RL's, ~15 MB) from gymnasium-robotics, which envs/kitchen.py
+# finds the same way, into .dmc/gymnasium_robotics/.
 set -euo pipefail
 cd "$(git rev-parse --show-toplevel)"
 src=$(python3 -c "import importlib.util as u; print(u.find_spec('dm_control').submodule_search_locations[0])")
 rm -rf .dmc && mkdir -p .dmc/dm_control/suite
 cp "$src"/suite/*.xml .dmc/dm_control/suite/
 cp -r "$src"/suite/common .dmc/dm_control/suite/
+kitchen=$(python3 -c "import importlib.util as u; print(u.find_spec('gymnasium_robotics').submodule_search_locations[0])")/envs/assets/kitchen_franka
+mkdir -p .dmc/gymnasium_robotics/envs/assets
+cp -r "$kitchen" .dmc/gymnasium_robotics/envs/assets/
 find .dmc \( -name '*.py' -o -name __pycache__ \) -prune -exec rm -rf {} +
-touch .dmc/dm_control/__init__.py
+touch .dmc/dm_control/__init__.py .dmc/gymnasium_robotics/__init__.py
 grep -qx '/.dmc/' .git/info/exclude 2>/dev/null || echo '/.dmc/' >> .git/info/exclude
 du -sh .dmc

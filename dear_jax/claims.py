@@ -230,7 +230,7 @@ def claims_table(workdirs, threshold=500.0, at=None, last=11, out=None) -> tuple
         f"The paper's claims: returns are each seed's mean over its last {last} evaluations"
         f"{upto}, mean ± population std over seeds; frames to a return of {threshold:g}, "
         "the median over seeds (a range, or 'not by', where seeds never reached it)\n\n"
-        + format_table(COLUMNS, [[r[c] for c in COLUMNS] for r in rows])
+        + format_table(COLUMNS, [[r[c].replace("|", "\\|") for c in COLUMNS] for r in rows])
         + "\n"
     )
     if out:

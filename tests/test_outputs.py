@@ -565,6 +565,11 @@ def test_the_papers_claims_are_checked_per_task_on_the_seeds(tmp_path):
     saved = json.loads(out.with_suffix(".json").read_text())
     assert saved["threshold"] == 200 and len(saved["claims"]) == 6
     assert "| DEAR's return >= SEAR's" in out.with_suffix(".md").read_text()
+    # A cell's own bars are escaped, so the Markdown table keeps its columns.
+    lines = out.with_suffix(".md").read_text().splitlines()
+    cos_row = next(line for line in lines if "far below" in line)
+    assert "DEAR's \\|cos\\| far below" in cos_row
+    assert cos_row.replace("\\|", "").count("|") == len(claims.COLUMNS) + 1
 
 
 def test_claims_compare_both_sides_at_the_shortest_runs_last_evaluation(tmp_path):

@@ -38,7 +38,8 @@ def get_config() -> ConfigDict:
     # Where evaluations run: "cpu", a process of their own on the host's CPU (its own Python,
     # XLA:CPU with the policy in float32, render workers), so that evaluating takes neither the
     # accelerator's queue nor this process's threads from the training; "accelerator", such a
-    # process with the training's policy program on the accelerator; "train", this process on
+    # process with the training's policy program on the accelerator (the first GPU the training
+    # leaves idle, if any: start a run with one GPU more to evaluate there); "train", this process on
     # the training's devices and agent.compute_dtype; "auto": "accelerator" for a run of one
     # process on a GPU (it slowed training least there), "cpu" on a CPU-only machine, "train"
     # for a run of several processes (their evaluations are programs over every process's lanes).

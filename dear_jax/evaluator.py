@@ -264,11 +264,20 @@ def _serve(conn, config_bytes: bytes) -> None:
         conn.close()
 
 
+def spare_device(devices: list, training) -> jax.Device:
+    """Where the evaluation process runs its policy on the accelerator: the first of `devices`
+    (this host's) that the training (`config.devices` of them, from the first) leaves idle, so
+    that a run given one GPU more than it trains on evaluates there; else the first."""
+    used = len(devices) if training == "all" else training
+    return devices[used] if used < len(devices) else devices[0]
+
+
 def build(config, *, policy_on: str, env_on: str = "default"):
     """The evaluation process's env and policy: (env, step, place), `place` putting the policy's
     parameters where `step` runs them.
 
-    policy_on "accelerator": the training's own policy program (its dtype) on the accelerator;
+    policy_on "accelerator": the training's own policy program (its dtype) on the accelerator
+    (`spare_device`: one the training does not use, if there is one);
     "cpu": the float32 policy on XLA:CPU. env_on: where the env's array work (uploads, frame
     stack, compositing) runs, the process's default device ("default") or XLA:CPU ("cpu", which
     sets the process's default device, with CPU physics only; the evaluation process's choice
@@ -294,7 +303,10 @@ def build(config, *, policy_on: str, env_on: str = "default"):
             raise ValueError("env_on='cpu' needs CPU physics in the eval env (env.eval_backend)")
         # Every thread's default device, the env thread's too: the caller's process is changed.
         jax.config.update("jax_default_device", jax.devices("cpu")[0])
-    policy_device = jax.devices()[0] if policy_on == "accelerator" else jax.devices("cpu")[0]
+    if policy_on == "accelerator":
+        policy_device = spare_device(jax.local_devices(), config.devices)
+    else:
+        policy_device = jax.devices("cpu")[0]
     env = make_eval_env(config, hosts=Hosts(None, lanes.num_lanes(config)))
     acfg = agent_config(config, env.spec.action_dim)
     programs = build_programs(acfg, hparams(config), config)

@@ -94,6 +94,18 @@ def test_on_the_accelerator_the_eval_process_runs_the_trainings_own_program():
     assert not np.array_equal(got["abs_cos_agent_env"], want["f32"]["abs_cos_agent_env"])
 
 
+def test_the_eval_process_takes_a_device_the_training_leaves_idle():
+    """A run started with more GPUs than it trains on evaluates on the first idle one; with
+    none idle, on the first (beside the training)."""
+    from dear_jax.evaluator import spare_device
+
+    gpus = ["gpu0", "gpu1", "gpu2"]
+    assert spare_device(gpus, 1) == "gpu1"
+    assert spare_device(gpus, 2) == "gpu2"
+    assert spare_device(gpus, 3) == spare_device(gpus, "all") == "gpu0"
+    assert spare_device(gpus[:1], 1) == "gpu0"
+
+
 def test_a_failure_in_the_eval_process_is_raised_here_with_its_traceback(tmp_path):
     config = tiny_config(**{"env.distraction": "easy", "env.background_dir": str(tmp_path)})
     with EvalProcess(config) as remote, pytest.raises(RuntimeError) as failure:

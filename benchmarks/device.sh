@@ -77,6 +77,7 @@ while [ $# -gt 0 ]; do
       ;;
     start)
       name=$1 gpu=$2; shift 2
+      [[ $gpu =~ ^([0-9]+(,[0-9]+)*|all)$ ]] || { echo "start takes a GPU number, a list such as 0,1, or all; got '$gpu'" >&2; exit 2; }
       args=()
       while [ $# -gt 0 ] && [[ $1 == --* ]]; do args+=("$1"); shift; done
       visible=$([ "$gpu" = all ] && nvidia-smi --query-gpu=index --format=csv,noheader | paste -sd, || echo "$gpu")

@@ -12,10 +12,16 @@ src=$(python3 -c "import importlib.util as u; print(u.find_spec('dm_control').su
 rm -rf .dmc && mkdir -p .dmc/dm_control/suite
 cp "$src"/suite/*.xml .dmc/dm_control/suite/
 cp -r "$src"/suite/common .dmc/dm_control/suite/
-kitchen=$(python3 -c "import importlib.util as u; print(u.find_spec('gymnasium_robotics').submodule_search_locations[0])")/envs/assets/kitchen_franka
-mkdir -p .dmc/gymnasium_robotics/envs/assets
-cp -r "$kitchen" .dmc/gymnasium_robotics/envs/assets/
+kitchen=$(python3 -c "import importlib.util as u; s = u.find_spec('gymnasium_robotics'); print(s.submodule_search_locations[0] if s else '')")
+if [ -n "$kitchen" ]; then
+  mkdir -p .dmc/gymnasium_robotics/envs/assets
+  cp -r "$kitchen/envs/assets/kitchen_franka" .dmc/gymnasium_robotics/envs/assets/
+else
+  echo "gymnasium-robotics is not installed here: .dmc gets no kitchen scene" >&2
+fi
 find .dmc \( -name '*.py' -o -name __pycache__ \) -prune -exec rm -rf {} +
-touch .dmc/dm_control/__init__.py .dmc/gymnasium_robotics/__init__.py
-grep -qx '/.dmc/' .git/info/exclude 2>/dev/null || echo '/.dmc/' >> .git/info/exclude
+touch .dmc/dm_control/__init__.py
+[ -d .dmc/gymnasium_robotics ] && touch .dmc/gymnasium_robotics/__init__.py
+exclude=$(git rev-parse --git-path info/exclude)
+grep -qx '/.dmc/' "$exclude" 2>/dev/null || echo '/.dmc/' >> "$exclude"
 du -sh .dmc

@@ -44,7 +44,7 @@ EFFICIENCY = 0.75  # claim 2: DEAR's frames to T at most this fraction of a base
 COS_RATIO = 10.0  # claim 4: "far below" taken as at least this factor
 COLUMNS = ("claim", "task", "evidence", "verdict")
 # An evaluation starts at the first step at or after its mark (10,016 frames for 10,000): frames
-# this close count as the same point of training.
+# this close count as the same point of training (evaluations are 10k frames apart by default).
 SLACK = 1_000
 
 
@@ -63,10 +63,12 @@ class Seeds:
     def upto(self, frame: float) -> Seeds:
         """Returns and |cos| of the evaluations up to `frame` (within SLACK)."""
         if not self.series:
-            return self
+            raise ValueError("these figures carry no evaluations to take at another frame")
         rows = []
         for frames, returns, cos in self.series:
             keep = frames <= frame + SLACK
+            if not keep.any():
+                raise ValueError(f"a seed has no evaluation at or before {frame:,.0f} frames")
             rows.append((returns[keep][-self.last :].mean(), frames[keep][-1], cos[keep][-1]))
         returns, last_frame, abs_cos = map(np.array, zip(*rows))
         return dataclasses.replace(self, returns=returns, last_frame=last_frame, abs_cos=abs_cos)

@@ -2,7 +2,7 @@
 (`Hosts`).
 
 Several devices (`config.devices`): the seeds axis of every array the loop carries (agent,
-replay, env states and timesteps, returns) is split over a 1-D mesh of N local devices, axis
+replay, env states and timesteps, returns) is split over a mesh of N local devices, axis
 "seeds", each device holding S / N seeds; act, learn and add run per device
 (`dear_jax/programs.py`), physics and the env's device half stay where their seeds live, and
 one render pool on the host feeds them all. `devices=1` keeps arrays uncommitted on the default
@@ -11,8 +11,8 @@ device, with no mesh.
 Several devices per lane (`config.devices_per_seed` = k > 1, one process): the mesh is 2-D,
 ("seeds", "batch"), N / k devices by k. Each lane lives whole on each of its k devices (every
 array is replicated over "batch"); each device draws its own k-th of the lane's batch and the
-update averages the gradients over "batch" (`lax.pmean`), so the k replicas stay equal and
-learn as one lane of the whole batch would. For a lane too slow on one device (a lone SEAR seed).
+update averages the gradients over "batch" (`lax.pmean`; TED's classifier counts its valid pairs
+over it), so the k replicas take the whole batch's step and their parameters stay equal.
 
 Several processes (`jax.distributed`): the mesh spans every process's `config.devices` devices
 and the loop's arrays are global; each process steps, renders, logs and stores its own block of
@@ -67,7 +67,7 @@ def num_devices(devices, seeds: int, available: int, per_seed: int = 1) -> int:
 
 
 def seed_mesh(devices, num_lanes: int, per_seed: int = 1) -> Mesh | None:
-    """The 1-D mesh ("seeds") of the first `devices` (`config.devices`) local devices; None for
+    """The mesh ("seeds") of the first `devices` (`config.devices`) local devices; None for
     one device. With several processes, of the first `devices` devices of every process, in
     process order: process p holds the p-th block of the `num_lanes` lanes. With `per_seed`
     (`config.devices_per_seed`) > 1, the 2-D mesh ("seeds", "batch") of those devices."""

@@ -305,6 +305,8 @@ def build(config, *, policy_on: str, env_on: str = "default"):
         jax.config.update("jax_default_device", jax.devices("cpu")[0])
     if policy_on == "accelerator":
         policy_device = spare_device(jax.local_devices(), config.devices)
+        if env_on == "default":  # the env's array work beside the policy
+            jax.config.update("jax_default_device", policy_device)
     else:
         policy_device = jax.devices("cpu")[0]
     env = make_eval_env(config, hosts=Hosts(None, lanes.num_lanes(config)))

@@ -110,6 +110,7 @@ def validate(config: ConfigDict) -> None:
         )
     positive = (
         "seeds",
+        "devices_per_seed",
         "envs_per_seed",
         "total_frames",
         "eval_every_frames",

@@ -59,7 +59,8 @@ def build_programs(
 ) -> Programs:
     """The loop's programs; with a `mesh`, act, learn and add run each device's block of seeds
     on that device. Per-seed keys are split before the split over devices, so a seed draws the
-    same numbers on any number of devices."""
+    same numbers on any number of devices (but for its batches where `devices_per_seed` > 1:
+    each of its devices folds its index into the keys of its share)."""
     a = config.agent
     num_seeds = lanes.num_lanes(config)
     nets = update.make_networks(acfg)
@@ -70,10 +71,12 @@ def build_programs(
         if mesh is None:
             return fn
         # check_vma=False: the bodies hold no collectives across "seeds" (each device runs its
-        # own seeds), and over "batch" (a 2-D mesh) every output is the same on a lane's devices
-        # by construction (the gradients are averaged over them). With the check on, each pallas_call (wideconv, wgrad)
-        # would have to state its outputs' varying axes in its out_shape, a jax-version-specific
-        # annotation kernels meant for one device do not carry; without it, tracing fails.
+        # own seeds). Over "batch" (a 2-D mesh) a lane's devices compute the same outputs: the
+        # same inputs and programs, the gradients averaged over them (unchecked: an op that is
+        # not deterministic on a GPU could let the copies of acting and replay differ). With the
+        # check on, each pallas_call (wideconv, wgrad) would have to state its outputs' varying
+        # axes in its out_shape, a jax-version-specific annotation kernels meant for one device
+        # do not carry; without it, tracing fails.
         return jax.shard_map(
             fn, mesh=mesh, in_specs=P("seeds"), out_specs=P("seeds"), check_vma=False
         )

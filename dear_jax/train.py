@@ -8,7 +8,7 @@ refused if a config field that changes learning differs (all but
 `experiment.RESUMABLE_CHANGES`). One run per workdir (`run.lock`); SIGTERM / SIGINT checkpoint
 and stop (`dear_jax/signals.py`).
 
-Several devices (`config.devices`) split the lanes over a 1-D mesh, several processes
+Several devices (`config.devices`) split the lanes over a mesh, several processes
 (`jax.distributed`, README "Several hosts") each their block of lanes (`dear_jax/devices.py`);
 each seed gets the key it gets on one device, so its run is the same bit for bit.
 """

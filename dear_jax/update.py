@@ -290,11 +290,13 @@ def learner_loss(
     std: jax.Array,
     *,
     cfg: AgentConfig,
+    mean_over: str | None = None,
 ) -> tuple[jax.Array, dict]:
     """Encoder + critic + auxiliary loss of one batch; `learner` is what is differentiated.
 
     Returns (L, (metrics, z)) with L = L_critic + alpha L_mask + beta L_dis + w_rec L_rec
     + w_ted L_ted, and z the stopped latent of the augmented batch, which the actor step reuses.
+    mean_over: as `update`'s (the batch is one part of a batch split over that axis).
     """
     nets = make_networks(cfg)
     k_obs, k_next, k_far, k_target, k_ted = jax.random.split(key, 5)
@@ -355,7 +357,14 @@ def learner_loss(
         # backward passes through the encoder).
         z_far = jax.lax.stop_gradient(encode(batch.far_obs, far_crops))
         l_ted, ted_metrics = ted_classifier_loss(
-            learner["ted"], z, z_next_sg, z_far, batch.far_valid, k_ted, nets=nets
+            learner["ted"],
+            z,
+            z_next_sg,
+            z_far,
+            batch.far_valid,
+            k_ted,
+            nets=nets,
+            mean_over=mean_over,
         )
         metrics.update(ted_metrics, ted_loss=l_ted)
         total = total + hp.ted_weight * l_ted
@@ -363,11 +372,15 @@ def learner_loss(
     return total, (metrics, jax.lax.stop_gradient(z))
 
 
-def ted_classifier_loss(ted_params, z, z_next, z_far, far_valid, key, *, nets: Networks):
+def ted_classifier_loss(
+    ted_params, z, z_next, z_far, far_valid, key, *, nets: Networks, mean_over=None
+):
     """TED's temporal loss on latents [B, F]: positives (z_t, z_t+n); negatives (z_t, z_t+n of
     another sample) and (z_t, a frame of the same episode other than t-1..t+nstep, where
     far_valid [B] is 1: `replay.same_episode_offsets`). Mean BCE over the valid pairs; returns
-    (loss, metrics)."""
+    (loss, metrics). mean_over: a mapped axis over which the batch is split in equal parts (its
+    mean over the axis is the whole batch's loss: the valid pairs are counted over it; the
+    other-sample negatives are drawn within each part)."""
     perm = jax.random.permutation(key, z.shape[0])
     classify = lambda a, b: nets.ted.apply({"params": ted_params}, a, b)  # noqa: E731
     logits = jnp.concatenate([classify(z, z_next), classify(z, z_next[perm]), classify(z, z_far)])
@@ -375,8 +388,11 @@ def ted_classifier_loss(ted_params, z, z_next, z_far, far_valid, key, *, nets: N
     labels = jnp.concatenate([jnp.ones(n), jnp.zeros(2 * n)])
     weights = jnp.concatenate([jnp.ones(2 * n), far_valid])
     bce = optax.sigmoid_binary_cross_entropy(logits, labels)
-    loss = jnp.sum(weights * bce) / jnp.sum(weights)
-    acc = jnp.sum(weights * ((logits > 0) == (labels > 0.5))) / jnp.sum(weights)
+    count = jnp.sum(weights)  # per part, on average, where the batch is split over mean_over
+    if mean_over is not None:
+        count = jax.lax.pmean(count, mean_over)
+    loss = jnp.sum(weights * bce) / count
+    acc = jnp.sum(weights * ((logits > 0) == (labels > 0.5))) / count
     return loss, {"ted_accuracy": acc}
 
 
@@ -428,7 +444,15 @@ def _update(state, batch, key, hp, cfg, mean_over=None):
     learner = {k: v for k, v in state.params.items() if k != "actor"}
 
     grads, (metrics, z) = jax.grad(learner_loss, has_aux=True)(
-        learner, state.params["actor"], state.target_critic, batch, k_learner, hp, std, cfg=cfg
+        learner,
+        state.params["actor"],
+        state.target_critic,
+        batch,
+        k_learner,
+        hp,
+        std,
+        cfg=cfg,
+        mean_over=mean_over,
     )
     grads, metrics = mean((grads, metrics))
     updates, opt_state = main_opt.update(grads, state.opt_state, learner)

@@ -171,11 +171,12 @@ def _pallas_child(root: pathlib.Path) -> None:
 
 
 def _batch_child(root: pathlib.Path) -> None:
-    """One learn call with each lane's batch split over 2 devices (devices_per_seed=2), and the
-    same update on one device of the batch the two devices drew, gathered; with nothing random
-    inside the update (no shift, no action noise), the two must agree. Writes root/batch.npz:
-    the split run's parameters and metrics (its two replicas' equality under "replicas"), and
-    the gathered batch's."""
+    """One learn call of 2 seeds on 4 devices, each seed's batch split over 2 of them
+    (devices_per_seed=2: a 2 x 2 mesh, the update vmapped over the seeds of a device), and the
+    same update on one device of the batch each seed's two devices drew, gathered; with nothing
+    random inside the update (no shift, no action noise), the two must agree. Writes
+    root/batch.npz: the split run's parameters and metrics (under "replicas", whether every
+    array was in 2 blocks of seeds, each on 2 devices alike), and the gathered batch's."""
     import dataclasses
 
     import jax
@@ -186,7 +187,9 @@ def _batch_child(root: pathlib.Path) -> None:
 
     seeds, envs, action_dim, rows = 2, 2, 6, 12
     no_noise = {"agent.std_init": 0.0, "agent.std_final": 0.0}
-    c = config(seeds=seeds, devices=2, devices_per_seed=2, **no_noise)
+    c = config(
+        seeds=seeds, devices=4, devices_per_seed=2, **{"agent.seed_axis": "vmap"}, **no_noise
+    )
     experiment.validate(c)
     a = c.agent
     acfg = dataclasses.replace(experiment.agent_config(c, action_dim), augment_pad=0)
@@ -224,18 +227,20 @@ def _batch_child(root: pathlib.Path) -> None:
 
     # learn donates the agent, whose device-0 buffers the split's may share: it runs last.
     mesh = devices.seed_mesh(c.devices, seeds, c.devices_per_seed)
-    assert dict(mesh.shape) == {"seeds": 1, "batch": 2}, mesh.shape
+    assert dict(mesh.shape) == {"seeds": 2, "batch": 2}, mesh.shape
     put = lambda x: jax.device_put(x, devices.seed_sharding(mesh))  # noqa: E731
     split_agent, split_metrics = build_programs(acfg, hp, c, mesh).learn(
         put(agent), put(buffer), key
     )
-    leaves = jax.tree.leaves((split_agent, split_metrics))
-    replicas = all(
-        len(x.addressable_shards) == 2
-        and np.asarray(x.addressable_shards[0].data).tobytes()
-        == np.asarray(x.addressable_shards[1].data).tobytes()
-        for x in leaves
-    )
+
+    def two_blocks_twice(x) -> bool:
+        blocks = {}
+        for shard in x.addressable_shards:
+            index = tuple((i.start, i.stop) for i in shard.index)
+            blocks.setdefault(index, []).append(np.asarray(shard.data).tobytes())
+        return len(blocks) == 2 and all(len(b) == 2 and b[0] == b[1] for b in blocks.values())
+
+    replicas = all(map(two_blocks_twice, jax.tree.leaves((split_agent, split_metrics))))
 
     out = {"replicas": replicas}
     for name, (state, metrics) in [
@@ -297,9 +302,10 @@ def test_pallas_stacks_run_split_over_devices(pallas_programs):
 
 
 def test_a_lanes_batch_split_over_devices_takes_the_whole_batchs_step(tmp_path):
-    """devices_per_seed=2: each device draws its own half of a lane's batch, and the averaged
-    gradients give both devices the step that one device takes on the two halves together
-    (float32 sums in another order: close, not equal); the replicas stay bit for bit equal."""
+    """devices_per_seed=2, 2 seeds on 4 devices: each device draws its own half of its seed's
+    batch, and the averaged gradients give both devices the step that one device takes on the
+    two halves together (float32 sums in another order: close, not equal); each seed lives on
+    its 2 devices, whose copies stay bit for bit equal."""
     _run_child("batch", tmp_path)
     out = np.load(tmp_path / "batch.npz")
     assert bool(out["replicas"])

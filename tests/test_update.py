@@ -255,6 +255,36 @@ def test_every_shift_impl_gives_the_same_update(dear):
         update.AgentConfig(action_dim=2, shift_impl="roll")
 
 
+def test_ted_loss_over_a_split_batch_is_the_whole_batchs():
+    """With a batch split in equal parts over a mapped axis (`devices_per_seed`), the parts'
+    mean TED loss and accuracy are the whole batch's: the valid pairs are counted over all parts.
+    The parts here hold 4 and 0 valid same-episode pairs, where the mean of each part's own mean
+    differs. Every next latent is the same, so the other-sample negatives do not depend on the
+    draw (which is made within each part)."""
+    cfg = update.AgentConfig(method="ted", **SMALL)
+    nets = update.make_networks(cfg)
+    params = _init(cfg, jax.random.key(0)).params["ted"]
+    rng = np.random.default_rng(0)
+    z, z_far = (rng.normal(size=(8, 64)).astype(np.float32) for _ in range(2))
+    z_next = np.tile(rng.normal(size=(1, 64)).astype(np.float32), (8, 1))
+    valid = np.array([1, 1, 1, 1, 0, 0, 0, 0], np.float32)
+    key = jax.random.key(1)
+
+    def ted(z, z_next, z_far, valid, mean_over=None):
+        return update.ted_classifier_loss(
+            params, z, z_next, z_far, valid, key, nets=nets, mean_over=mean_over
+        )
+
+    whole_loss, whole = ted(z, z_next, z_far, valid)
+    parts = [x.reshape(2, 4, *x.shape[1:]) for x in (z, z_next, z_far, valid)]
+    split = jax.vmap(functools.partial(ted, mean_over="part"), axis_name="part")
+    loss, metrics = split(*parts)
+    np.testing.assert_allclose(loss.mean(), whole_loss, rtol=1e-5)
+    np.testing.assert_allclose(metrics["ted_accuracy"].mean(), whole["ted_accuracy"], rtol=1e-5)
+    own, _ = jax.vmap(ted)(*parts)  # each part normalised by its own count
+    assert not np.isclose(own.mean(), whole_loss, rtol=1e-3)
+
+
 def test_ted_gradient_reaches_the_encoder_through_z_t_only():
     """TED's encoder gradient is J_enc(obs)^T dL/dz_t: the next and same-episode observations
     are encoded without gradient (TED's reference). Checked as the difference of the encoder

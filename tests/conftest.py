@@ -28,43 +28,35 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
 #   seed's code is then the same in a 1-seed and a 2-seed program, which test_sharding.py
 #   relies on; jax.random compiles more slowly, so the tests draw their inputs with NumPy);
 # - LLVM at optimisation level 0: test_vmapped_seeds_every_method[drqv2] took 12 s against
-#   22 s at the default level.
+#   22 s at the default level;
+# - each program's LLVM module compiled whole, not split into parts compiled on parallel
+#   threads: tests/test_update.py took 111 s of CPU (103 s) against 117-152 s (109-137 s) split,
+#   the same programs otherwise.
 # The persistent cache's keys include XLA_FLAGS but for the device count, so the children share
 # the workers' compiled programs.
-TEST_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0")
+TEST_XLA_FLAGS = (
+    "--xla_cpu_use_fusion_emitters=false",
+    "--xla_backend_optimization_level=0",
+    "--xla_cpu_parallel_codegen_split_count=1",
+)
 _flags = os.environ.get("XLA_FLAGS", "")
 os.environ["XLA_FLAGS"] = " ".join(
     [_flags, *(f for f in TEST_XLA_FLAGS if f.split("=")[0] not in _flags)]
 ).strip()
 
 
-def pytest_configure(config):
-    """MJX's physics programs at XLA's full optimisation in the test processes: they compile once
-    and step hundreds of times (a kitchen agent step of 2 envs took 1.9 s at level 0 against
-    0.7 s; the other programs are the other way round)."""
-    from envs import physics
-
-    options = physics._compiler_options
-
-    def full_optimisation():
-        base = options()
-        return None if base is None else {**base, "xla_backend_optimization_level": 3}
-
-    physics._compiler_options = full_optimisation
-
-
 SLOWEST_FIRST = (
     "test_sharding.py",
     "test_run.py",
     "test_update.py",
-    "test_multihost.py",
-    "test_networks.py",
-    "test_evaluator.py",
     "test_kitchen.py",
+    "test_multihost.py",
     "test_wideconv.py",
     "test_physics.py",
-    "test_envs.py",
+    "test_networks.py",
+    "test_evaluator.py",
     "test_render.py",
+    "test_replay.py",
 )
 
 

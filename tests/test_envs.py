@@ -194,7 +194,10 @@ def test_agent_geom_rule():
 
 @pytest.fixture(scope="module")
 def finger_env():
-    with _make("finger-spin", mask="noisy", mask_drop_prob=0.5) as env:
+    """Episodes of 20 frames (10 agent steps): the time limit ends an episode and the next step
+    restarts it at any length (test_task_resets_and_steps checks each task's own, 1000 frames);
+    test_auto_reset steps through a whole episode."""
+    with _make("finger-spin", mask="noisy", mask_drop_prob=0.5, episode_frames=20) as env:
         yield env
 
 

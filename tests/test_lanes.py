@@ -74,7 +74,8 @@ def test_lanes_use_their_own_weights():
     hp = experiment.hparams(sweep_config(seeds=1, beta="0,100"))
     cfg = update.AgentConfig(method="dear", augment_pad=0, **SMALL)
     nets = update.make_networks(cfg)
-    state = update.init(cfg, jax.random.key(0))
+    # Jitted, as the gradients below: op by op, each operation compiles on its own.
+    state = jax.jit(update.init, static_argnums=0)(cfg, jax.random.key(0))
     learner = {k: v for k, v in state.params.items() if k != "actor"}
     batch = _batch(1)
     loss = functools.partial(update.learner_loss, cfg=cfg)
@@ -94,8 +95,12 @@ def test_lanes_use_their_own_weights():
         z_env, z_agent = losses.split_latent(z)
         return losses.orthogonality_loss(z_agent, z_env, cfg.ortho_form)
 
-    z, vjp = jax.vjp(encode, learner["encoder"])
-    (g_dis,) = vjp(jax.grad(ortho)(z))
+    @jax.jit
+    def ortho_gradient(encoder):
+        z, vjp = jax.vjp(encode, encoder)
+        return vjp(jax.grad(ortho)(z))[0]
+
+    g_dis = ortho_gradient(learner["encoder"])
     flat = lambda tree: np.concatenate([np.ravel(x) for x in jax.tree.leaves(tree)])  # noqa: E731
     diff = flat(g1["encoder"]) - flat(g0["encoder"])
     want = 100 * flat(g_dis)

@@ -171,7 +171,7 @@ FINGERPRINT = {"env.task": "walker-walk", "agent.method": "dear", "seeds": 2, "w
 def agent_state():
     """A small AgentState with a leading seed axis of 2 and different values per seed."""
     cfg = update.AgentConfig(action_dim=2, latent_dim=64, hidden_dim=32, feature_dim=8)
-    one = update.init(cfg, jax.random.key(0))
+    one = jax.jit(update.init, static_argnums=0)(cfg, jax.random.key(0))  # eager: op by op
     return jax.tree.map(lambda x: jnp.stack([x, x * 3 + 1]), one)
 
 

@@ -63,13 +63,24 @@ def tiny_config(**overrides):
 TIMING_COLUMNS = {"fps", "wall_s", "eval_s", "sec_per_1000_frames"}
 
 
+def whole_config():
+    """The fixture's uninterrupted run: its loop waits for each evaluation, run by the training's
+    programs (eval_device "train"), and it traces a few of its iterations with jax.profiler
+    (`config.profile`), where tiny_config's runs evaluate in a background thread on a copy of the
+    parameters while training goes on, on the host's CPU (eval_device "auto")."""
+    config = tiny_config(total_frames=280, eval_in_background=False, eval_device="train")
+    config.profile.at_frame, config.profile.iterations = 160, 3
+    return config
+
+
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    """The same experiment run twice: uninterrupted to 280 frames per seed ("whole"), and stopped
-    at 240 (its last evaluation and checkpoint) then resumed to 280 on the same workdir. The runs
+    """The same experiment run twice: uninterrupted to 280 frames per seed ("whole",
+    `whole_config`: evaluating in the foreground, traced), and stopped at 240 (its last
+    evaluation and checkpoint) then resumed to 280 on the same workdir (tiny_config). The runs
     share their compiled programs."""
     whole = tmp_path_factory.mktemp("whole")
-    train.train(tiny_config(total_frames=280), whole)
+    train.train(whole_config(), whole)
     workdir = tmp_path_factory.mktemp("run")
     first = train.train(tiny_config(total_frames=240), workdir)
     saved_step = Checkpointer(workdir / "checkpoints", fingerprint={}).latest_step()
@@ -221,19 +232,17 @@ def test_resumed_run_equals_the_uninterrupted_one(run):
     assert replay_disk.file_name(0, chunk) in names and len(names) >= 3
 
 
-def test_evaluating_in_the_foreground_and_tracing_change_nothing_but_timing(run, tmp_path):
-    """The fixture's runs evaluate in a background thread on a copy of the parameters while
-    training goes on, on the host's CPU (eval_device "auto"); a run whose loop waits for each
-    evaluation, run by the training's programs (eval_device "train"), and traces a few of its
-    iterations with jax.profiler (`config.profile`), logs the same eval rows and trains exactly
-    the same run, and leaves the trace in workdir/profile."""
-    workdir = tmp_path / "foreground"
-    config = tiny_config(total_frames=280, eval_in_background=False, eval_device="train")
-    config.profile.at_frame, config.profile.iterations = 160, 3
-    train.train(config, workdir)
-    assert_same_run(run[-1], workdir, 280)
-    assert len(read_csv(workdir / "seed_0" / "eval.csv")["frame"]) >= 3
-    assert len(list((workdir / "profile").rglob("*.xplane.pb"))) == 1
+def test_evaluating_in_the_foreground_and_tracing_change_nothing_but_timing(run):
+    """The fixture's stopped and resumed run evaluates in a background thread on a copy of the
+    parameters while training goes on, on the host's CPU (eval_device "auto"); its uninterrupted
+    run, whose loop waits for each evaluation, run by the training's programs (eval_device
+    "train"), and traces a few of its iterations with jax.profiler (`whole_config`), logs the
+    same eval rows and trains exactly the same run, and leaves the trace in workdir/profile."""
+    workdir, *_, whole = run
+    assert json.loads((whole / "summary.json").read_text())["eval_device"] == "train"
+    assert_same_run(whole, workdir, 280)
+    assert len(read_csv(whole / "seed_0" / "eval.csv")["frame"]) >= 3
+    assert len(list((whole / "profile").rglob("*.xplane.pb"))) == 1
 
 
 def test_background_evaluations_queue_without_holding_up_the_loop(run, tmp_path, monkeypatch):

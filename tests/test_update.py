@@ -119,8 +119,9 @@ def test_actor_loss_reaches_no_encoder_parameter(dear):
             state.params["actor"], learner["critic"], z, jax.random.key(5), hp, 0.5, cfg=cfg
         )[0]
 
-    g_stop = jax.grad(actor_loss_of_encoder)(learner["encoder"], True)
-    g_free = jax.grad(actor_loss_of_encoder)(learner["encoder"], False)
+    grad = jax.jit(jax.grad(actor_loss_of_encoder), static_argnums=1)
+    g_stop = grad(learner["encoder"], True)
+    g_free = grad(learner["encoder"], False)
     assert all(np.all(np.asarray(x) == 0.0) for x in jax.tree.leaves(g_stop))
     assert sum(float(jnp.abs(x).sum()) for x in jax.tree.leaves(g_free)) > 0
 
@@ -128,7 +129,8 @@ def test_actor_loss_reaches_no_encoder_parameter(dear):
 def test_encoder_learns_from_critic_and_aux_losses(dear):
     cfg, state = dear
     learner = {k: v for k, v in state.params.items() if k != "actor"}
-    grads, (metrics, _) = jax.grad(update.learner_loss, has_aux=True)(
+    grad = jax.jit(jax.grad(update.learner_loss, has_aux=True), static_argnames="cfg")
+    grads, (metrics, _) = grad(
         learner,
         state.params["actor"],
         state.target_critic,
@@ -297,6 +299,9 @@ def test_ted_gradient_reaches_the_encoder_through_z_t_only():
     learner = {k: v for k, v in state.params.items() if k != "actor"}
     key = jax.random.key(5)
 
+    # Jitted (the weight traced: one program for both): op by op, each operation of the loss
+    # and its gradient compiles on its own.
+    @jax.jit
     def encoder_grad(weight):
         hp = update.HParams(ted_weight=weight)
         grads, _ = jax.grad(update.learner_loss, has_aux=True)(
@@ -309,18 +314,22 @@ def test_ted_gradient_reaches_the_encoder_through_z_t_only():
     def encode(enc, obs):
         return nets.encoder.apply({"params": enc}, obs)
 
-    z_next, z_far = (
-        encode(learner["encoder"], batch.next_obs),
-        encode(learner["encoder"], batch.far_obs),
-    )
-    k_ted = jax.random.split(key, 5)[4]  # learner_loss's key for TED's shuffle (a no-op at B=1)
-    dl_dz = jax.grad(
-        lambda z: update.ted_classifier_loss(
-            learner["ted"], z, z_next, z_far, batch.far_valid, k_ted, nets=nets
-        )[0]
-    )(encode(learner["encoder"], batch.obs))
-    _, vjp = jax.vjp(lambda enc: encode(enc, batch.obs), learner["encoder"])
-    (want,) = vjp(2.0 * dl_dz)
+    @jax.jit
+    def by_hand(learner):
+        z_next, z_far = (
+            encode(learner["encoder"], batch.next_obs),
+            encode(learner["encoder"], batch.far_obs),
+        )
+        k_ted = jax.random.split(key, 5)[4]  # learner_loss's key for TED's shuffle (no-op at B=1)
+        dl_dz = jax.grad(
+            lambda z: update.ted_classifier_loss(
+                learner["ted"], z, z_next, z_far, batch.far_valid, k_ted, nets=nets
+            )[0]
+        )(encode(learner["encoder"], batch.obs))
+        _, vjp = jax.vjp(lambda enc: encode(enc, batch.obs), learner["encoder"])
+        return vjp(2.0 * dl_dz)[0]
+
+    want = by_hand(learner)
     for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
         np.testing.assert_allclose(g, w, rtol=2e-3, atol=1e-6)
     assert max(float(jnp.abs(w).max()) for w in jax.tree.leaves(want)) > 0

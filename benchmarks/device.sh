@@ -24,7 +24,8 @@
 #                       `XLA_PYTHON_CLIENT_MEM_FRACTION=0.22 bash benchmarks/device.sh start ...`
 #   wait S              sleep up to S seconds while runs train, printing their last log lines;
 #                       returns early once none is running
-#   stop                SIGTERM every run (each saves a checkpoint and its summary), wait for them
+#   stop [NAME...]      SIGTERM the runs named (every run if none; each saves a checkpoint and
+#                       its summary), wait for them
 #   collect             the runs' logs and summaries (no checkpoints, replay or videos) ->
 #                       $OUT/runs.tar.gz
 #
@@ -85,6 +86,7 @@ while [ $# -gt 0 ]; do
       [ "$gpu" != all ] && pin=(taskset -c "$(for g in ${gpu//,/ }; do cores_of "$g"; done | paste -sd,)")
       CUDA_VISIBLE_DEVICES=$visible setsid nohup "${pin[@]}" python3 run.py "${args[@]}" --workdir "runs/$name" \
         >"runs/$name.out" 2>&1 </dev/null &
+      echo $! >"runs/$name.pid"
       echo "started runs/$name on GPU $visible ${pin[*]}: run.py ${args[*]}"
       ;;
     wait)
@@ -93,12 +95,22 @@ while [ $# -gt 0 ]; do
       for f in runs/*.out; do [ -f "$f" ] && echo "$f: $(tail -n 1 "$f")"; done
       ;;
     stop)
-      pkill -TERM -f "python3 run.py"
-      for _ in $(seq 120); do running || break; sleep 1; done
+      names=()
+      while [ $# -gt 0 ] && [ -f "runs/$1.pid" ]; do names+=("$1"); shift; done
+      if [ ${#names[@]} -eq 0 ]; then
+        pkill -TERM -f "python3 run.py"
+        for _ in $(seq 120); do running || break; sleep 1; done
+      else
+        for n in "${names[@]}"; do kill -TERM "$(cat "runs/$n.pid")" 2>/dev/null; done
+        for n in "${names[@]}"; do
+          for _ in $(seq 120); do kill -0 "$(cat "runs/$n.pid")" 2>/dev/null || break; sleep 1; done
+          echo "runs/$n: $(tail -n 1 "runs/$n.out")"
+        done
+      fi
       ;;
     collect)
       tar -czf "$out/runs.tar.gz" --exclude='checkpoints*' --exclude=replay --exclude=videos \
-        --exclude='*.lock' runs
+        --exclude='*.lock' --exclude='*.pid' runs
       ls -la "$out"
       ;;
     *)

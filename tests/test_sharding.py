@@ -91,9 +91,12 @@ def _child(root: pathlib.Path) -> None:
     train.train(config(total_frames=CUT, devices=2), root / "from_split")
     train.train(config(total_frames=END, devices=2), root / "to_split")
     train.train(config(total_frames=END), root / "from_split")
-    # Each seed's batch over 2 devices, then resumed on one.
-    train.train(config(total_frames=CUT, devices=2, devices_per_seed=2), root / "per_seed")
+    # Each seed's batch over 2 devices, then resumed on one; and the other way round.
+    per_seed = {"devices": 2, "devices_per_seed": 2}
+    train.train(config(total_frames=CUT, **per_seed), root / "per_seed")
     train.train(config(total_frames=END), root / "per_seed")
+    train.train(config(total_frames=CUT), root / "into_per_seed")
+    train.train(config(total_frames=END, **per_seed), root / "into_per_seed")
 
     # MJX physics keeps each seed's state on its device (CPU runs use CPU physics).
     mesh = Mesh(np.array(jax.devices()), ("seeds",))
@@ -383,21 +386,24 @@ def test_arrays_live_split_over_the_devices(runs):
 
 def test_a_run_with_each_seeds_batch_over_two_devices(runs):
     """devices_per_seed=2: both seeds live whole on both devices (replicated over "batch"), the
-    run trains and says so in its summary, and it resumes on one device to the end."""
+    run trains, resumes on one device to the end, and a one-device run resumes onto 2 devices
+    per seed to the end, saying so in its summary."""
     from jax.sharding import PartitionSpec as P
 
     from dear_jax.checkpoint import Checkpointer
     from dear_jax.logger import read_csv
 
     root, placements = runs
-    [p] = [p for p in placements["runs"] if p["per_seed"] == 2]
+    split = [p for p in placements["runs"] if p["per_seed"] == 2]
+    assert len(split) == 2  # the per_seed run's first checkpoint, into_per_seed's after resuming
     # The mesh is 1 x 2 ("seeds" x "batch"): over a seeds axis of one device, P("seeds") and
     # P() (XLA's name for some outputs) are the same layout, whole on both devices.
     whole = {str(P("seeds")), str(P())}
-    for group in ("agent", "replay", "env", "timestep", "returns"):
-        assert {spec for spec, _ in p[group]} <= whole, (group, p)
-        assert {n for _, n in p[group]} == {2}, (group, p)
-    assert p["devices"] == 2
+    for p in split:
+        for group in ("agent", "replay", "env", "timestep", "returns"):
+            assert {spec for spec, _ in p[group]} <= whole, (group, p)
+            assert {n for _, n in p[group]} == {2}, (group, p)
+        assert p["devices"] == 2
     saved = Checkpointer(root / "per_seed" / "checkpoints", fingerprint={})
     counters = saved.read_meta(CUT)[2]["counters"]
     assert counters["updates"] >= 5 and counters["frame"] == CUT
@@ -405,11 +411,13 @@ def test_a_run_with_each_seeds_batch_over_two_devices(runs):
     import jax
 
     assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(arrays) if x.dtype.kind == "f")
-    summary = json.loads((root / "per_seed" / "summary.json").read_text())
-    assert summary["devices"] == 1 and summary["frames_per_seed"] == END  # resumed on one
-    for seed in ("seed_0", "seed_1"):
-        frames = read_csv(root / "per_seed" / seed / "eval.csv")["frame"].tolist()
-        assert frames[-1] == END, frames
+    for workdir, devices, per_seed in (("per_seed", 1, 1), ("into_per_seed", 2, 2)):
+        summary = json.loads((root / workdir / "summary.json").read_text())
+        assert (summary["devices"], summary["devices_per_seed"]) == (devices, per_seed)
+        assert summary["frames_per_seed"] == END
+        for seed in ("seed_0", "seed_1"):
+            frames = read_csv(root / workdir / seed / "eval.csv")["frame"].tolist()
+            assert frames[-1] == END, (workdir, frames)
 
 
 def test_splits_that_cannot_work_are_refused_by_name(tmp_path):

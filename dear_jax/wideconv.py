@@ -76,9 +76,10 @@ WGRAD_STEPS = 32  # steps of one program of a filter gradient (at most; see belo
 # until its grid, over every vmapped seed, has at least WGRAD_MIN_PROGRAMS programs; 0: always
 # WGRAD_STEPS. A lone seed's 35 x 35 layer at batch 512 has 307 programs of 32 steps, ~2 per SM of
 # an H100, where five seeds have 1,535; more programs also mean more partial sums to add up.
-# Not yet timed: `benchmarks/update.py --kernels WGRAD_MIN_PROGRAMS=N` compares settings. With it
-# set, how many seeds share a device changes a filter gradient's summation order (its rounding):
-# the seed axes and splits over devices are then no longer the same bit for bit.
+# Timed for one seed on an H200 (benchmarks/RESULTS.md, "The conv kernels' settings"): 1024 and
+# 2048 were no faster than 0, so it stays off. With it set, how many seeds share a device
+# changes a filter gradient's summation order (its rounding): the seed axes and splits over
+# devices are then no longer the same bit for bit.
 WGRAD_MIN_PROGRAMS = 0
 WGRAD_WARPS = 2
 # A filter gradient's products as g^T x (the output gradient's block transposed once per step)

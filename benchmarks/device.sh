@@ -43,6 +43,10 @@ if [ -d .gl ]; then for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; fi
 if [ -d .whl ] && [ ! -d /tmp/site ]; then
   python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl || exit 1
 fi
+kitchen=.dmc/gymnasium_robotics  # the kitchen's scene, packed by benchmarks/device_dmc.sh
+if [ -f $kitchen/kitchen_franka.tar.gz ] && [ ! -d $kitchen/envs/assets/kitchen_franka ]; then
+  mkdir -p $kitchen/envs/assets && tar -C $kitchen/envs/assets -xzf $kitchen/kitchen_franka.tar.gz
+fi
 export PYTHONPATH=/tmp/site:$PWD/.dmc:$PWD MUJOCO_GL=egl PYTHONUNBUFFERED=1
 export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-/tmp/jax_cache}
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | sed 's/^/gpu: /'

@@ -95,7 +95,7 @@ while [ $# -gt 0 ]; do
       ;;
     wait)
       end=$((SECONDS + $1)); shift
-      while running && [ $SECONDS -lt $end ]; do sleep 30; done
+      while running && [ $SECONDS -lt $end ]; do sleep 5; done
       for f in runs/*.out; do [ -f "$f" ] && echo "$f: $(tail -n 1 "$f")"; done
       ;;
     stop)

@@ -22,6 +22,11 @@
 #                       don't share cores. Several runs
 #                       on one GPU: give each a share of its memory, e.g.
 #                       `XLA_PYTHON_CLIENT_MEM_FRACTION=0.22 bash benchmarks/device.sh start ...`
+#                       CORES=LIST (taskset's syntax, e.g. 0-15,48-52) pins the run there instead.
+#                       A run given one GPU more than it trains on evaluates on the last one
+#                       (evaluator.spare_device); runs sharing that GPU for their evaluations
+#                       start with XLA_PYTHON_CLIENT_PREALLOCATE=false, or each would claim
+#                       most of its memory
 #   wait S              sleep up to S seconds while runs train, printing their last log lines;
 #                       returns early once none is running
 #   stop [NAME...]      SIGTERM the runs named (every run if none; each saves a checkpoint and
@@ -88,6 +93,7 @@ while [ $# -gt 0 ]; do
       visible=$([ "$gpu" = all ] && nvidia-smi --query-gpu=index --format=csv,noheader | paste -sd, || echo "$gpu")
       pin=()
       [ "$gpu" != all ] && pin=(taskset -c "$(for g in ${gpu//,/ }; do cores_of "$g"; done | paste -sd,)")
+      [ -n "${CORES:-}" ] && pin=(taskset -c "$CORES")
       CUDA_VISIBLE_DEVICES=$visible setsid nohup "${pin[@]}" python3 run.py "${args[@]}" --workdir "runs/$name" \
         >"runs/$name.out" 2>&1 </dev/null &
       echo $! >"runs/$name.pid"

@@ -325,9 +325,11 @@ def test_filter_gradient_programs_follow_the_number_of_seeds(monkeypatch):
     assert _filter_gradient_grids(jax.grad(loss, 1), x, one) == [(307, 3)]
 
 
-def test_filter_gradients_of_any_steps_are_the_same_under_nested_vmap(monkeypatch):
-    """Lanes x seeds vmapped, with steps that differ with the vmapped sizes: every lane's and
-    seed's gradients are those of its stack alone (taken with other steps)."""
+@pytest.mark.parametrize("groups", [1, 3])
+def test_filter_gradients_of_any_steps_are_the_same_under_nested_vmap(monkeypatch, groups):
+    """Lanes x seeds vmapped, with steps that differ with the vmapped sizes (and the taps in
+    one program or split over 3): every lane's and seed's gradients are those of its stack
+    alone (taken with other steps, every tap in one program)."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
     monkeypatch.setattr(wideconv, "WGRAD_BLOCK", 16)
     monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
@@ -339,7 +341,9 @@ def test_filter_gradients_of_any_steps_are_the_same_under_nested_vmap(monkeypatc
     def f(x, ws):
         return jnp.sum(jnp.sin(wideconv.conv_stack(x, ws, (0, 1), True)))
 
+    monkeypatch.setattr(wideconv, "WGRAD_TAP_GROUPS", groups)
     nested = jax.jit(jax.vmap(jax.vmap(jax.grad(f, (0, 1)))))(x, layers)
+    monkeypatch.setattr(wideconv, "WGRAD_TAP_GROUPS", 1)
     one = jax.jit(jax.grad(f, (0, 1)))  # 8 steps per program, against 2 when nested
     for i in range(2):
         for j in range(2):

@@ -35,6 +35,12 @@ DEAR's return >= SEAR's; DEAR >= 25% more sample-efficient than each baseline; T
 SEAR's on the DMC tasks; DEAR's |cos| far below SEAR's. Each says whether it holds, with the
 spread over seeds, or that the runs it needs are missing.
 
+`cosines` sets the cosine's figures side by side, per seed: on the last evaluation's
+observations (what `table` reports) and in the training log's last --rows rows, each row the mean
+over every update since the row before (its "samples": updates x batch). A signed mean over many
+samples cancels wherever the sign is not systematic: it measures a bias between the halves, the
+magnitude |cos| how far from orthogonal each sample is.
+
 `curves` is the paper's learning-curve figure (`dear_jax/plot.py`): one panel per task, one line
 per experiment (per setting of a sweep: the beta-sweep figure from the sweep's run), the mean
 over its pooled seeds with the spread shaded.
@@ -300,6 +306,87 @@ def runs_table(
     return rows, text
 
 
+COSINE_COLUMNS = (
+    "seed",
+    "method",
+    "eval frame",
+    "eval abs cos",
+    "eval cos",
+    "train frames",
+    "train abs cos",
+    "train cos",
+    "train cos, median abs per row",
+    "samples per row",
+)
+
+
+def cosine_rows(workdirs, rows: int = 20, at: int | None = None) -> list[dict]:
+    """Per seed of the runs (pooled as `table` pools them): the cosine between the latent halves
+    at the last evaluation (up to `at` frames per seed) and over the training log's last `rows`
+    rows up to that frame: the mean of the rows' |cos| and signed cos, the median magnitude of
+    a row's signed cos, and how many samples a row averages (updates x batch)."""
+    out = []
+    for pool in plot.pools([pathlib.Path(w) for w in workdirs]):
+        batch = pool.config["agent"]["batch_size"]
+        for workdir, seed_dir in pool.seeds:
+            evals = _until(read_csv(seed_dir / "eval.csv"), at, seed_dir / "eval.csv")
+            train = read_csv(seed_dir / "train.csv")
+            needed = ("abs_cos_agent_env", "cos_agent_env", "updates")
+            if any(name not in train for name in needed):
+                raise ValueError(
+                    f"{seed_dir / 'train.csv'} has no {', '.join(needed)} columns: "
+                    "a DEAR-era log of an older version or another method's"
+                )
+            keep = np.nonzero(train["frame"] <= evals["frame"][-1])[0][-(rows + 1) :]
+            if keep.size < 2:
+                raise ValueError(
+                    f"{seed_dir / 'train.csv'}: fewer than 2 rows up to frame "
+                    f"{int(evals['frame'][-1]):,} (a row's samples are the updates since the last)"
+                )
+            samples = np.diff(train["updates"][keep]) * batch
+            keep = keep[1:]  # each row's samples: the updates since the row before
+            signed = train["cos_agent_env"][keep]
+            out.append(
+                {
+                    "seed": f"{workdir.name}/{seed_dir.name} {pool.label}".strip(),
+                    "method": pool.config["agent"]["method"],
+                    "eval_frame": int(evals["frame"][-1]),
+                    "eval_abs_cos": float(evals.get("abs_cos_agent_env", [math.nan])[-1]),
+                    "eval_cos": float(evals["cos_agent_env"][-1]),
+                    "train_frames": "-".join(f"{int(train['frame'][i]):,}" for i in keep[[0, -1]]),
+                    "train_abs_cos": float(np.mean(train["abs_cos_agent_env"][keep])),
+                    "train_cos": float(np.mean(signed)),
+                    "train_cos_row_median_abs": float(np.median(np.abs(signed))),
+                    "samples_per_row": int(np.median(samples)),
+                }
+            )
+    return out
+
+
+def cosines_table(workdirs, rows: int = 20, at: int | None = None) -> tuple[list[dict], str]:
+    """The rows of `cosine_rows` and their Markdown table."""
+    found = cosine_rows(workdirs, rows, at)
+    cells = [
+        [
+            r["seed"],
+            r["method"],
+            f"{r['eval_frame']:,}",
+            *(f"{r[k]:.2e}" for k in ("eval_abs_cos", "eval_cos")),
+            r["train_frames"],
+            *(f"{r[k]:.2e}" for k in ("train_abs_cos", "train_cos", "train_cos_row_median_abs")),
+            f"{r['samples_per_row']:,}",
+        ]
+        for r in found
+    ]
+    text = (
+        f"cos(z_A, z_E) per seed: on the last evaluation's observations, and in the last {rows} "
+        "training-log rows (means over the rows; each row averages its samples)\n\n"
+        + format_table(COSINE_COLUMNS, cells)
+        + "\n"
+    )
+    return found, text
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m dear_jax.report", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -323,7 +410,20 @@ def main(argv=None):
     k.add_argument("--at", type=int, default=None, help="read evaluations up to this frame")
     k.add_argument("--last", type=int, default=11, help="evaluations a seed's return averages")
     k.add_argument("--out", default=None, help="also write OUT.md and OUT.json")
+    o = sub.add_parser("cosines", help="the cosine between the latent halves, eval and train")
+    o.add_argument("runs", nargs="+", help="run workdirs")
+    o.add_argument("--rows", type=int, default=20, help="training-log rows to average")
+    o.add_argument("--at", type=int, default=None, help="read the logs up to this frame")
+    o.add_argument("--out", default=None, help="also write OUT.md")
     args = parser.parse_args(argv)
+    if args.command == "cosines":
+        try:
+            text = cosines_table(args.runs, args.rows, args.at)[1]
+        except (FileNotFoundError, ValueError) as e:
+            parser.error(str(e))
+        print(text)
+        if args.out:
+            pathlib.Path(args.out).with_suffix(".md").write_text(text)
     if args.command == "claims":
         try:
             print(claims.claims_table(args.runs, args.threshold, args.at, args.last, args.out)[1])

@@ -572,6 +572,40 @@ def test_the_papers_claims_are_checked_per_task_on_the_seeds(tmp_path):
     assert cos_row.replace("\\|", "").count("|") == len(claims.COLUMNS) + 1
 
 
+def test_cosines_set_the_evaluation_and_the_training_log_side_by_side(tmp_path, capsys):
+    """`report cosines`, per seed: the last evaluation's cosines, and the training log's last
+    rows (each the mean over the updates since the row before: updates x batch samples),
+    read up to the last evaluation (or --at). Train rows every 5k frames, 100 updates each at
+    batch 4; seed s's signed cos alternates +-(s + 1) 1e-6 from +, its |cos| is 1e-3."""
+    run = _fake_workdir(tmp_path, "dear", "dear", agent={"method": "dear", "batch_size": 4})
+    for s in range(3):
+        lines = ["frame,updates,cos_agent_env,abs_cos_agent_env"] + [
+            f"{frame},{100 * (i + 1)},{(-1) ** i * (s + 1) * 1e-6},0.001"
+            for i, frame in enumerate(range(5_000, 30_001, 5_000))
+        ]
+        (run / f"seed_{s}" / "train.csv").write_text("\n".join(lines) + "\n")
+    rows = report.cosine_rows([run], rows=3)
+    assert [r["seed"] for r in rows] == ["dear/seed_0", "dear/seed_1", "dear/seed_2"]
+    # the last 3 rows (20k, 25k, 30k: signs -, +, -); the first row has no row before it
+    assert rows[1]["train_frames"] == "20,000-30,000"
+    assert rows[1]["train_cos"] == pytest.approx(-2e-6 / 3)
+    assert rows[1]["train_cos_row_median_abs"] == pytest.approx(2e-6)
+    assert rows[1]["train_abs_cos"] == pytest.approx(1e-3)
+    assert rows[1]["samples_per_row"] == 400
+    assert (rows[1]["eval_frame"], rows[1]["eval_cos"]) == (30_000, 0.01)
+    # up to 20k frames: the evaluation there, the rows 15k and 20k (signs +, -)
+    early = report.cosine_rows([run], rows=2, at=20_000)[2]
+    assert (early["eval_frame"], early["train_frames"]) == (20_000, "15,000-20,000")
+    assert early["train_cos"] == pytest.approx(0.0, abs=1e-15)
+    report.main(["cosines", str(run), "--rows", "3", "--out", str(tmp_path / "cos")])
+    assert "| dear/seed_2 " in capsys.readouterr().out
+    assert "samples per row" in (tmp_path / "cos.md").read_text()
+    # a log without the columns is named
+    drq = _fake_workdir(tmp_path, "drqv2", "drqv2", agent={"method": "drqv2", "batch_size": 4})
+    with pytest.raises(ValueError, match="drqv2/seed_0/train.csv has no abs_cos_agent_env"):
+        report.cosine_rows([drq])
+
+
 def test_claims_compare_both_sides_at_the_shortest_runs_last_evaluation(tmp_path):
     """A SEAR run stopped at 20,016 frames against DEAR's to 30k: DEAR's returns and |cos| are
     taken up to SEAR's last evaluation (DEAR's at 20,000 is the same point), not at its own end,

@@ -193,7 +193,7 @@ def main():
         for m in args.methods:
             for s in args.seeds:
                 for how, impl, fg, cs, kernels in itertools.product(
-                    args.seed_axis if s > 1 else ["vmap"],
+                    args.seed_axis,  # one seed too: "loop" is then the update without vmap
                     args.shift_impls,
                     args.filter_gradients,
                     args.conv_stacks,

@@ -334,8 +334,8 @@ def cosine_rows(workdirs, rows: int = 20, at: int | None = None) -> list[dict]:
             needed = ("abs_cos_agent_env", "cos_agent_env", "updates")
             if any(name not in train for name in needed):
                 raise ValueError(
-                    f"{seed_dir / 'train.csv'} has no {', '.join(needed)} columns: "
-                    "a DEAR-era log of an older version or another method's"
+                    f"{seed_dir / 'train.csv'} has no {', '.join(needed)} columns "
+                    "(a log written before they were)"
                 )
             keep = np.nonzero(train["frame"] <= evals["frame"][-1])[0][-(rows + 1) :]
             if keep.size < 2:

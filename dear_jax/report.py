@@ -325,6 +325,8 @@ def cosine_rows(workdirs, rows: int = 20, at: int | None = None) -> list[dict]:
     at the last evaluation (up to `at` frames per seed) and over the training log's last `rows`
     rows up to that frame: the mean of the rows' |cos| and signed cos, the median magnitude of
     a row's signed cos, and how many samples a row averages (updates x batch)."""
+    if rows < 1:
+        raise ValueError(f"rows={rows}: give at least 1 training-log row")
     out = []
     for pool in plot.pools([pathlib.Path(w) for w in workdirs]):
         batch = pool.config["agent"]["batch_size"]

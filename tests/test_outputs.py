@@ -600,6 +600,8 @@ def test_cosines_set_the_evaluation_and_the_training_log_side_by_side(tmp_path, 
     report.main(["cosines", str(run), "--rows", "3", "--out", str(tmp_path / "cos")])
     assert "| dear/seed_2 " in capsys.readouterr().out
     assert "samples per row" in (tmp_path / "cos.md").read_text()
+    with pytest.raises(ValueError, match="rows=0: give at least 1"):
+        report.cosine_rows([run], rows=0)
     # a log without the columns is named
     drq = _fake_workdir(tmp_path, "drqv2", "drqv2", agent={"method": "drqv2", "batch_size": 4})
     with pytest.raises(ValueError, match="drqv2/seed_0/train.csv has no abs_cos_agent_env"):

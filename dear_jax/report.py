@@ -332,17 +332,23 @@ def cosine_rows(workdirs, rows: int = 20, at: int | None = None) -> list[dict]:
         batch = pool.config["agent"]["batch_size"]
         for workdir, seed_dir in pool.seeds:
             evals = _until(read_csv(seed_dir / "eval.csv"), at, seed_dir / "eval.csv")
+            if not evals.get("frame", np.empty(0)).size:
+                raise ValueError(f"{seed_dir / 'eval.csv'} has no evaluation yet")
             train = read_csv(seed_dir / "train.csv")
             needed = ("abs_cos_agent_env", "cos_agent_env", "updates")
-            if any(name not in train for name in needed):
+            missing = [name for name in needed if name not in train]
+            if missing:
                 raise ValueError(
-                    f"{seed_dir / 'train.csv'} has no {', '.join(needed)} columns "
+                    f"{seed_dir / 'train.csv'} has no {', '.join(missing)} column(s) "
                     "(a log written before they were)"
                 )
-            keep = np.nonzero(train["frame"] <= evals["frame"][-1])[0][-(rows + 1) :]
+            # The rows with metrics (a row of episode returns alone ran no update since the
+            # row before), up to the evaluation read.
+            metrics = np.isfinite(train["cos_agent_env"]) & (train["frame"] <= evals["frame"][-1])
+            keep = np.nonzero(metrics)[0][-(rows + 1) :]
             if keep.size < 2:
                 raise ValueError(
-                    f"{seed_dir / 'train.csv'}: fewer than 2 rows up to frame "
+                    f"{seed_dir / 'train.csv'}: fewer than 2 rows of metrics up to frame "
                     f"{int(evals['frame'][-1]):,} (a row's samples are the updates since the last)"
                 )
             samples = np.diff(train["updates"][keep]) * batch
@@ -350,11 +356,11 @@ def cosine_rows(workdirs, rows: int = 20, at: int | None = None) -> list[dict]:
             signed = train["cos_agent_env"][keep]
             out.append(
                 {
-                    "seed": f"{workdir.name}/{seed_dir.name} {pool.label}".strip(),
+                    "seed": f"{workdir.name}/{seed_dir.name}",  # a lane's folder names its setting
                     "method": pool.config["agent"]["method"],
                     "eval_frame": int(evals["frame"][-1]),
                     "eval_abs_cos": float(evals.get("abs_cos_agent_env", [math.nan])[-1]),
-                    "eval_cos": float(evals["cos_agent_env"][-1]),
+                    "eval_cos": float(evals.get("cos_agent_env", [math.nan])[-1]),
                     "train_frames": "-".join(f"{int(train['frame'][i]):,}" for i in keep[[0, -1]]),
                     "train_abs_cos": float(np.mean(train["abs_cos_agent_env"][keep])),
                     "train_cos": float(np.mean(signed)),

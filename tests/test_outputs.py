@@ -602,9 +602,14 @@ def test_cosines_set_the_evaluation_and_the_training_log_side_by_side(tmp_path, 
     assert "samples per row" in (tmp_path / "cos.md").read_text()
     with pytest.raises(ValueError, match="rows=0: give at least 1"):
         report.cosine_rows([run], rows=0)
+    # a row of episode returns alone (no metrics, no update since the row before) is skipped
+    path = run / "seed_1" / "train.csv"
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join([*lines[:-1], "27500,500,,", lines[-1]]) + "\n")
+    assert report.cosine_rows([run], rows=3)[1] == rows[1]
     # a log without the columns is named
     drq = _fake_workdir(tmp_path, "drqv2", "drqv2", agent={"method": "drqv2", "batch_size": 4})
-    with pytest.raises(ValueError, match="drqv2/seed_0/train.csv has no abs_cos_agent_env"):
+    with pytest.raises(ValueError, match="drqv2/seed_0/train.csv has no abs_cos_agent_env, "):
         report.cosine_rows([drq])
 
 

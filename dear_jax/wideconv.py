@@ -85,7 +85,8 @@ WGRAD_WARPS = 2
 # A filter gradient's taps split over this many programs per block of rows (each loads the
 # block's output gradient and computes its share of the taps), where it divides the layer's
 # taps; 1: every tap in one program. More programs with fewer accumulators each, for a lone
-# seed's small grids.
+# seed's small grids; a group's taps are then traced (their padding checked at run time, as the
+# convolutions' looped taps are).
 WGRAD_TAP_GROUPS = 1
 # A filter gradient's products as g^T x (the output gradient's block transposed once per step)
 # rather than x^T g (each tap's block transposed); its result is then transposed in XLA.

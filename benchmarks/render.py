@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import functools
 import os
 import platform
 import time
@@ -38,7 +37,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from benchmarks.common import save_json  # noqa: E402
-from envs import dmc  # noqa: E402
+from envs import dmc, kitchen  # noqa: E402
 from envs.labels import label_tables, labels_from_segmentation  # noqa: E402
 from envs.render import QUALITY_VISUALS, RenderSettings, TileRenderer  # noqa: E402
 from envs.render_pool import RenderPool  # noqa: E402
@@ -60,6 +59,9 @@ VARIANTS = {
         visuals=dataclasses.replace(_DM, shadow_size=None), in_place=True
     ),
 }
+
+
+TASKS = {**dmc.TASKS, **kitchen.TASKS}
 
 
 def random_states(model: mujoco.MjModel, batch: int) -> np.ndarray:
@@ -111,7 +113,7 @@ def measure(task, variant, workers, tiles, qpos, calls, ref_rgb, ref_labels):
         dt = best * calls
     else:
         with RenderPool(
-            functools.partial(dmc.render_model_fn, task.name),
+            task.render_factory(),
             camera=task.camera,
             agent_geom_ids=agent,
             floor_geom_ids=floor,
@@ -151,7 +153,7 @@ def measure(task, variant, workers, tiles, qpos, calls, ref_rgb, ref_labels):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--tasks", nargs="+", default=["walker-walk"], choices=sorted(dmc.TASKS))
+    parser.add_argument("--tasks", nargs="+", default=["walker-walk"], choices=sorted(TASKS))
     parser.add_argument("--variants", nargs="+", default=["default", "fast"], choices=VARIANTS)
     parser.add_argument(
         "--workers", type=int, nargs="+", default=[16], help="0 = in this process, CPU time"
@@ -169,7 +171,7 @@ def main():
     )
     print(head)
     for name in args.tasks:
-        task = dmc.TASKS[name]
+        task = TASKS[name]
         qpos = random_states(task.render_model(), args.batch)
         ref_rgb, ref_labels = reference(task, qpos[: args.check])
         for workers in args.workers:

@@ -19,12 +19,17 @@ def make(task: str, method: str) -> ConfigDict:
     c.env.task = KITCHEN_TASKS[task]
     c.env.action_repeat = 1  # 40 physics steps of 2 ms per agent step, as in D4RL
     # CPU MuJoCo, stepped on threads beside the accelerator's updates, as the DMC tasks: one
-    # kitchen agent step (40 physics steps) costs 2.2 ms per env on one CPU thread, so 3 seeds x
-    # 16 envs take ~13 ms on 8 threads, where MJX took 75 ms for 40 envs on an H100
+    # kitchen agent step (40 physics steps) costs ~1.8 ms per env on one CPU thread, where MJX
+    # took 75 ms for 40 envs on an H100
     # (results/README.md, "Franka Kitchen"; benchmarks/RESULTS.md, "Franka Kitchen physics").
     # tests/test_kitchen.py checks both backends.
     c.env.backend = "cpu"
-    c.env.physics_threads = 8
+    c.env.physics_threads = 16  # 3 x 16 envs: 11.7 ms per agent step on an H100's 16 cores
+    # No shadows, reflections or multisampling: a Hopper GPU has few raster units, and the
+    # kitchen's four shadow-casting lights over 142k mesh faces held its pictures to ~300 per
+    # second whatever the number of render workers; "fast" draws ~1,500 (benchmarks/RESULTS.md,
+    # "Franka Kitchen rendering"). "dm_control" is the reference's picture.
+    c.env.render.quality = "fast"
     c.env.episode_frames = 0  # the task's 280 steps
     c.agent.method = method
     return c

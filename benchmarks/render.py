@@ -17,6 +17,9 @@ JSON records the GL renderer string, so a run on Mesa llvmpipe cannot pass for a
 clock: on a shared CPU-only machine the ratios between variants stay meaningful (with Mesa,
 LP_NUM_THREADS=0 keeps rasterisation in this process's thread).
 
+`--mesh-faces N` draws every row with meshes simplified to about N faces (`env.render.mesh_faces`:
+the kitchen's arm); |d| and the labels are still compared with the shipped meshes' picture.
+
 Variants: "default" and "fast" are the two qualities (envs/render.py); the others change one
 thing of "default": an effect off, another shadow map size, or "-in-place" (each picture drawn in
 its place on a sheet-sized MuJoCo buffer, the layout before pictures were drawn at the origin and
@@ -87,12 +90,14 @@ def reference(task, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack(rgb), np.stack(labels)
 
 
-def measure(task, variant, workers, tiles, qpos, calls, ref_rgb, ref_labels):
+def measure(task, variant, workers, tiles, qpos, calls, ref_rgb, ref_labels, mesh_faces=0):
     """Pool throughput (wall clock), or with workers=0 one TileRenderer in this process timed by
     this process's CPU time (best of `calls`): a proxy that other load on the machine barely moves.
     """
-    settings = dataclasses.replace(VARIANTS[variant], num_workers=workers, tiles_per_sheet=tiles)
-    model = task.render_model()
+    settings = dataclasses.replace(
+        VARIANTS[variant], num_workers=workers, tiles_per_sheet=tiles, mesh_faces=mesh_faces
+    )
+    model = task.render_model(mesh_faces)
     agent, floor = task.agent_geom_ids(model), task.floor_geom_ids(model)
     t0 = time.perf_counter()
     if workers == 0:
@@ -113,7 +118,7 @@ def measure(task, variant, workers, tiles, qpos, calls, ref_rgb, ref_labels):
         dt = best * calls
     else:
         with RenderPool(
-            task.render_factory(),
+            task.render_factory(mesh_faces),
             camera=task.camera,
             agent_geom_ids=agent,
             floor_geom_ids=floor,
@@ -162,6 +167,12 @@ def main():
     parser.add_argument("--batch", type=int, default=1024)
     parser.add_argument("--calls", type=int, default=5)
     parser.add_argument("--check", type=int, default=16, help="frames compared with the renderer")
+    parser.add_argument(
+        "--mesh-faces",
+        type=int,
+        default=0,
+        help="env.render.mesh_faces of every row (0: as shipped)",
+    )
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     rows = []
@@ -181,7 +192,15 @@ def main():
                     where = f"{name:<18} {variant:<20} {workers:>7} {tiles:>5}"
                     try:
                         row = measure(
-                            task, variant, workers, tiles, qpos, args.calls, ref_rgb, ref_labels
+                            task,
+                            variant,
+                            workers,
+                            tiles,
+                            qpos,
+                            args.calls,
+                            ref_rgb,
+                            ref_labels,
+                            args.mesh_faces,
                         )
                     except Exception as err:  # noqa: BLE001 - one variant must not end the run
                         rows.append(

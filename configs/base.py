@@ -91,6 +91,9 @@ def get_config() -> ConfigDict:
     # sky; a different picture), ~7x cheaper on CPU-only machines. See envs/render.py.
     c.env.render.quality = "dm_control"
     c.env.render.num_workers = 0  # 0 = min(cores, 8) per environment batch
+    # Meshes of more faces drawn simplified to about this many; 0: as shipped (the kitchen's arm
+    # only has such meshes: envs/kitchen.py, build_render_model).
+    c.env.render.mesh_faces = 0
 
     c.agent = ConfigDict()
     c.agent.method = "dear"  # "drqv2" | "dear" | "sear" | "ted"

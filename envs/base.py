@@ -228,7 +228,7 @@ class Env:
         )
         self.render_settings = render
 
-        render_model = task.render_model()
+        render_model = task.render_model(render.mesh_faces)
         if not with_videos:
             videos = np.zeros((1, 1, h, w, 3), np.uint8)
             num_videos, num_frames = 0, 1
@@ -274,7 +274,7 @@ class Env:
         self._rng = np.random.RandomState(seed)
         self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="env")
         self._pool = RenderPool(
-            task.render_factory(),
+            task.render_factory(render.mesh_faces),
             camera=task.camera,
             agent_geom_ids=task.agent_geom_ids(render_model),
             floor_geom_ids=task.floor_geom_ids(render_model),

@@ -390,17 +390,20 @@ class DmcTask:
             self.edit_physics(model)
         return model
 
-    def render_model(self) -> mujoco.MjModel:
-        """The model the render workers draw (physics edits plus visual ones)."""
+    def render_model(self, mesh_faces: int = 0) -> mujoco.MjModel:
+        """The model the render workers draw (physics edits plus visual ones). mesh_faces: no
+        DMC task has a mesh to simplify (`RenderSettings.mesh_faces`); one that had is refused."""
         model = load_model(self.xml_file)
         edit = self.edit_render or self.edit_physics
         if edit is not None:
             edit(model)
+        if mesh_faces and model.nmesh and model.mesh_facenum.max() > mesh_faces:
+            raise ValueError(f"{self.name}: env.render.mesh_faces is for the kitchen; give 0")
         return model
 
-    def render_factory(self) -> Callable[[], mujoco.MjModel]:
+    def render_factory(self, mesh_faces: int = 0) -> Callable[[], mujoco.MjModel]:
         """Picklable zero-argument model factory for the render workers."""
-        return functools.partial(render_model_fn, self.name)
+        return functools.partial(render_model_fn, self.name, mesh_faces)
 
     def make_control(self, model: mujoco.MjModel) -> None:
         """DMC actions are the actuator controls (the physics backends' default)."""
@@ -433,9 +436,9 @@ class DmcTask:
         return tuple(model.geom(name).id for name in self.floor_geoms)
 
 
-def render_model_fn(task_name: str) -> mujoco.MjModel:
+def render_model_fn(task_name: str, mesh_faces: int = 0) -> mujoco.MjModel:
     """Picklable model factory for render workers: `functools.partial(render_model_fn, name)`."""
-    return TASKS[task_name].render_model()
+    return TASKS[task_name].render_model(mesh_faces)
 
 
 TASKS: dict[str, DmcTask] = {

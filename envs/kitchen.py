@@ -87,6 +87,7 @@ import mujoco
 import numpy as np
 
 from envs.dmc import PhysicsView
+from envs.render import simplify_meshes
 
 SCENE_SUBDIR = os.path.join("envs", "assets", "kitchen_franka")
 SCENE_XML = os.path.join("kitchen_assets", "kitchen_env_model.xml")
@@ -308,9 +309,18 @@ def build_physics_model() -> mujoco.MjModel:
     return spec.compile()
 
 
-def build_render_model() -> mujoco.MjModel:
-    """The shipped scene (original visuals) plus the reference camera as a fixed camera."""
+def build_render_model(mesh_faces: int = 0) -> mujoco.MjModel:
+    """The shipped scene (original visuals) plus the reference camera as a fixed camera.
+
+    mesh_faces > 0: meshes of more faces drawn simplified to about that many
+    (`envs.render.simplify_meshes`): the arm's nine visual meshes hold 134k of the scene's 142k
+    faces, which a Hopper GPU's few raster units draw slowly (benchmarks/RESULTS.md, "Franka
+    Kitchen rendering"); at 4,000 the 84x84 frames differ from the shipped meshes' by ~0.5 of 255
+    levels per pixel (tests/test_kitchen.py)."""
     spec = load_spec()
+    simplify_meshes(
+        spec, mesh_faces, os.path.join(scene_dir(), os.path.dirname(SCENE_XML), spec.meshdir)
+    )
     pos, quat = free_camera_pose(CAMERA_LOOKAT, CAMERA_DISTANCE, CAMERA_AZIMUTH, CAMERA_ELEVATION)
     fovy = spec.visual.global_.fovy
     spec.worldbody.add_camera(name=CAMERA_NAME, pos=pos, quat=quat, fovy=fovy)
@@ -338,9 +348,9 @@ def _physics_model_cached() -> mujoco.MjModel:
     return build_physics_model()
 
 
-@functools.lru_cache(maxsize=1)
-def _render_model_cached() -> mujoco.MjModel:
-    return build_render_model()
+@functools.lru_cache(maxsize=2)
+def _render_model_cached(mesh_faces: int) -> mujoco.MjModel:
+    return build_render_model(mesh_faces)
 
 
 def robot_body_ids(model: mujoco.MjModel) -> tuple[int, ...]:
@@ -390,12 +400,13 @@ class KitchenTask:
     def physics_model(self) -> mujoco.MjModel:
         return copy.copy(_physics_model_cached())
 
-    def render_model(self) -> mujoco.MjModel:
-        return copy.copy(_render_model_cached())
+    def render_model(self, mesh_faces: int = 0) -> mujoco.MjModel:
+        """The model the render workers draw; mesh_faces: `build_render_model`'s."""
+        return copy.copy(_render_model_cached(mesh_faces))
 
-    def render_factory(self):
+    def render_factory(self, mesh_faces: int = 0):
         """Picklable zero-argument model factory for the render workers."""
-        return functools.partial(render_model_fn, self.name)
+        return functools.partial(render_model_fn, self.name, mesh_faces)
 
     def n_sub_steps(self, model: mujoco.MjModel) -> int:
         n = CONTROL_TIMESTEP / model.opt.timestep
@@ -438,9 +449,9 @@ class KitchenTask:
         return tuple(model.geom(name).id for name in self.floor_geoms)
 
 
-def render_model_fn(task_name: str) -> mujoco.MjModel:
-    """Model factory for render workers: `functools.partial(render_model_fn, name)`."""
-    return TASKS[task_name].render_model()
+def render_model_fn(task_name: str, mesh_faces: int = 0) -> mujoco.MjModel:
+    """Model factory for render workers: `functools.partial(render_model_fn, name, faces)`."""
+    return TASKS[task_name].render_model(mesh_faces)
 
 
 TASKS: dict[str, KitchenTask] = {

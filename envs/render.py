@@ -13,6 +13,9 @@ dm_control's `physics.render(84, 84, camera_id)` draws, i.e. mujoco.Renderer's d
 instead of 2048; "fast" draws none of these effects (black sky). The segmentation pass is MuJoCo's
 flat-colour pass, which skips every effect, so labels are the same under both.
 
+Meshes (`RenderSettings.mesh_faces`): the tasks' model factories can draw every mesh of more
+faces simplified to about that many (`simplify_meshes`); only the kitchen's arm has such meshes.
+
 Drawing: each worker renders its samples into "tile sheets". Each picture (a sample's RGB frame,
 then its segmentation) is drawn by `mjr_render` at the origin of a one-picture offscreen buffer,
 as mujoco.Renderer draws a frame, so every effect works per picture (one shadow-map pass per
@@ -93,6 +96,9 @@ class RenderSettings:
     num_workers: int = 0  # 0 -> min(cores this process may use, 8)
     # Samples drawn before one readback (one "sheet"). 0 -> auto: 64.
     tiles_per_sheet: int = 0
+    # Drawn meshes of more faces simplified to about this many (`simplify_meshes`); 0: as
+    # shipped. The model factories (the tasks' `render_model`, `render_factory`) read it.
+    mesh_faces: int = 0
     # For measurements only (benchmarks/render.py), never set by configs:
     # visuals: effects other than the quality's (None = the quality's);
     # in_place: draw each sample straight into its place in a sheet-sized MuJoCo buffer (the
@@ -105,6 +111,10 @@ class RenderSettings:
             raise ValueError(
                 f"unknown render quality {self.quality!r}; valid: {', '.join(QUALITIES)}"
             )
+        if self.mesh_faces < 0:
+            raise ValueError(
+                f"mesh_faces must be >= 0 (0: meshes as shipped), got {self.mesh_faces}"
+            )
 
     def resolved_workers(self) -> int:
         if self.num_workers > 0:
@@ -114,6 +124,36 @@ class RenderSettings:
 
     def resolved_visuals(self) -> Visuals:
         return self.visuals or QUALITY_VISUALS[self.quality]
+
+
+def simplify_meshes(spec: mujoco.MjSpec, max_faces: int, meshdir: str) -> list[str]:
+    """Every file mesh of `spec` with more than `max_faces` faces, simplified to about that many
+    (quadric edge collapse, fast-simplification) and put back as user vertices and faces;
+    returns their names. For drawing only: a mesh's inertia changes with its shape. MuJoCo
+    places each mesh by its own centroid and principal axes, so a simplified mesh stays where
+    the original was. meshdir: the folder the meshes' file names are relative to."""
+    if max_faces <= 0:
+        return []
+    import fast_simplification
+    import trimesh
+
+    names = []
+    for mesh in spec.meshes:
+        if not mesh.file:
+            continue
+        shape = trimesh.load(os.path.join(meshdir, mesh.file), force="mesh")  # merges vertices
+        if len(shape.faces) <= max_faces:
+            continue
+        verts, faces = fast_simplification.simplify(
+            np.asarray(shape.vertices, np.float32),
+            np.asarray(shape.faces, np.int32),
+            target_reduction=1.0 - max_faces / len(shape.faces),
+        )
+        mesh.file = ""
+        mesh.uservert = np.asarray(verts, np.float32).ravel()
+        mesh.userface = np.asarray(faces, np.int32).ravel()
+        names.append(mesh.name)
+    return names
 
 
 def apply_visuals(model: mujoco.MjModel, visuals: Visuals) -> None:

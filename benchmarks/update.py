@@ -2,11 +2,9 @@
 
 python -m benchmarks.update [--methods dear drqv2] [--seeds 1 5] [--batch 256] [--iters 20]
     [--dtypes float32 bfloat16] [--seed-axis vmap loop] [--kernels default TAP_LOOP=1,CONV_STAGES=2]
-    [--critic-heads separate batched]
 Prints a table and writes JSON to benchmarks/results/update_<platform>.json (or --out).
 --kernels times each listed setting of the Pallas conv stacks' constants (`dear_jax.wideconv`,
-comma-separated NAME=INT; "default": as they are), in turn, for every other combination;
---critic-heads each way the critic's twin heads run their products (`networks.CRITIC_HEADS`).
+comma-separated NAME=INT; "default": as they are), in turn, for every other combination.
 The same update in PyTorch, timed on the same GPU: `python -m benchmarks.torch_reference update`.
 """
 
@@ -183,12 +181,6 @@ def main():
         help="jax_default_matmul_precision for float32 matmuls and convolutions",
     )
     parser.add_argument("--kernels", nargs="+", default=[{}], type=kernel_setting)
-    parser.add_argument(
-        "--critic-heads",
-        nargs="+",
-        default=[networks.CRITIC_HEADS],
-        choices=networks.CRITIC_HEADS_CHOICES,
-    )
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     if any(args.kernels) and "pallas" not in args.conv_stacks:
@@ -200,37 +192,34 @@ def main():
     for d in args.dtypes:
         for m in args.methods:
             for s in args.seeds:
-                for how, impl, fg, cs, kernels, heads in itertools.product(
+                for how, impl, fg, cs, kernels in itertools.product(
                     args.seed_axis,  # one seed too: "loop" is then the update without vmap
                     args.shift_impls,
                     args.filter_gradients,
                     args.conv_stacks,
                     args.kernels,
-                    args.critic_heads,
                 ):
                     encoder = args.drqv2_encoder if m == "drqv2" else "pool"
                     setting = ",".join(f"{n}={v}" for n, v in kernels.items())
-                    networks.CRITIC_HEADS = heads  # read as the update is traced (its first call)
                     r = time_update(
                         m, s, args.batch, args.iters, d, 6, how, impl, encoder, fg, cs, setting
                     )
-                    rows.append(dict(r, kernels=kernels, critic_heads=heads))
+                    rows.append(dict(r, kernels=kernels))
                     print(
-                        f"{m} {d} {how} {impl} {fg} {cs} {kernels or ''} heads={heads} seeds={s}: "
+                        f"{m} {d} {how} {impl} {fg} {cs} {kernels or ''} seeds={s}: "
                         f"{r['ms_per_seed_update']:.2f} ms/seed"
                     )
     print(f"device: {device.device_kind} ({device.platform}), jax {jax.__version__}")
     print(
-        "| method | encoder | dtype | precision | seed axis | shift | filter gradient | conv stack | kernels | critic heads | seeds | batch | ms per call "
+        "| method | encoder | dtype | precision | seed axis | shift | filter gradient | conv stack | kernels | seeds | batch | ms per call "
         "| host dispatch ms per call | ms per seed-update | vs PyTorch 12.1 ms | compile s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
             f"| {r['method']} | {r['encoder']} | {r['dtype']} | {r['precision']} | {r['seed_axis']} "
             f"| {r['shift_impl']} | {r['filter_gradient']} | {r['conv_stack']} "
             f"| {','.join(f'{n}={v}' for n, v in r['kernels'].items()) or 'default'} "
-            f"| {r['critic_heads']} "
             f"| {r['seeds']} | {r['batch']} | "
             f"{r['ms_per_call']:.2f} | {r['dispatch_ms_per_call']:.2f} | "
             f"{r['ms_per_seed_update']:.2f} | {PYTORCH_ANCHOR_MS / r['ms_per_seed_update']:.2f}x "

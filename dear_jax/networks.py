@@ -552,68 +552,9 @@ class Actor(nn.Module):
         return jnp.tanh(mlp(h))
 
 
-# How the critic's twin heads run their products: "separate" (each head's MLP on its own) or
-# "batched" (both heads' layers as one product each, over a leading axis of the two heads: for a
-# lone seed, whose 512-row products are small, one kernel instead of two). The same parameters
-# (names, shapes, initial values) and the same function; an experiment, timed by
-# `python -m benchmarks.update --critic-heads separate batched`.
-CRITIC_HEADS = "separate"
-CRITIC_HEADS_CHOICES = ("separate", "batched")
-
-
-class _LinearParams(nn.Module):
-    """nn.Dense's parameters (its names, shapes and initialisers) without its product."""
-
-    features: int
-
-    @nn.compact
-    def __call__(self, fan_in: int) -> tuple[jax.Array, jax.Array]:
-        kernel = self.param("kernel", LINEAR_INIT, (fan_in, self.features), jnp.float32)
-        return kernel, self.param("bias", ZEROS, (self.features,), jnp.float32)
-
-
-class _MLPParams(nn.Module):
-    """`MLP`'s parameters (layers Dense_0, Dense_1, ...) without its products."""
-
-    sizes: Sequence[int]
-
-    @nn.compact
-    def __call__(self, fan_in: int) -> list[tuple[jax.Array, jax.Array]]:
-        layers = []
-        for i, features in enumerate(self.sizes):
-            layers.append(_LinearParams(features, name=f"Dense_{i}")(fan_in))
-            fan_in = features
-        return layers
-
-
-def _product(spec: str, x: jax.Array, kernel: jax.Array, products) -> jax.Array:
-    """einsum(spec, x, kernel) as `_dense` computes its product: float32, or (`products` of
-    another dtype) operands in that dtype accumulated into float32 (`mixed_dot_general`)."""
-    if jnp.dtype(products) == jnp.float32:
-        return jnp.einsum(spec, x, kernel)
-    cast = (x.astype(products), kernel.astype(products))
-    return jnp.einsum(spec, *cast, preferred_element_type=jnp.float32)
-
-
-def _twin_mlps(h: jax.Array, heads, products) -> jax.Array:
-    """Two MLPs' outputs on the same input h [..., d], [2, ..., out]: the first layer one
-    product of h with both heads' kernels side by side, each later layer one product batched
-    over the heads."""
-    (k1, b1), (k2, b2) = heads[0][0], heads[1][0]
-    x = _product("...i,io->...o", h, jnp.concatenate([k1, k2], axis=1), products)
-    x = nn.relu(x + jnp.concatenate([b1, b2]))
-    x = jnp.stack(jnp.split(x, 2, axis=-1))
-    for i, ((k1, b1), (k2, b2)) in enumerate(zip(heads[0][1:], heads[1][1:]), start=1):
-        x = _product("h...i,hio->h...o", x, jnp.stack([k1, k2]), products)
-        x = x + jnp.stack([b1, b2]).reshape(2, *(1,) * (x.ndim - 2), -1)
-        if i < len(heads[0]) - 1:
-            x = nn.relu(x)
-    return x
-
-
 class Critic(nn.Module):
     """Twin Q heads on a shared trunk: (z, a) -> (Q1, Q2), each of shape [...]. `products`: as
-    the actor's. How the heads' products run: `CRITIC_HEADS`."""
+    the actor's."""
 
     feature_dim: int = 50
     hidden_dim: int = 1024
@@ -623,13 +564,6 @@ class Critic(nn.Module):
     def __call__(self, z: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
         h = jnp.concatenate([Trunk(self.feature_dim, self.products)(z), action], axis=-1)
         hidden = (self.hidden_dim, self.hidden_dim)
-        if CRITIC_HEADS == "batched":
-            sizes = (*hidden, 1)
-            heads = [_MLPParams(sizes, name=n)(h.shape[-1]) for n in ("q1", "q2")]
-            q = _twin_mlps(h, heads, self.products)[..., 0]
-            return q[0], q[1]
-        if CRITIC_HEADS != "separate":
-            raise ValueError(f"CRITIC_HEADS={CRITIC_HEADS!r}; valid: {CRITIC_HEADS_CHOICES}")
         q1 = MLP(hidden, 1, self.products, name="q1")(h)[..., 0]
         q2 = MLP(hidden, 1, self.products, name="q2")(h)[..., 0]
         return q1, q2

@@ -90,47 +90,6 @@ def test_decoder_and_actor_values():
     np.testing.assert_array_equal(phases[1, 5, 7, 2 * 3 + 0 * 3 + 1], out[1, 11, 14, 1])
 
 
-@pytest.mark.parametrize("products", [jnp.float32, jnp.bfloat16])
-def test_critic_heads_batched_are_the_same_function(monkeypatch, products):
-    """The twin heads' products batched over the heads (`CRITIC_HEADS`): the same parameters
-    (names, shapes, initial values), the same Q values, and the same gradients: in float32 up
-    to summation order; with bf16 products the gradient below the heads differs by rounding (the
-    heads' contributions to h are summed inside one product, not each rounded to bf16 first)."""
-    z = _normal(0, (2, 4, 64))  # leading axes of any number
-    a = jnp.asarray(np.random.default_rng(1).uniform(-1, 1, (2, 4, 6)), jnp.float32)
-    critic = networks.Critic(hidden_dim=32, products=products)
-
-    def run(heads):
-        monkeypatch.setattr(networks, "CRITIC_HEADS", heads)
-        params = critic.init(jax.random.key(2), z, a)
-        loss = lambda p, z, a: sum(jnp.sum(jnp.sin(3 * q)) for q in critic.apply(p, z, a))  # noqa: E731
-        dots = [
-            e
-            for e in jax.make_jaxpr(critic.apply)(params, z, a).jaxpr.eqns
-            if e.primitive.name == "dot_general"
-        ]
-        return params, critic.apply(params, z, a), jax.grad(loss, (0, 1, 2))(params, z, a), dots
-
-    params, q, grads, dots = run("separate")
-    same, q_batched, grads_batched, batched_dots = run("batched")
-    assert jax.tree.structure(same) == jax.tree.structure(params)
-    for x, y in zip(jax.tree.leaves(params), jax.tree.leaves(same), strict=True):
-        np.testing.assert_array_equal(x, y)
-    assert len(dots) == 7 and len(batched_dots) == 4  # the trunk, then 3 layers per head / both
-    for x, y in zip(q, q_batched, strict=True):
-        assert x.shape == (2, 4)
-        np.testing.assert_allclose(y, x, rtol=1e-6, atol=1e-6)
-    tol = dict(rtol=1e-5, atol=1e-6) if products == jnp.float32 else dict(rtol=2e-2, atol=4e-3)
-    for x, y in zip(jax.tree.leaves(grads), jax.tree.leaves(grads_batched), strict=True):
-        np.testing.assert_allclose(y, x, **tol)
-    heads = lambda g: jax.tree.leaves({k: g[0]["params"][k] for k in ("q1", "q2")})  # noqa: E731
-    for x, y in zip(heads(grads), heads(grads_batched), strict=True):  # the heads' own: equal
-        np.testing.assert_allclose(y, x, rtol=1e-5, atol=1e-7)
-    monkeypatch.setattr(networks, "CRITIC_HEADS", "stacked")
-    with pytest.raises(ValueError, match="CRITIC_HEADS='stacked'; valid: "):
-        critic.apply(params, z, a)
-
-
 def test_bf16_products_keep_the_parameters_and_float32_values():
     """Actor and critic with bf16 products (the bf16 path's): the same parameters, float32
     outputs near the float32 networks', every forward product reading bf16 operands into

@@ -144,12 +144,16 @@ def _named_leaves(tree: Any) -> list[tuple[str, Any]]:
     return [(".".join(_key_name(e) for e in path), leaf) for path, leaf in flat]
 
 
-def fingerprint_diff(saved: Mapping, now: Mapping) -> list[str]:
-    """Lines "key: saved=..., now=..." for every key whose value differs (or is on one side)."""
+def fingerprint_diff(saved: Mapping, now: Mapping, added: Mapping | None = None) -> list[str]:
+    """Lines "key: saved=..., now=..." for every key whose value differs (or is on one side).
+    added: keys newer than some checkpoints, with the value that matches their absence."""
     missing = "<absent>"
+    added = added or {}
     lines = []
     for key in sorted(set(saved) | set(now), key=str):
         a, b = saved.get(key, missing), now.get(key, missing)
+        if a is missing and key in added and b == added[key]:
+            continue
         if a != b:
             lines.append(f"{key}: saved={a!r}, now={b!r}")
     return lines
@@ -168,6 +172,7 @@ class Checkpointer:
         directory: str | os.PathLike,
         *,
         fingerprint: dict,
+        added_fields: Mapping | None = None,
         keep: int = 3,
         asynchronous: bool = False,
     ):
@@ -175,6 +180,8 @@ class Checkpointer:
             raise ValueError(f"keep must be >= 1, got {keep}")
         self.directory = os.path.abspath(os.fspath(directory))
         self.fingerprint = _jsonable(dict(fingerprint), "fingerprint")
+        # Fields newer than some checkpoints: the value each has in a checkpoint without it.
+        self.added_fields = dict(added_fields or {})
         options = ocp.CheckpointManagerOptions(
             max_to_keep=keep,
             create=True,
@@ -268,7 +275,7 @@ class Checkpointer:
 
     def check_fingerprint(self, saved: Mapping, step: int) -> None:
         """Raise IncompatibleCheckpointError, naming every differing field, unless `saved` matches."""
-        diff = fingerprint_diff(saved, self.fingerprint)
+        diff = fingerprint_diff(saved, self.fingerprint, self.added_fields)
         if diff:
             raise IncompatibleCheckpointError(
                 f"checkpoint {step} in {self.directory} was written by a different "

@@ -54,6 +54,11 @@ RESUMABLE_CHANGES = (
 )
 
 
+# Fields added to the config after runs were made, each with the value that does what the code
+# did before it: a checkpoint written without the field resumes when the config has that value.
+ADDED_FIELDS = {"env.render.mesh_faces": 0}
+
+
 def fingerprint(config: ConfigDict) -> dict:
     """Every config field that changes what a run learns (all but RESUMABLE_CHANGES), dotted."""
     return {k: v for k, v in lanes.flatten(config.to_dict()).items() if k not in RESUMABLE_CHANGES}

@@ -26,6 +26,7 @@ from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.devices import Hosts, batch_split, seed_groups, seed_mesh
 from dear_jax.evaluator import EvalProcess, LocalEvaluator
 from dear_jax.experiment import (
+    ADDED_FIELDS,
     OWN_PROCESS,
     agent_config,
     eval_device,
@@ -125,7 +126,10 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
 
 def _checkpointer(config, workdir: pathlib.Path, stack: contextlib.ExitStack) -> Checkpointer:
     ckpt = Checkpointer(
-        workdir / "checkpoints", fingerprint=fingerprint(config), keep=config.keep_checkpoints
+        workdir / "checkpoints",
+        fingerprint=fingerprint(config),
+        added_fields=ADDED_FIELDS,
+        keep=config.keep_checkpoints,
     )
     stack.callback(ckpt.close)
     return ckpt

@@ -259,6 +259,31 @@ def test_fingerprint_mismatch_names_every_key(tmp_path):
     assert "new --workdir" in msg
 
 
+def test_a_field_added_later_resumes_at_its_old_behaviour(tmp_path):
+    """A checkpoint written before a field existed resumes when the config gives the field the
+    value that does what the code did before it (`added_fields`), and only then."""
+    state = {"w": jnp.arange(3.0)}
+    with Checkpointer(tmp_path, fingerprint=FINGERPRINT) as ckpt:
+        ckpt.save(1, state)
+    added = {"env.render.mesh_faces": 0}
+    now = dict(FINGERPRINT, **{"env.render.mesh_faces": 0})
+    with Checkpointer(tmp_path, fingerprint=now, added_fields=added) as ckpt:
+        step, restored, _ = ckpt.restore(state)
+    assert step == 1
+    np.testing.assert_array_equal(restored["w"], state["w"])
+    changed = dict(FINGERPRINT, **{"env.render.mesh_faces": 4000})
+    with Checkpointer(tmp_path, fingerprint=changed, added_fields=added) as ckpt:
+        with pytest.raises(
+            IncompatibleCheckpointError, match="mesh_faces: saved='<absent>', now=4000"
+        ):
+            ckpt.restore(state)
+    with Checkpointer(tmp_path, fingerprint=now) as ckpt:  # not declared as added: refused
+        with pytest.raises(
+            IncompatibleCheckpointError, match="mesh_faces: saved='<absent>', now=0"
+        ):
+            ckpt.restore(state)
+
+
 def test_template_mismatch_is_a_clear_error(tmp_path):
     with Checkpointer(tmp_path, fingerprint=FINGERPRINT) as ckpt:
         ckpt.save(1, {"w": jnp.arange(3.0), "n": jnp.int32(1)})

@@ -371,6 +371,8 @@ def test_fingerprint_is_every_field_but_the_resumable_ones():
     assert {"agent.nstep", "agent.compute_dtype", "agent.ortho_form", "env.distraction"} <= set(fp)
     assert {"env.mask", "replay.capacity", "env.render.quality", "seed"} <= set(fp)
     assert not set(experiment.RESUMABLE_CHANGES) & set(fp)
+    for key, value in experiment.ADDED_FIELDS.items():  # the defaults behave as before them
+        assert fp[key] == value
     c.agent.new_field = 1  # a field added later counts, unless listed as resumable
     assert experiment.fingerprint(c)["agent.new_field"] == 1
     relaxed = tiny_config(

@@ -18,7 +18,9 @@ clock: on a shared CPU-only machine the ratios between variants stay meaningful 
 LP_NUM_THREADS=0 keeps rasterisation in this process's thread).
 
 `--mesh-faces N` draws every row with meshes simplified to about N faces (`env.render.mesh_faces`:
-the kitchen's arm); |d| and the labels are still compared with the shipped meshes' picture.
+the kitchen's arm); |d| and the labels are still compared with mujoco.Renderer's picture of the
+shipped meshes, and each row adds its checked frames' difference from the same variant drawn
+with the shipped meshes (`*_vs_shipped_meshes`).
 
 Variants: "default" and "fast" are the two qualities (envs/render.py); the others change one
 thing of "default": an effect off, another shadow map size, or "-in-place" (each picture drawn in
@@ -30,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import os
 import platform
 import time
@@ -134,7 +137,24 @@ def measure(task, variant, workers, tiles, qpos, calls, ref_rgb, ref_labels, mes
     n = len(ref_rgb)
     diff = np.abs(rgb[:n].astype(np.int16) - ref_rgb)
     batch = qpos.shape[0]
+    shipped = {}
+    if mesh_faces:  # the same variant on the shipped meshes: what the simplification alone changes
+        same = dataclasses.replace(settings, mesh_faces=0)
+        model = task.render_model()
+        renderer = TileRenderer(
+            model, camera=task.camera, agent_geom_ids=agent, floor_geom_ids=floor, settings=same
+        )
+        ship_rgb, ship_labels = np.zeros_like(rgb[:n]), np.zeros_like(labels[:n])
+        renderer.render(qpos[:n], ship_rgb, ship_labels)
+        renderer.close()
+        gap = np.abs(rgb[:n].astype(np.int16) - ship_rgb)
+        shipped = {
+            "mean_abs_diff_vs_shipped_meshes": float(gap.mean()),
+            "worst_frame_mean_abs_diff_vs_shipped_meshes": float(gap.mean(axis=(1, 2, 3)).max()),
+            "label_pixels_differing_vs_shipped_meshes": int((labels[:n] != ship_labels).sum()),
+        }
     return {
+        **shipped,
         "task": task.name,
         "variant": variant,
         "workers": workers,
@@ -170,59 +190,61 @@ def main():
     parser.add_argument(
         "--mesh-faces",
         type=int,
-        default=0,
-        help="env.render.mesh_faces of every row (0: as shipped)",
+        nargs="+",
+        default=[0],
+        help="env.render.mesh_faces (0: as shipped)",
     )
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     rows = []
     head = (
         f"{'task':<18} {'variant':<20} {'workers':>7} {'tiles':>5} {'obs/s':>8} {'x fast':>6} "
-        f"{'ms/call':>8} {'|d| vs Renderer':>15} {'label px':>8}"
+        f"{'ms/call':>8} {'|d| vs Renderer':>15} {'label px':>8} {'faces':>6} {'|d| vs shipped':>14}"
     )
     print(head)
     for name in args.tasks:
         task = TASKS[name]
         qpos = random_states(task.render_model(), args.batch)
         ref_rgb, ref_labels = reference(task, qpos[: args.check])
-        for workers in args.workers:
-            for tiles in args.tiles:
-                fast_obs = None
-                for variant in sorted(args.variants, key=lambda v: v != "fast"):  # fast first
-                    where = f"{name:<18} {variant:<20} {workers:>7} {tiles:>5}"
-                    try:
-                        row = measure(
-                            task,
-                            variant,
-                            workers,
-                            tiles,
-                            qpos,
-                            args.calls,
-                            ref_rgb,
-                            ref_labels,
-                            args.mesh_faces,
-                        )
-                    except Exception as err:  # noqa: BLE001 - one variant must not end the run
-                        rows.append(
-                            dict(
-                                task=name,
-                                variant=variant,
-                                workers=workers,
-                                tiles=tiles,
-                                error=repr(err),
-                            )
-                        )
-                        print(f"{where} failed: {err!r}", flush=True)
-                        continue
-                    rows.append(row)
-                    fast_obs = row["obs_per_s"] if variant == "fast" else fast_obs
-                    rel = f"{row['obs_per_s'] / fast_obs:6.3f}" if fast_obs else f"{'':>6}"
-                    print(
-                        f"{where} {row['obs_per_s']:>8.0f} {rel} {row['ms_per_call']:>8.1f} "
-                        f"{row['mean_abs_diff_vs_renderer']:>15.3f} "
-                        f"{row['label_pixels_differing']:>8}",
-                        flush=True,
+        for workers, tiles, faces in itertools.product(args.workers, args.tiles, args.mesh_faces):
+            fast_obs = None
+            for variant in sorted(args.variants, key=lambda v: v != "fast"):  # fast first
+                where = f"{name:<18} {variant:<20} {workers:>7} {tiles:>5}"
+                try:
+                    row = measure(
+                        task,
+                        variant,
+                        workers,
+                        tiles,
+                        qpos,
+                        args.calls,
+                        ref_rgb,
+                        ref_labels,
+                        faces,
                     )
+                except Exception as err:  # noqa: BLE001 - one variant must not end the run
+                    rows.append(
+                        dict(
+                            task=name,
+                            variant=variant,
+                            workers=workers,
+                            tiles=tiles,
+                            mesh_faces=faces,
+                            error=repr(err),
+                        )
+                    )
+                    print(f"{where} failed: {err!r}", flush=True)
+                    continue
+                rows.append(row)
+                fast_obs = row["obs_per_s"] if variant == "fast" else fast_obs
+                rel = f"{row['obs_per_s'] / fast_obs:6.3f}" if fast_obs else f"{'':>6}"
+                print(
+                    f"{where} {row['obs_per_s']:>8.0f} {rel} {row['ms_per_call']:>8.1f} "
+                    f"{row['mean_abs_diff_vs_renderer']:>15.3f} "
+                    f"{row['label_pixels_differing']:>8} {faces:>6} "
+                    f"{row.get('mean_abs_diff_vs_shipped_meshes', 0.0):>14.3f}",
+                    flush=True,
+                )
     print("GL_RENDERER:", {row["gl_renderer"] for row in rows if "gl_renderer" in row})
     result = {
         "benchmark": "render pool per visual variant, RGB + labels, 84x84",

@@ -62,9 +62,9 @@ def get_config() -> ConfigDict:
     # while the accelerator updates), "mjx" (batched on the accelerator) or "auto" (MJX when an
     # accelerator is present). "cpu" is the default, for the DMC tasks: on an H100 the MJX step's
     # solver loops made the host wait for every queued update, leaving the GPU idle for a third
-    # of each iteration (benchmarks/RESULTS.md, "The training loop on the H100"); CPU MuJoCo is
-    # also dm_control's physics exactly. Runs made before 2026-11-23 evening used "auto" and
-    # resume with --config.env.backend=auto. The kitchen's configs (configs/kitchen.py) set "auto".
+    # of each iteration (benchmarks/RESULTS.md, "End to end"); CPU MuJoCo is also dm_control's
+    # physics exactly. Runs made before 2026-11-23 evening used "auto" and resume with
+    # --config.env.backend=auto. The kitchen (configs/kitchen.py) steps "cpu" too.
     c.env.backend = "cpu"
     # Physics of the evaluation episodes: "cpu" (CPU MuJoCo, dm_control's own solver and
     # stepping, on CPU cores beside the GPU's training) or "train" (env.backend's).
@@ -88,11 +88,12 @@ def get_config() -> ConfigDict:
     c.env.render = ConfigDict()
     # "dm_control": the frames dm_control's physics.render draws (skybox, shadows, reflections,
     # multisampling), as published curves learned from; "fast": none of these effects (a black
-    # sky; a different picture), ~7x cheaper on CPU-only machines. See envs/render.py.
+    # sky; a different picture), ~7x cheaper on CPU-only machines, 5x on an H100 drawing the
+    # kitchen (its default: docs/method.md, decision 16). See envs/render.py.
     c.env.render.quality = "dm_control"
     c.env.render.num_workers = 0  # 0 = min(cores, 8) per environment batch
-    # Meshes of more faces drawn simplified to about this many; 0: as shipped (the kitchen's arm
-    # only has such meshes: envs/kitchen.py, build_render_model).
+    # Meshes of more faces drawn simplified to about this many (0: as shipped, or >= 1000): only
+    # the kitchen's arm has such meshes (envs/kitchen.py, build_render_model).
     c.env.render.mesh_faces = 0
 
     c.agent = ConfigDict()

@@ -24,7 +24,10 @@ def make(task: str, method: str) -> ConfigDict:
     # (results/README.md, "Franka Kitchen"; benchmarks/RESULTS.md, "Franka Kitchen physics").
     # tests/test_kitchen.py checks both backends.
     c.env.backend = "cpu"
-    c.env.physics_threads = 16  # 3 x 16 envs: 11.7 ms per agent step on an H100's 16 cores
+    # 3 x 16 envs took 11.7 ms per agent step on 16 threads, 17.8 on 8, on an H100 machine's 16
+    # cores (benchmarks/RESULTS.md, "Franka Kitchen physics"); threads beyond the cores a run may
+    # use only take turns.
+    c.env.physics_threads = 16
     # No shadows, reflections or multisampling: a Hopper GPU has few raster units, and the
     # kitchen's four shadow-casting lights over 142k mesh faces held its pictures to ~300 per
     # second whatever the number of render workers; "fast" draws ~1,500 (benchmarks/RESULTS.md,

@@ -13,7 +13,7 @@ The loop evaluates through one of two evaluators with the same methods (`config.
   program (`Programs.evaluate_step`, the training's dtype) on the accelerator, in a context of
   its own that allocates only what it uses; its CPU threads are then nearly idle.
 
-Measured on an H100 (benchmarks/RESULTS.md, "Where an evaluation's cost goes"): evaluating at
+Measured on an H100 (benchmarks/RESULTS.md, "Evaluation"): evaluating at
 twice the paper's rate, the DrQ-v2 learning check's loop trained at 786 frames/s with
 "accelerator" and 703 with "cpu" (1,135 without evaluating). At the paper's rate, a 500k-frame
 DrQ-v2 run took 1.19x the time of its training alone with "accelerator" and 1.22x with "cpu"

@@ -200,7 +200,7 @@ def eval_device(config: ConfigDict, hosts: Hosts) -> str:
     dear_jax/evaluator.py), or "train", this process.
 
     "auto" is "accelerator" for a run of one process on a GPU: on an H100 its evaluations slowed
-    training less than "cpu" did (benchmarks/RESULTS.md, "Where an evaluation's cost goes");
+    training less than "cpu" did (benchmarks/RESULTS.md, "Evaluation");
     "cpu" elsewhere (a CPU-only machine runs the policy in float32); "train" for several
     processes."""
     choice = config.eval_device

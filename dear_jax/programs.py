@@ -121,7 +121,7 @@ def build_programs(
     # Batches are drawn for all seeds at once (vmapped gathers from the [S, T, E, ...] replay);
     # only the updates follow agent.seed_axis. Looping the sampling too, which slices each
     # seed's replay out of the buffer first, made DEAR's learn program on an H100 take 395
-    # instead of 295 ms per 5 x 16 iteration (benchmarks/RESULTS.md, "The training loop").
+    # instead of 295 ms per 5 x 16 iteration (benchmarks/RESULTS.md, "End to end").
     def learn_block(agent, buffer, keys, hp):
         if split > 1:  # each of a lane's devices draws (and crops) its own part of the batch
             keys = jax.vmap(jax.random.fold_in, (0, None))(keys, jax.lax.axis_index(devices.BATCH))

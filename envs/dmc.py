@@ -392,13 +392,17 @@ class DmcTask:
 
     def render_model(self, mesh_faces: int = 0) -> mujoco.MjModel:
         """The model the render workers draw (physics edits plus visual ones). mesh_faces: no
-        DMC task has a mesh to simplify (`RenderSettings.mesh_faces`); one that had is refused."""
+        DMC task has a mesh to simplify (`RenderSettings.mesh_faces`), so anything but 0 is
+        refused."""
         model = load_model(self.xml_file)
         edit = self.edit_render or self.edit_physics
         if edit is not None:
             edit(model)
-        if mesh_faces and model.nmesh and model.mesh_facenum.max() > mesh_faces:
-            raise ValueError(f"{self.name}: env.render.mesh_faces is for the kitchen; give 0")
+        if mesh_faces:
+            raise ValueError(
+                f"{self.name} has no mesh to simplify: env.render.mesh_faces is for the kitchen; "
+                "give 0"
+            )
         return model
 
     def render_factory(self, mesh_faces: int = 0) -> Callable[[], mujoco.MjModel]:

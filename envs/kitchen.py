@@ -12,7 +12,8 @@ slides), 8 burner knob/plate joints, light switch hinge (17) and light slide (18
 switch by an equality), slide cabinet, two hinge doors, microwave door (19-22), kettle free
 joint (23-29, position then w-first quaternion).
 
-Collision model (the physics model only; rendering draws the original model). `mjx.put_model`
+Collision model (the physics model only; rendering draws the original model, its arm's meshes
+simplified if `env.render.mesh_faces` asks: `build_render_model`). `mjx.put_model`
 refuses the scene as shipped: the robot's collision meshes and the pedestal would collide with
 cylinders (counter handles, oven knobs and bars, the kettle spout), and meshes cannot carry the
 1 mm contact margin the kitchen geoms have. Every geom's contype/conaffinity is cleared and

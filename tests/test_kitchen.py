@@ -16,8 +16,9 @@ closed. Stated tolerances (measured values in the test bodies' comments):
 
 The envs draw "fast" pictures (no shadows, reflections or multisampling): the tests read the
 masks, which MuJoCo's flat-colour segmentation pass draws the same under every quality
-(envs/render.py; tests/test_render.py checks it), and not the RGB frames, whose default effects
-cost ~7x on llvmpipe (~45 s of this file's rollouts).
+(envs/render.py; tests/test_render.py checks it), and RGB frames only to compare simplified
+meshes with the shipped ones; the default effects cost ~7x on llvmpipe (~45 s of this file's
+rollouts).
 """
 
 import os
@@ -31,7 +32,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import envs  # noqa: E402
-from envs import kitchen, physics  # noqa: E402
+from envs import dmc, kitchen, physics  # noqa: E402
 from envs.labels import LABEL_AGENT  # noqa: E402
 from envs.render import TileRenderer  # noqa: E402
 
@@ -408,7 +409,7 @@ def test_mask_is_exactly_the_robot(light):
 def test_simplified_meshes_draw_nearly_the_same_frames(light):
     """mesh_faces=4000: the arm's nine visual meshes (134k faces) simplified, nothing else; the
     scripted rollout's frames (start, end; both envs) within a level of 255 per pixel on average
-    (0.55 measured over random arm poses) and the masks within 0.5% of their pixels."""
+    (0.54 measured over 32 random poses) and the masks within 0.1% of their pixels (0.02%)."""
     shipped = kitchen.build_render_model()
     simple = kitchen.TASKS["kitchen-light"].render_factory(4000)()
     assert (simple.nmesh, simple.ngeom, simple.nbody) == (
@@ -432,7 +433,7 @@ def test_simplified_meshes_draw_nearly_the_same_frames(light):
         first, first_mask = run["frames"][0]
         gap = np.abs(np.asarray(ts.frame, np.int16) - first).mean()
         assert 0 < gap < 1.0
-        assert (np.asarray(ts.true_mask) != first_mask).mean() < 0.005
+        assert (np.asarray(ts.true_mask) != first_mask).mean() < 0.001
         rgb, labels = env._pool.render(qpos)
     settings = envs.RenderSettings(num_workers=1, quality="fast")
     task = kitchen.TASKS["kitchen-light"]
@@ -447,13 +448,16 @@ def test_simplified_meshes_draw_nearly_the_same_frames(light):
     ref.render(qpos, ref_rgb, ref_labels)
     ref.close()
     assert 0 < np.abs(rgb.astype(np.int16) - ref_rgb).mean() < 1.0
-    assert (labels != ref_labels).mean() < 0.005
+    assert (labels != ref_labels).mean() < 0.001
 
 
 def test_mesh_faces_is_checked():
-    with pytest.raises(ValueError, match="mesh_faces must be >= 0"):
-        envs.RenderSettings(mesh_faces=-1)
+    for faces in (-1, 3, 999):
+        with pytest.raises(ValueError, match=f"mesh_faces must be 0 .* or >= 1000, got {faces}"):
+            envs.RenderSettings(mesh_faces=faces)
     assert kitchen.build_render_model(0).nmeshface == kitchen.load_spec().compile().nmeshface
+    with pytest.raises(ValueError, match="walker-walk has no mesh to simplify"):
+        dmc.TASKS["walker-walk"].render_model(4000)
 
 
 def test_scripted_kettle_push_reaches_the_goal():

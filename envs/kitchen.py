@@ -316,8 +316,8 @@ def build_render_model(mesh_faces: int = 0) -> mujoco.MjModel:
     mesh_faces > 0: meshes of more faces drawn simplified to about that many
     (`envs.render.simplify_meshes`): the arm's nine visual meshes hold 134k of the scene's 142k
     faces, which a Hopper GPU's few raster units draw slowly (benchmarks/RESULTS.md, "Franka
-    Kitchen rendering"); at 4,000 the 84x84 frames differ from the shipped meshes' by ~0.5 of 255
-    levels per pixel (tests/test_kitchen.py)."""
+    Kitchen rendering"); at 4,000 the 84x84 frames differ from the shipped meshes' by 0.5-0.7 of
+    255 levels per pixel (docs/method.md, decision 16; tests/test_kitchen.py)."""
     spec = load_spec()
     simplify_meshes(
         spec, mesh_faces, os.path.join(scene_dir(), os.path.dirname(SCENE_XML), spec.meshdir)

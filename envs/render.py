@@ -86,8 +86,9 @@ QUALITY_VISUALS = {
 }
 
 
-# Below ~1,000 faces a simplified arm link visibly changes shape (the kitchen's frames 1.5 levels
-# of 255 from the shipped meshes' at 1,000, 6 at 200), and targets of a few hundred are not met.
+# Fewer faces change the picture more (the kitchen's frames 0.5 of 255 levels from the shipped
+# meshes' at 4,000, 1.4 at 1,000: benchmarks/results/render_kitchen_mesh_faces_cpu.json), and
+# targets of a few hundred faces are not met.
 MIN_MESH_FACES = 1000
 
 

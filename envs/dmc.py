@@ -394,15 +394,15 @@ class DmcTask:
         """The model the render workers draw (physics edits plus visual ones). mesh_faces: no
         DMC task has a mesh to simplify (`RenderSettings.mesh_faces`), so anything but 0 is
         refused."""
-        model = load_model(self.xml_file)
-        edit = self.edit_render or self.edit_physics
-        if edit is not None:
-            edit(model)
         if mesh_faces:
             raise ValueError(
                 f"{self.name} has no mesh to simplify: env.render.mesh_faces is for the kitchen; "
                 "give 0"
             )
+        model = load_model(self.xml_file)
+        edit = self.edit_render or self.edit_physics
+        if edit is not None:
+            edit(model)
         return model
 
     def render_factory(self, mesh_faces: int = 0) -> Callable[[], mujoco.MjModel]:
@@ -441,7 +441,7 @@ class DmcTask:
 
 
 def render_model_fn(task_name: str, mesh_faces: int = 0) -> mujoco.MjModel:
-    """Picklable model factory for render workers: `functools.partial(render_model_fn, name)`."""
+    """Picklable model factory for render workers: `functools.partial(render_model_fn, name, faces)`."""
     return TASKS[task_name].render_model(mesh_faces)
 
 

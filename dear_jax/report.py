@@ -4,6 +4,7 @@
     python -m dear_jax.report table RUN [RUN ...] [--threshold 500] [--at FRAMES] [--out PREFIX]
     python -m dear_jax.report curves RUN [RUN ...] [--out results/curves.png] [--band std]
     python -m dear_jax.report claims RUN [RUN ...] [--threshold 500] [--at FRAMES] [--last 11] [--out PREFIX]
+    python -m dear_jax.report grid RUN [RUN ...] [--tasks walker cup finger] [--seeds 3] [--frames 1000000]
 
 `params` prints the parameter count of every module per method (walker: |A| = 6), computed from
 shapes only (jax.eval_shape), so it is instant and allocates nothing.
@@ -40,6 +41,12 @@ observations (what `table` reports) and in the training log's last --rows rows, 
 over every update since the row before (its "samples": updates x batch). A signed mean over many
 samples cancels wherever the sign is not systematic: it measures a bias between the halves, the
 magnitude |cos| how far from orthogonal each sample is.
+
+`grid` says how far the runs have taken the paper's grid (`configs/paper.py:TASK,METHOD`; a run
+belongs to a cell when its task, method, distraction, mask, alpha, beta, encoder and
+orthogonality form are the cell's): per cell the seeds that trained --frames frames, those stopped short and how far, how
+many are missing, and a `run.py` command per missing seed, each with a config.seed no run of the
+cell used.
 
 `curves` is the paper's learning-curve figure (`dear_jax/plot.py`): one panel per task, one line
 per experiment (per setting of a sweep: the beta-sweep figure from the sweep's run), the mean
@@ -395,6 +402,95 @@ def cosines_table(workdirs, rows: int = 20, at: int | None = None) -> tuple[list
     return found, text
 
 
+# The fields that place a run in a cell of the paper's grid; the others (envs per seed, dtype,
+# replay size) may differ between its seed-runs.
+GRID_FIELDS = (
+    "env.task",
+    "agent.method",
+    "env.distraction",
+    "env.distraction_types",
+    "env.mask",
+    "env.dynamic",
+    "agent.alpha",
+    "agent.beta",
+    "agent.encoder",
+    "agent.ortho_form",
+)
+
+
+def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000) -> list[dict]:
+    """The cells (`configs/paper.py:TASK,METHOD`) of the paper's grid as far as `workdirs`
+    trained them: seed-runs that reached `frames` per seed, those stopped short, the seeds
+    missing and config.seed values free for them (see the module docstring)."""
+    from configs import paper
+    from configs.base import get_config
+
+    defaults = lanes.flatten(get_config().to_dict())
+    cells = {}
+    for task in tasks:
+        for method in methods:
+            ref = lanes.flatten(paper.get_config(f"{task},{method}").to_dict())
+            key = tuple(json.dumps(ref[k]) for k in GRID_FIELDS)
+            cells[key] = {"task": task, "method": method, "done": [], "short": [], "used": set()}
+            cells[key]["seeds"] = set()
+    for workdir in map(pathlib.Path, workdirs):
+        config, summary = _run_files(workdir)
+        fields = {**defaults, **lanes.flatten(config)}
+        cell = cells.get(tuple(json.dumps(fields.get(k)) for k in GRID_FIELDS))
+        if cell is None or set(lanes.groups(workdir)) != {""}:  # another experiment, a sweep
+            continue
+        seed, reached = config.get("seed", 0), summary["frames_per_seed"]
+        cell["used"].add(seed)
+        if reached < frames:
+            cell["short"].append(f"{workdir.name} ({reached:,})")
+            continue
+        cell["done"].append(workdir.name)
+        # A seed is (config.seed, lane seed): one trained twice to the end counts once.
+        cell["seeds"].update((seed, s) for s in range(config["seeds"]))
+    rows = []
+    for cell in cells.values():
+        missing = max(0, seeds - len(cell["seeds"]))
+        free = (n for n in range(10**6) if n not in cell["used"])
+        rows.append(
+            {
+                "task": cell["task"],
+                "method": cell["method"],
+                "seeds_done": len(cell["seeds"]),
+                "done": cell["done"],
+                "short": cell["short"],
+                "missing": missing,
+                "next_seeds": [next(free) for _ in range(missing)],
+            }
+        )
+    return rows
+
+
+def grid_table(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000) -> str:
+    rows = grid_rows(workdirs, tasks, methods, seeds, frames)
+    header = f"The paper's grid at {frames:,} frames per seed, {seeds} seeds per cell"
+    table = format_table(
+        ["task", "method", f"seeds at {frames:,}", "runs", "stopped short (frames)", "missing"],
+        [
+            [
+                r["task"],
+                r["method"],
+                r["seeds_done"],
+                ", ".join(r["done"]) or "-",
+                ", ".join(r["short"]) or "-",
+                r["missing"],
+            ]
+            for r in rows
+        ],
+    )
+    commands = [
+        f"python run.py --config configs/paper.py:{r['task']},{r['method']} --config.seed={n} "
+        f"--workdir runs/{r['task']}_{r['method']}_s{n}"
+        for r in rows
+        for n in r["next_seeds"]
+    ]
+    return "\n".join([header, "", table, "", "Missing seeds:" if commands else "", *commands])
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m dear_jax.report", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -423,7 +519,18 @@ def main(argv=None):
     o.add_argument("--rows", type=int, default=20, help="training-log rows to average")
     o.add_argument("--at", type=int, default=None, help="read the logs up to this frame")
     o.add_argument("--out", default=None, help="also write OUT.md")
+    g = sub.add_parser("grid", help="how far the runs have taken the paper's grid")
+    g.add_argument("runs", nargs="+", help="run workdirs")
+    g.add_argument("--tasks", nargs="+", default=["walker", "cup", "finger"])
+    g.add_argument("--methods", nargs="+", default=["dear", "sear", "ted", "drqv2"])
+    g.add_argument("--seeds", type=int, default=3, help="seeds per cell")
+    g.add_argument("--frames", type=int, default=1_000_000, help="frames per seed")
     args = parser.parse_args(argv)
+    if args.command == "grid":
+        try:
+            print(grid_table(args.runs, args.tasks, args.methods, args.seeds, args.frames))
+        except (FileNotFoundError, ValueError, KeyError) as e:
+            parser.error(str(e))
     if args.command == "cosines":
         try:
             text = cosines_table(args.runs, args.rows, args.at)[1]

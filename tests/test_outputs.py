@@ -597,6 +597,63 @@ def test_the_papers_claims_are_checked_per_task_on_the_seeds(tmp_path):
     assert cos_row.replace("\\|", "").count("|") == len(claims.COLUMNS) + 1
 
 
+def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
+    """`report grid`: a run counts in the cell of configs/paper.py whose task, method,
+    distraction, mask, alpha, beta, encoder and orthogonality form it has; other fields (envs per
+    seed, dtype) may differ. A seed trained to the end twice counts once; a stopped run is listed
+    with its frames; free config.seed values fill the missing seeds."""
+    from configs import paper
+
+    def run(name, spec, seed, frames, seeds=1, **fields):
+        config = paper.get_config(spec)
+        config.seed, config.seeds = seed, seeds
+        for key, value in fields.items():
+            *parents, leaf = key.split(".")
+            node = config
+            for part in parents:
+                node = node[part]
+            node[leaf] = value
+        workdir = tmp_path / name
+        workdir.mkdir()
+        (workdir / "config.json").write_text(json.dumps(config.to_dict()))
+        (workdir / "summary.json").write_text(json.dumps({"frames_per_seed": frames}))
+        return workdir
+
+    runs = [
+        run("w_dear_s0", "walker,dear", 0, 1_000_000),
+        run("w_dear_s0_again", "walker,dear", 0, 1_000_000, envs_per_seed=16),
+        run("w_dear_s1", "walker,dear", 1, 500_000, **{"agent.compute_dtype": "bfloat16"}),
+        run("w_dear_refcos", "walker,dear", 5, 1_000_000, **{"agent.ortho_form": "reference_code"}),
+        run("w_dear_full", "walker,dear,medium-full", 6, 1_000_000),
+        run("w_dear_beta", "walker,dear", 7, 1_000_000, **{"agent.beta": 10.0}),
+        run("c_sear", "cup,sear", 0, 1_000_000, seeds=2),
+    ]
+    rows = report.grid_rows(runs, ["walker", "cup"], ["dear", "sear"], seeds=3)
+    cell = {(r["task"], r["method"]): r for r in rows}
+    assert len(rows) == 4
+    assert cell["walker", "dear"] == {
+        "task": "walker",
+        "method": "dear",
+        "seeds_done": 1,
+        "done": ["w_dear_s0", "w_dear_s0_again"],
+        "short": ["w_dear_s1 (500,000)"],
+        "missing": 2,
+        "next_seeds": [2, 3],
+    }
+    assert (cell["cup", "sear"]["seeds_done"], cell["cup", "sear"]["next_seeds"]) == (2, [1])
+    assert cell["walker", "sear"]["missing"] == 3 and cell["walker", "sear"]["next_seeds"] == [
+        0,
+        1,
+        2,
+    ]
+    text = report.grid_table(runs, ["walker", "cup"], ["dear", "sear"], seeds=3)
+    assert (
+        "python run.py --config configs/paper.py:walker,dear --config.seed=2 "
+        "--workdir runs/walker_dear_s2" in text
+    )
+    assert "w_dear_refcos" not in text and "w_dear_full" not in text and "w_dear_beta" not in text
+
+
 def test_cosines_set_the_evaluation_and_the_training_log_side_by_side(tmp_path, capsys):
     """`report cosines`, per seed: the last evaluation's cosines, and the training log's last
     rows (each the mean over the updates since the row before: updates x batch samples),

@@ -155,7 +155,11 @@ def fingerprint_diff(saved: Mapping, now: Mapping, added: Mapping | None = None)
         if a is missing and key in added and b == added[key]:
             continue
         if a != b:
-            lines.append(f"{key}: saved={a!r}, now={b!r}")
+            older = a is missing and key in added
+            hint = (
+                f" (a field newer than the checkpoint: {added[key]!r} resumes it)" if older else ""
+            )
+            lines.append(f"{key}: saved={a!r}, now={b!r}{hint}")
     return lines
 
 

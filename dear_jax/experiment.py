@@ -56,7 +56,7 @@ RESUMABLE_CHANGES = (
 
 # Fields added to the config after runs were made, each with the value that does what the code
 # did before it: a checkpoint written without the field resumes when the config has that value.
-ADDED_FIELDS = {"env.render.mesh_faces": 0}
+ADDED_FIELDS = {"env.distraction_types": "all", "env.render.mesh_faces": 0}
 
 
 def fingerprint(config: ConfigDict) -> dict:

@@ -42,11 +42,13 @@ over every update since the row before (its "samples": updates x batch). A signe
 samples cancels wherever the sign is not systematic: it measures a bias between the halves, the
 magnitude |cos| how far from orthogonal each sample is.
 
-`grid` says how far the runs have taken the paper's grid (`configs/paper.py:TASK,METHOD`; a run
-belongs to a cell when its task, method, distraction, mask, alpha, beta, encoder and
-orthogonality form are the cell's): per cell the seeds that trained --frames frames, those stopped short and how far, how
-many are missing, and a `run.py` command per missing seed, each with a config.seed no run of the
-cell used.
+`grid` says how far the runs have taken the paper's grid (`configs/paper.py:TASK,METHOD`, the
+kitchen's too with `--tasks light kettle`): a run belongs to a cell when its config is the
+cell's but for its seeds, envs per seed, dtype and replay (`GRID_MAY_DIFFER`). Per cell: the
+seeds that trained --frames frames, the runs stopped short and how far, how many seeds are
+missing; then a command per stopped run that kept a checkpoint (its resume) and per missing seed
+(one seed-run, a config.seed no run of the cell used); last the runs in no cell (sweeps
+included), each with the field that keeps it out.
 
 `curves` is the paper's learning-curve figure (`dear_jax/plot.py`): one panel per task, one line
 per experiment (per setting of a sweep: the beta-sweep figure from the sweep's run), the mean
@@ -402,51 +404,86 @@ def cosines_table(workdirs, rows: int = 20, at: int | None = None) -> tuple[list
     return found, text
 
 
-# The fields that place a run in a cell of the paper's grid; the others (envs per seed, dtype,
-# replay size) may differ between its seed-runs.
-GRID_FIELDS = (
-    "env.task",
-    "agent.method",
-    "env.distraction",
-    "env.distraction_types",
-    "env.mask",
-    "env.dynamic",
-    "agent.alpha",
-    "agent.beta",
-    "agent.encoder",
-    "agent.ortho_form",
-)
+# What a seed-run of a grid cell may set otherwise than configs/paper.py, besides what any resume
+# may change (experiment.RESUMABLE_CHANGES): how many seeds and envs it steps, its dtype, its
+# replay's size and place. Every other field is the cell's.
+GRID_MAY_DIFFER = ("seed", "seeds", "envs_per_seed", "agent.compute_dtype", "replay.")
 
 
-def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000) -> list[dict]:
+def _first_difference(fields: dict, ref: dict) -> str | None:
+    """The first field (sorted) in which a run's flattened config differs from a cell's."""
+    from dear_jax.experiment import RESUMABLE_CHANGES
+
+    for key in sorted(set(fields) | set(ref)):
+        if key in RESUMABLE_CHANGES or key.startswith(GRID_MAY_DIFFER):
+            continue
+        if fields.get(key) != ref.get(key):
+            return f"{key}={fields.get(key)!r} (the cell's: {ref.get(key)!r})"
+    return None
+
+
+def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000) -> dict:
     """The cells (`configs/paper.py:TASK,METHOD`) of the paper's grid as far as `workdirs`
-    trained them: seed-runs that reached `frames` per seed, those stopped short, the seeds
-    missing and config.seed values free for them (see the module docstring)."""
+    trained them (see the module docstring): {"cells": a row per cell, "outside": the runs in
+    no cell, each with the field that keeps it out}."""
     from configs import paper
     from configs.base import get_config
+    from dear_jax.experiment import ADDED_FIELDS
 
-    defaults = lanes.flatten(get_config().to_dict())
+    # A field a run's config lacks: what the code did before the field, else today's default.
+    defaults = {**lanes.flatten(get_config().to_dict()), **ADDED_FIELDS}
     cells = {}
     for task in tasks:
         for method in methods:
             ref = lanes.flatten(paper.get_config(f"{task},{method}").to_dict())
-            key = tuple(json.dumps(ref[k]) for k in GRID_FIELDS)
-            cells[key] = {"task": task, "method": method, "done": [], "short": [], "used": set()}
-            cells[key]["seeds"] = set()
-    for workdir in map(pathlib.Path, workdirs):
-        config, summary = _run_files(workdir)
+            cells[task, method] = {
+                "task": task,
+                "method": method,
+                "ref": ref,
+                "seeds": set(),  # (config.seed, lane seed) of the seeds that reached `frames`
+                "done": [],
+                "short": [],
+                "resume": [],
+                "used": set(),
+            }
+    outside = []
+    for workdir in dict.fromkeys(pathlib.Path(w).resolve() for w in workdirs):
+        name = f"{workdir.parent.name}/{workdir.name}"
+        path = workdir / "config.json"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path} not found: give the workdir of a run")
+        config = json.loads(path.read_text())
         fields = {**defaults, **lanes.flatten(config)}
-        cell = cells.get(tuple(json.dumps(fields.get(k)) for k in GRID_FIELDS))
-        if cell is None or set(lanes.groups(workdir)) != {""}:  # another experiment, a sweep
+        if set(lanes.groups(workdir)) != {""}:
+            outside.append(f"{name}: a sweep (sweep.*)")
             continue
-        seed, reached = config.get("seed", 0), summary["frames_per_seed"]
+        same = [c for c in cells.values() if c["ref"]["env.task"] == fields["env.task"]]
+        same = [c for c in same if c["method"] == fields["agent.method"]]
+        if not same:
+            outside.append(f"{name}: {fields['env.task']}, {fields['agent.method']}: no such cell")
+            continue
+        cell = same[0]
+        why = _first_difference(fields, cell["ref"])
+        if why:
+            outside.append(f"{name}: {why}")
+            continue
+        seed = config.get("seed", 0)
         cell["used"].add(seed)
-        if reached < frames:
-            cell["short"].append(f"{workdir.name} ({reached:,})")
+        summary_path = workdir / "summary.json"
+        reached = (
+            json.loads(summary_path.read_text()).get("frames_per_seed")
+            if summary_path.is_file()
+            else None
+        )
+        if reached is not None and reached >= frames:
+            cell["done"].append(name)
+            # A seed is (config.seed, lane seed): one trained to the end twice counts once.
+            cell["seeds"].update((seed, s) for s in range(config["seeds"]))
             continue
-        cell["done"].append(workdir.name)
-        # A seed is (config.seed, lane seed): one trained twice to the end counts once.
-        cell["seeds"].update((seed, s) for s in range(config["seeds"]))
+        state = "no summary: running?" if reached is None else f"{reached:,}"
+        cell["short"].append(f"{name} ({state})")
+        if (workdir / "checkpoints").is_dir():
+            cell["resume"].append(workdir)
     rows = []
     for cell in cells.values():
         missing = max(0, seeds - len(cell["seeds"]))
@@ -458,16 +495,18 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000)
                 "seeds_done": len(cell["seeds"]),
                 "done": cell["done"],
                 "short": cell["short"],
+                "resumable": [str(w) for w in cell["resume"]],
                 "missing": missing,
                 "next_seeds": [next(free) for _ in range(missing)],
+                "total_frames": cell["ref"]["total_frames"],
             }
         )
-    return rows
+    return {"cells": rows, "outside": outside}
 
 
 def grid_table(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000) -> str:
-    rows = grid_rows(workdirs, tasks, methods, seeds, frames)
-    header = f"The paper's grid at {frames:,} frames per seed, {seeds} seeds per cell"
+    grid = grid_rows(workdirs, tasks, methods, seeds, frames)
+    rows = grid["cells"]
     table = format_table(
         ["task", "method", f"seeds at {frames:,}", "runs", "stopped short (frames)", "missing"],
         [
@@ -482,13 +521,26 @@ def grid_table(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000
             for r in rows
         ],
     )
-    commands = [
-        f"python run.py --config configs/paper.py:{r['task']},{r['method']} --config.seed={n} "
-        f"--workdir runs/{r['task']}_{r['method']}_s{n}"
-        for r in rows
-        for n in r["next_seeds"]
-    ]
-    return "\n".join([header, "", table, "", "Missing seeds:" if commands else "", *commands])
+    lines = [f"The paper's grid at {frames:,} frames per seed, {seeds} seeds per cell", "", table]
+    commands = []
+    for r in rows:
+        spec = f"configs/paper.py:{r['task']},{r['method']}"
+        length = f" --config.total_frames={frames}" if frames != r["total_frames"] else ""
+        commands += [f"python run.py --config {spec}{length} --workdir {w}" for w in r["resumable"]]
+        commands += [
+            f"python run.py --config {spec} --config.seed={n} --config.seeds=1{length} "
+            f"--workdir runs/{r['task']}_{r['method']}_s{n}"
+            for n in r["next_seeds"]
+        ]
+    if commands:
+        lines += [
+            "",
+            "Resume the stopped runs that kept a checkpoint, then start the missing seeds:",
+        ]
+        lines += commands
+    if grid["outside"]:
+        lines += ["", "Runs in no cell of this grid:", *grid["outside"]]
+    return "\n".join(lines)
 
 
 def main(argv=None):

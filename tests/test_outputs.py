@@ -274,7 +274,9 @@ def test_a_field_added_later_resumes_at_its_old_behaviour(tmp_path):
     changed = dict(FINGERPRINT, **{"env.render.mesh_faces": 4000})
     with Checkpointer(tmp_path, fingerprint=changed, added_fields=added) as ckpt:
         with pytest.raises(
-            IncompatibleCheckpointError, match="mesh_faces: saved='<absent>', now=4000"
+            IncompatibleCheckpointError,
+            match=r"mesh_faces: saved='<absent>', now=4000 \(a field newer than the checkpoint: "
+            r"0 resumes it\)",
         ):
             ckpt.restore(state)
     with Checkpointer(tmp_path, fingerprint=now) as ckpt:  # not declared as added: refused
@@ -598,13 +600,14 @@ def test_the_papers_claims_are_checked_per_task_on_the_seeds(tmp_path):
 
 
 def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
-    """`report grid`: a run counts in the cell of configs/paper.py whose task, method,
-    distraction, mask, alpha, beta, encoder and orthogonality form it has; other fields (envs per
-    seed, dtype) may differ. A seed trained to the end twice counts once; a stopped run is listed
-    with its frames; free config.seed values fill the missing seeds."""
+    """`report grid`: a run counts in the cell of configs/paper.py whose config it has, but for
+    its seeds, envs per seed, dtype and replay (a field it lacks: its old behaviour,
+    experiment.ADDED_FIELDS). A seed trained to the end twice counts once; a run stopped short is
+    listed with its frames (a checkpoint: a resume command); free config.seed values fill the
+    missing seeds, one seed-run each; every other run is named with the field that keeps it out."""
     from configs import paper
 
-    def run(name, spec, seed, frames, seeds=1, **fields):
+    def run(name, spec, seed, frames, seeds=1, summary=True, **fields):
         config = paper.get_config(spec)
         config.seed, config.seeds = seed, seeds
         for key, value in fields.items():
@@ -616,29 +619,36 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
         workdir = tmp_path / name
         workdir.mkdir()
         (workdir / "config.json").write_text(json.dumps(config.to_dict()))
-        (workdir / "summary.json").write_text(json.dumps({"frames_per_seed": frames}))
+        if summary:
+            (workdir / "summary.json").write_text(json.dumps({"frames_per_seed": frames}))
         return workdir
 
     runs = [
         run("w_dear_s0", "walker,dear", 0, 1_000_000),
         run("w_dear_s0_again", "walker,dear", 0, 1_000_000, envs_per_seed=16),
         run("w_dear_s1", "walker,dear", 1, 500_000, **{"agent.compute_dtype": "bfloat16"}),
+        run("w_dear_s4", "walker,dear", 4, 0, summary=False, **{"replay.capacity": 1000}),
         run("w_dear_refcos", "walker,dear", 5, 1_000_000, **{"agent.ortho_form": "reference_code"}),
         run("w_dear_full", "walker,dear,medium-full", 6, 1_000_000),
-        run("w_dear_beta", "walker,dear", 7, 1_000_000, **{"agent.beta": 10.0}),
+        run("w_dear_nstep", "walker,dear", 7, 1_000_000, **{"agent.nstep": 5}),
         run("c_sear", "cup,sear", 0, 1_000_000, seeds=2),
     ]
-    rows = report.grid_rows(runs, ["walker", "cup"], ["dear", "sear"], seeds=3)
-    cell = {(r["task"], r["method"]): r for r in rows}
-    assert len(rows) == 4
+    (runs[2] / "checkpoints").mkdir()
+    runs.append(runs[0])  # the same workdir twice counts once
+    grid = report.grid_rows(runs, ["walker", "cup"], ["dear", "sear"], seeds=3)
+    cell = {(r["task"], r["method"]): r for r in grid["cells"]}
+    assert len(cell) == 4
+    here = tmp_path.name
     assert cell["walker", "dear"] == {
         "task": "walker",
         "method": "dear",
         "seeds_done": 1,
-        "done": ["w_dear_s0", "w_dear_s0_again"],
-        "short": ["w_dear_s1 (500,000)"],
+        "done": [f"{here}/w_dear_s0", f"{here}/w_dear_s0_again"],
+        "short": [f"{here}/w_dear_s1 (500,000)", f"{here}/w_dear_s4 (no summary: running?)"],
+        "resumable": [str(runs[2].resolve())],
         "missing": 2,
-        "next_seeds": [2, 3],
+        "next_seeds": [2, 3],  # 0, 1 and 4 are taken
+        "total_frames": 1_000_000,
     }
     assert (cell["cup", "sear"]["seeds_done"], cell["cup", "sear"]["next_seeds"]) == (2, [1])
     assert cell["walker", "sear"]["missing"] == 3 and cell["walker", "sear"]["next_seeds"] == [
@@ -646,12 +656,34 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
         1,
         2,
     ]
-    text = report.grid_table(runs, ["walker", "cup"], ["dear", "sear"], seeds=3)
+    assert grid["outside"] == [
+        f"{here}/w_dear_refcos: agent.ortho_form='reference_code' (the cell's: 'abs_cos')",
+        f"{here}/w_dear_full: env.distraction_types='all' (the cell's: 'background')",
+        f"{here}/w_dear_nstep: agent.nstep=5 (the cell's: 1)",
+    ]
+    text = report.grid_table(runs, ["walker", "cup"], ["dear", "sear"], seeds=3, frames=500_000)
+    lines = text.splitlines()
+    new_dear = [
+        line
+        for line in lines
+        if line.startswith("python run.py") and "walker,dear --config.seed" in line
+    ]
+    assert new_dear == [  # at 500k s1 is done too: one seed is missing
+        "python run.py --config configs/paper.py:walker,dear --config.seed=2 --config.seeds=1 "
+        "--config.total_frames=500000 --workdir runs/walker_dear_s2"
+    ]
     assert (
-        "python run.py --config configs/paper.py:walker,dear --config.seed=2 "
-        "--workdir runs/walker_dear_s2" in text
+        "python run.py --config configs/paper.py:walker,sear --config.seed=0 --config.seeds=1 "
+        "--config.total_frames=500000 --workdir runs/walker_sear_s0" in lines
     )
-    assert "w_dear_refcos" not in text and "w_dear_full" not in text and "w_dear_beta" not in text
+    text = report.grid_table(runs, ["walker"], ["dear"], seeds=3)
+    assert (
+        f"python run.py --config configs/paper.py:walker,dear --workdir {runs[2].resolve()}" in text
+    )
+    assert (
+        "Runs in no cell of this grid:" in text
+        and "c_sear: ball_in_cup-catch, sear: no such cell" in text
+    )
 
 
 def test_cosines_set_the_evaluation_and_the_training_log_side_by_side(tmp_path, capsys):

@@ -1,5 +1,6 @@
 """The trainer end to end on CPU: outputs, resume, seeds, and clear errors for bad input."""
 
+import contextlib
 import json
 import os
 import pathlib
@@ -348,6 +349,13 @@ def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):
         report.run_rows(whole, threshold, at=-1)
     with pytest.raises(FileNotFoundError, match="config.json not found"):
         report.run_rows(tmp_path, threshold)
+
+
+def test_the_runs_checkpointer_resumes_checkpoints_older_than_a_field(tmp_path):
+    with contextlib.ExitStack() as stack:
+        ckpt = train._checkpointer(tiny_config(), tmp_path, stack)
+        assert ckpt.added_fields == experiment.ADDED_FIELDS
+        assert ckpt.added_fields["env.distraction_types"] == "all"  # the suite before the field
 
 
 def test_changed_learning_fields_are_refused_naming_them(run):

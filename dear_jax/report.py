@@ -482,8 +482,13 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000)
             continue
         state = "no summary: running?" if reached is None else f"{reached:,}"
         cell["short"].append(f"{name} ({state})")
-        if (workdir / "checkpoints").is_dir():
-            cell["resume"].append(workdir)
+        if (workdir / "checkpoints").is_dir():  # resumed by the overrides that started it
+            own = [
+                f"--config.{k}={fields[k]}"
+                for k in sorted(fields)
+                if k.startswith(GRID_MAY_DIFFER) and fields[k] != cell["ref"].get(k)
+            ]
+            cell["resume"].append(" ".join([*own, f"--workdir {workdir}"]))
     rows = []
     for cell in cells.values():
         missing = max(0, seeds - len(cell["seeds"]))
@@ -495,7 +500,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000)
                 "seeds_done": len(cell["seeds"]),
                 "done": cell["done"],
                 "short": cell["short"],
-                "resumable": [str(w) for w in cell["resume"]],
+                "resume": cell["resume"],
                 "missing": missing,
                 "next_seeds": [next(free) for _ in range(missing)],
                 "total_frames": cell["ref"]["total_frames"],
@@ -526,7 +531,7 @@ def grid_table(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000
     for r in rows:
         spec = f"configs/paper.py:{r['task']},{r['method']}"
         length = f" --config.total_frames={frames}" if frames != r["total_frames"] else ""
-        commands += [f"python run.py --config {spec}{length} --workdir {w}" for w in r["resumable"]]
+        commands += [f"python run.py --config {spec}{length} {args}" for args in r["resume"]]
         commands += [
             f"python run.py --config {spec} --config.seed={n} --config.seeds=1{length} "
             f"--workdir runs/{r['task']}_{r['method']}_s{n}"

@@ -645,7 +645,10 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
         "seeds_done": 1,
         "done": [f"{here}/w_dear_s0", f"{here}/w_dear_s0_again"],
         "short": [f"{here}/w_dear_s1 (500,000)", f"{here}/w_dear_s4 (no summary: running?)"],
-        "resumable": [str(runs[2].resolve())],
+        "resume": [
+            "--config.agent.compute_dtype=bfloat16 --config.seed=1 --config.seeds=1 "
+            f"--workdir {runs[2].resolve()}"
+        ],
         "missing": 2,
         "next_seeds": [2, 3],  # 0, 1 and 4 are taken
         "total_frames": 1_000_000,
@@ -678,7 +681,8 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
     )
     text = report.grid_table(runs, ["walker"], ["dear"], seeds=3)
     assert (
-        f"python run.py --config configs/paper.py:walker,dear --workdir {runs[2].resolve()}" in text
+        "python run.py --config configs/paper.py:walker,dear --config.agent.compute_dtype=bfloat16 "
+        f"--config.seed=1 --config.seeds=1 --workdir {runs[2].resolve()}" in text
     )
     assert (
         "Runs in no cell of this grid:" in text

@@ -82,12 +82,6 @@ WGRAD_STEPS = 32  # steps of one program of a filter gradient (at most; see belo
 # devices are then no longer the same bit for bit.
 WGRAD_MIN_PROGRAMS = 0
 WGRAD_WARPS = 2
-# A filter gradient's taps split over this many programs per block of rows (each loads the
-# block's output gradient and computes its share of the taps), where it divides the layer's
-# taps; 1: every tap in one program. More programs with fewer accumulators each, for a lone
-# seed's small grids; a group's taps are then traced (their padding checked at run time, as the
-# convolutions' looped taps are).
-WGRAD_TAP_GROUPS = 1
 # A filter gradient's products as g^T x (the output gradient's block transposed once per step)
 # rather than x^T g (each tap's block transposed); its result is then transposed in XLA.
 WGRAD_G_FIRST = False
@@ -110,7 +104,6 @@ TUNABLE = (
     "WGRAD_STEPS",
     "WGRAD_MIN_PROGRAMS",
     "WGRAD_WARPS",
-    "WGRAD_TAP_GROUPS",
     "WGRAD_G_FIRST",
     "STAGES",
     "TAP_LOOP",
@@ -149,7 +142,7 @@ def parse_constants(setting: str | dict) -> dict[str, int]:
             raise ValueError(f"kernel constant {item!r}: {name} is a switch, 0 or 1")
         if name in _POWERS_OF_TWO and (number < 1 or number & (number - 1)):
             raise ValueError(f"kernel constant {item!r}: {name} must be a power of two")
-        minimum = 1 if name.endswith(("STAGES", "GROUPS")) else 0
+        minimum = 1 if name.endswith("STAGES") else 0
         if number < minimum:
             raise ValueError(f"kernel constant {item!r}: {name} must be at least {minimum}")
         parsed[name] = number
@@ -523,7 +516,7 @@ def _conv(x, w, layer, *, bias=None, relu=False, mask=None, targets=None):
     )(*args)
 
 
-def _wgrad_kernel(*refs, layer, steps, groups):
+def _wgrad_kernel(*refs, layer, steps):
     x_ref, *refs, w_ref, b_ref = refs
     crop_ref = refs.pop(0) if isinstance(layer, _Pixels) and layer.shift else None
     g_ref = refs.pop(0)
@@ -531,9 +524,6 @@ def _wgrad_kernel(*refs, layer, steps, groups):
     f = g_ref.shape[-1]
     c = acc_shape[1] if WGRAD_G_FIRST else acc_shape[0]
     p = pl.program_id(0)
-    n //= groups  # this program's taps: first + 0, ..., first + n - 1
-    group = pl.program_id(1) if groups > 1 else 0
-    first = group * n
 
     def product(x, g):
         if WGRAD_G_FIRST:
@@ -548,14 +538,14 @@ def _wgrad_kernel(*refs, layer, steps, groups):
         inside = jnp.broadcast_to((rows < layer.out.rows)[:, None], (WGRAD_BLOCK, f))
         g = plt.load(g_ref.at[pl.ds(start, WGRAD_BLOCK), :], mask=inside, other=0)
         taps = _loader(x_ref, crop_ref, rows, layer, c, g.dtype)
-        out = tuple(acc + product(taps(first + t), g) for t, acc in enumerate(accs))
+        out = tuple(acc + product(taps(t), g) for t, acc in enumerate(accs))
         return out, bacc + jnp.sum(g.astype(jnp.float32), axis=0)
 
     zeros = tuple(jnp.zeros(acc_shape, jnp.float32) for _ in range(n))
     accs, bacc = jax.lax.fori_loop(0, steps, step, (zeros, jnp.zeros((f,), jnp.float32)))
     for t in range(n):
-        w_ref[p, first + t] = accs[t]
-    b_ref[p, group] = bacc  # each group's the same sums: the first group's are used
+        w_ref[p, t] = accs[t]
+    b_ref[p] = bacc
 
 
 def _pixel_args(x, layer) -> list:
@@ -607,20 +597,19 @@ def _wgrad_call(layer, c: int, steps: int, *args):
     f = args[-1].shape[-1]
     taps = layer.kernel if isinstance(layer, _Pixels) else layer.kernel**2
     programs = -(-layer.out.rows // (WGRAD_BLOCK * steps))
-    groups = WGRAD_TAP_GROUPS if taps % WGRAD_TAP_GROUPS == 0 else 1
     acc_shape = (f, c) if WGRAD_G_FIRST else (c, f)
     w, b = pl.pallas_call(
-        functools.partial(_wgrad_kernel, layer=layer, steps=steps, groups=groups),
+        functools.partial(_wgrad_kernel, layer=layer, steps=steps),
         out_shape=(
             jax.ShapeDtypeStruct((programs, taps, *acc_shape), jnp.float32),
-            jax.ShapeDtypeStruct((programs, groups, f), jnp.float32),
+            jax.ShapeDtypeStruct((programs, f), jnp.float32),
         ),
-        grid=(programs, groups) if groups > 1 else (programs,),
+        grid=(programs,),
         interpret=_interpret(),
         compiler_params=plt.CompilerParams(num_warps=WGRAD_WARPS, num_stages=STAGES),
     )(*args)
     w = w.sum(0)
-    return (jnp.swapaxes(w, 1, 2) if WGRAD_G_FIRST else w), b[:, 0].sum(0)
+    return (jnp.swapaxes(w, 1, 2) if WGRAD_G_FIRST else w), b.sum(0)
 
 
 def _plan(x_shape, layers, pads, stride, shift=0) -> tuple[list[int], list]:

@@ -127,17 +127,12 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     [
         ("decoder", {"TAP_LOOP": False}),
         ("encoder_shifted", {"TAP_LOOP": False, "WGRAD_G_FIRST": True}),
-        # taps split over programs: 3 of the encoder's 3 kernel rows and 9 taps, the decoder's
-        # 9 taps (its 2 x 2 layer's 4 stay in one program), with traced taps' run-time checks
-        ("encoder_shifted", {"WGRAD_TAP_GROUPS": 3, "WGRAD_G_FIRST": True}),
-        ("decoder", {"WGRAD_TAP_GROUPS": 3}),
     ],
 )
 def test_kernel_settings_compute_the_same(monkeypatch, name, settings):
     """The kernels' settings change how, not what: a convolution's taps as a loop (traced tap
     indices, every padding check at run time) or unrolled (the checks a tap needs, fixed);
-    filter gradients as x^T g or g^T x, their taps in one program or split over several. The
-    same values and gradients as the defaults."""
+    filter gradients as x^T g or g^T x. The same values and gradients as the defaults."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
     monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
     x, layers, _, stack, argnums = _case(name)
@@ -321,15 +316,11 @@ def test_filter_gradient_programs_follow_the_number_of_seeds(monkeypatch):
     assert _filter_gradient_grids(jax.grad(loss, 1), x, one) == [(1225,)]
     monkeypatch.setattr(wideconv, "WGRAD_MIN_PROGRAMS", 0)
     assert _filter_gradient_grids(jax.grad(loss, 1), x, one) == [(307,)]
-    monkeypatch.setattr(wideconv, "WGRAD_TAP_GROUPS", 3)  # 3 programs of 3 taps per block
-    assert _filter_gradient_grids(jax.grad(loss, 1), x, one) == [(307, 3)]
 
 
-@pytest.mark.parametrize("groups", [1, 3])
-def test_filter_gradients_of_any_steps_are_the_same_under_nested_vmap(monkeypatch, groups):
-    """Lanes x seeds vmapped, with steps that differ with the vmapped sizes (and the taps in
-    one program or split over 3): every lane's and seed's gradients are those of its stack
-    alone (taken with other steps, every tap in one program)."""
+def test_filter_gradients_of_any_steps_are_the_same_under_nested_vmap(monkeypatch):
+    """Lanes x seeds vmapped, with steps that differ with the vmapped sizes: every lane's and
+    seed's gradients are those of its stack alone (taken with other steps)."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
     monkeypatch.setattr(wideconv, "WGRAD_BLOCK", 16)
     monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
@@ -341,9 +332,7 @@ def test_filter_gradients_of_any_steps_are_the_same_under_nested_vmap(monkeypatc
     def f(x, ws):
         return jnp.sum(jnp.sin(wideconv.conv_stack(x, ws, (0, 1), True)))
 
-    monkeypatch.setattr(wideconv, "WGRAD_TAP_GROUPS", groups)
     nested = jax.jit(jax.vmap(jax.vmap(jax.grad(f, (0, 1)))))(x, layers)
-    monkeypatch.setattr(wideconv, "WGRAD_TAP_GROUPS", 1)
     one = jax.jit(jax.grad(f, (0, 1)))  # 8 steps per program, against 2 when nested
     for i in range(2):
         for j in range(2):
@@ -397,7 +386,6 @@ def test_kernel_constants_hold_inside_their_block_only():
         ("TAP_LOOP=7", "TAP_LOOP is a switch, 0 or 1"),
         ("CONV_STAGES=0", "CONV_STAGES must be at least 1"),
         ("WGRAD_MIN_PROGRAMS=-1", "WGRAD_MIN_PROGRAMS must be at least 0"),
-        ("WGRAD_TAP_GROUPS=0", "WGRAD_TAP_GROUPS must be at least 1"),
     ]:
         with pytest.raises(ValueError, match=why):
             wideconv.parse_constants(bad)

@@ -226,13 +226,14 @@ def make_env(
     backend: str | None = None,
     mesh: Mesh | None = None,
     hosts: Hosts | None = None,
-    physics_threads: int = 1,
+    physics_threads: int | None = None,
 ) -> envs.Env:
     """The batched env of the config (`backend` overrides env.backend; seeds split over `mesh`);
     with several processes (`hosts`), of this process's lanes on its devices. physics_threads:
-    CPU MuJoCo's threads."""
+    CPU MuJoCo's threads (default: env.physics_threads, or one per device where that is 0)."""
     e = config.env
     hosts = hosts or Hosts(mesh, lanes.num_lanes(config))
+    physics_threads = physics_threads or e.physics_threads or hosts.num_devices
     # Each process draws its own lanes' episode starts and distractions.
     seed += HOST_SEED_STRIDE * hosts.index
     env = envs.make(

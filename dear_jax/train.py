@@ -73,7 +73,6 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 seed=config.seed,
                 mesh=mesh,
                 hosts=hosts,
-                physics_threads=config.env.physics_threads or hosts.num_devices,
             )
         )
         spec = env.spec

@@ -511,15 +511,23 @@ def test_bad_values_fail_with_valid_choices(tmp_path):
         train.train(tiny_config(**{"env.physics_threads": -2}), tmp_path)
 
 
-def test_eval_env_steps_its_physics_on_the_configured_threads():
+def test_envs_step_their_physics_on_the_configured_threads():
     """env.eval_physics_threads reaches the evaluation env's CPU physics; 0 is one thread per
-    core this process may use, up to 8; the training env keeps one."""
+    core this process may use, up to 8. env.physics_threads reaches any training env made from
+    the config (the loop's and the benchmarks'); 0 is one per device, here one."""
     cores = min(8, len(os.sched_getaffinity(0)))
     for setting, threads in ((3, 3), (0, cores)):
         env = experiment.make_eval_env(tiny_config(**{"env.eval_physics_threads": setting}))
         try:
             assert env.physics.threads == threads
             assert env.shape[1] == tiny_config().num_eval_episodes
+        finally:
+            env.close()
+    for setting, threads in ((3, 3), (0, 1)):
+        config = tiny_config(**{"env.physics_threads": setting})
+        env = experiment.make_env(config, envs_per_seed=2, split="train", seed=0)
+        try:
+            assert env.physics.threads == threads
         finally:
             env.close()
 

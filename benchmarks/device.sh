@@ -29,8 +29,10 @@
 #                       most of its memory
 #   wait S              sleep up to S seconds while runs train, printing their last log lines;
 #                       returns early once none is running
-#   stop [NAME...]      SIGTERM the runs named (every run if none; each saves a checkpoint and
-#                       its summary), wait for them
+#   stop [NAME...]      SIGTERM the runs named (every run `start` began if none; each saves a
+#                       checkpoint and its summary), wait for them
+#   after NAME          wait until run NAME has ended, e.g. `after walker_s0 gpu 0 bench ...`
+#                       to measure on its GPU once it is free
 #   collect             the runs' logs and summaries (no checkpoints, replay or videos) ->
 #                       $OUT/runs.tar.gz
 #
@@ -56,7 +58,11 @@ export PYTHONPATH=/tmp/site:$PWD/.dmc:$PWD MUJOCO_GL=egl PYTHONUNBUFFERED=1
 export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-/tmp/jax_cache}
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | sed 's/^/gpu: /'
 
-running() { pgrep -f "python3 run.py" >/dev/null; }
+alive() { [ -f "runs/$1.pid" ] && kill -0 "$(cat "runs/$1.pid")" 2>/dev/null; }
+# The runs `start` began (by their pid files, never by a command-line pattern, which would also
+# match the shell of a command that names it)
+started() { for f in runs/*.pid; do [ -f "$f" ] && basename "$f" .pid; done; }
+running() { for n in $(started); do alive "$n" && return 0; done; return 1; }
 gpus() { nvidia-smi --query-gpu=index --format=csv,noheader | wc -l; }
 cores_of() {  # the cores of GPU $1's share of the machine: "first-last"
   local share=$(($(nproc) / $(gpus)))
@@ -107,16 +113,17 @@ while [ $# -gt 0 ]; do
     stop)
       names=()
       while [ $# -gt 0 ] && [ -f "runs/$1.pid" ]; do names+=("$1"); shift; done
-      if [ ${#names[@]} -eq 0 ]; then
-        pkill -TERM -f "python3 run.py"
-        for _ in $(seq 120); do running || break; sleep 1; done
-      else
-        for n in "${names[@]}"; do kill -TERM "$(cat "runs/$n.pid")" 2>/dev/null; done
-        for n in "${names[@]}"; do
-          for _ in $(seq 120); do kill -0 "$(cat "runs/$n.pid")" 2>/dev/null || break; sleep 1; done
-          echo "runs/$n: $(tail -n 1 "runs/$n.out")"
-        done
-      fi
+      [ ${#names[@]} -gt 0 ] || names=($(started))
+      for n in "${names[@]}"; do alive "$n" && kill -TERM "$(cat "runs/$n.pid")"; done
+      for n in "${names[@]}"; do
+        for _ in $(seq 120); do alive "$n" || break; sleep 1; done
+        echo "runs/$n: $(tail -n 1 "runs/$n.out")"
+      done
+      ;;
+    after)
+      name=$1; shift
+      [ -f "runs/$name.pid" ] || { echo "after takes the name of a started run, got '$name'" >&2; exit 2; }
+      while alive "$name"; do sleep 3; done
       ;;
     collect)
       tar -czf "$out/runs.tar.gz" --exclude='checkpoints*' --exclude=replay --exclude=videos \
@@ -124,7 +131,7 @@ while [ $# -gt 0 ]; do
       ls -la "$out"
       ;;
     *)
-      echo "unknown stage '$stage'; valid: scaling multihost gpu bench start wait stop collect" >&2
+      echo "unknown stage '$stage'; valid: scaling multihost gpu bench start wait stop after collect" >&2
       exit 2
       ;;
   esac

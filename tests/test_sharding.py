@@ -26,15 +26,25 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 # Adam moment after a few updates).
 FLAGS = "--xla_force_host_platform_device_count=4 " + os.environ["XLA_FLAGS"]
 RUNS_FLAGS = FLAGS.replace("--xla_backend_optimization_level=0", "")
-CUT, END = 160, 200  # frames per seed: the first runs stop at CUT (updates start at 120)
+CUT, END = 80, 120  # frames per seed: the first runs stop at CUT (updates start at 40)
 
 
 def config(**overrides):
-    """test_run's tiny config, evaluating and saving at CUT (where the first runs stop)."""
+    """test_run's tiny config, evaluating and saving at CUT (where the first runs stop), updating
+    from frame 40 on (5 updates per seed by CUT). The evaluations run on the training's devices
+    with its programs (eval_device "train"), without videos: the runs start no evaluation
+    process (its start, jax import included, cost ~5 s a run), and the split runs' evaluations
+    run split too."""
     from test_run import tiny_config
 
     # "loop": each seed's program is the same whatever seeds share its device (docs/design.md).
-    overrides = {"agent.seed_axis": "loop", **overrides}
+    overrides = {
+        "agent.seed_axis": "loop",
+        "replay.seed_frames": 40,
+        "eval_device": "train",
+        "save_video": False,
+        **overrides,
+    }
     return tiny_config(eval_every_frames=CUT, checkpoint_every_frames=CUT, **overrides)
 
 
@@ -65,16 +75,26 @@ def _placements(run) -> dict:
 
 def _child(root: pathlib.Path) -> None:
     """The runs of this module, in a process with 4 devices; writes root/placements.json."""
+    import shutil
+
     import jax
     from jax.sharding import Mesh, NamedSharding
     from jax.sharding import PartitionSpec as P
 
-    from dear_jax import loop, train
+    from dear_jax import loop, train, update
     from dear_jax.devices import batch_split
     from envs import dmc
+    from envs import physics as envs_physics
     from envs.physics import MjxPhysics
 
     assert len(jax.devices()) == 4, jax.devices()
+    # Programs compiled once for the whole process, whose rounding no split is compared
+    # against, at LLVM level 0 as in the test processes: the seeds' initial parameters (every
+    # run's; 16 s to compile at the default level, 4 s at 0) and MJX's step below (14 s, 8 s).
+    level_0 = {"xla_backend_optimization_level": 0}
+    loop._init_seeds = jax.jit(update.init_seeds, static_argnums=0, compiler_options=level_0)
+    options = envs_physics._compiler_options
+    envs_physics._compiler_options = lambda: {**(options() or {}), **level_0}
     placements = []
     save = loop.Loop.save
 
@@ -88,6 +108,8 @@ def _child(root: pathlib.Path) -> None:
     # Grouped by device count: the compiled programs of a process are those of its last mesh.
     train.train(config(total_frames=END), root / "whole")
     train.train(config(total_frames=CUT), root / "to_split")
+    # A one-device run stopped at CUT, as to_split is now: into_per_seed resumes its copy below.
+    shutil.copytree(root / "to_split", root / "into_per_seed")
     train.train(config(total_frames=CUT, devices=2), root / "from_split")
     train.train(config(total_frames=END, devices=2), root / "to_split")
     train.train(config(total_frames=END), root / "from_split")
@@ -95,7 +117,6 @@ def _child(root: pathlib.Path) -> None:
     per_seed = {"devices": 2, "devices_per_seed": 2}
     train.train(config(total_frames=CUT, **per_seed), root / "per_seed")
     train.train(config(total_frames=END), root / "per_seed")
-    train.train(config(total_frames=CUT), root / "into_per_seed")
     train.train(config(total_frames=END, **per_seed), root / "into_per_seed")
 
     # MJX physics keeps each seed's state on its device (CPU runs use CPU physics).
@@ -123,6 +144,7 @@ def _pallas_child(root: pathlib.Path) -> None:
     (in Pallas' interpreter here) on one device, and with the 2 seeds split over 2 devices;
     writes each one's outputs and parameters to root/pallas_<devices>.npz."""
     import jax
+    import jax.numpy as jnp
 
     from dear_jax import devices, experiment, replay, update
     from dear_jax.programs import build_programs
@@ -150,12 +172,14 @@ def _pallas_child(root: pathlib.Path) -> None:
         for r in range(rows)
     ]
     actions = rng.uniform(-1, 1, (*shape, action_dim)).astype(np.float32)
+    # Both splits start from these parameters, made once (~4 s, traced op by op).
+    init = jax.device_get(update.init_seeds(acfg, jax.random.split(jax.random.key(0), seeds)))
     for n in (1, 2):
         mesh = devices.seed_mesh(n, seeds)
         sharding = devices.seed_sharding(mesh)
         put = (lambda x: x) if mesh is None else (lambda x, s=sharding: jax.device_put(x, s))
         programs = build_programs(acfg, hp, c, mesh)
-        agent = put(update.init_seeds(acfg, jax.random.split(jax.random.key(0), seeds)))
+        agent = put(jax.tree.map(jnp.asarray, init))
         buffer = put(replay.init(100, envs, (84, 84, 3), action_dim, leading=(seeds,)))
         for ts, action in zip(steps, actions):
             buffer = programs.add(buffer, put(ts), put(action))

@@ -92,6 +92,7 @@ def _child(root: pathlib.Path) -> None:
     # against, at LLVM level 0 as in the test processes: the seeds' initial parameters (every
     # run's; 16 s to compile at the default level, 4 s at 0) and MJX's step below (14 s, 8 s).
     level_0 = {"xla_backend_optimization_level": 0}
+    assert callable(loop._init_seeds)  # the program replaced here (a rename must show)
     loop._init_seeds = jax.jit(update.init_seeds, static_argnums=0, compiler_options=level_0)
     options = envs_physics._compiler_options
     envs_physics._compiler_options = lambda: {**(options() or {}), **level_0}

@@ -567,7 +567,6 @@ def _wgrad_kernel(*refs, layer, steps):
     g_ref = refs.pop(0)
     n, *acc_shape = w_ref.shape[1:]  # taps, then [c, f] ([f, c] with WGRAD_G_FIRST)
     f = g_ref.shape[-1]
-    c = acc_shape[1] if WGRAD_G_FIRST else acc_shape[0]
     p = pl.program_id(0)
 
     def product(x, g):

@@ -90,13 +90,6 @@ STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of 
 # its pipeline's stages.
 TAP_LOOP = True
 CONV_STAGES = 3
-# A stride-1 layer's taps loaded a kernel row at a time: the k pixels of row i are k * C
-# consecutive values of the input's rows, one load of `channels_for(k * C)` lanes (the lanes
-# past them read zeros), so a 3 x 3 layer of 32 channels is 3 products of K = 128 per block of
-# rows instead of 9 of K = 32, as the strided first layer's pixels are read. CONV_ROWS for the
-# convolutions (forward and input gradients), WGRAD_ROWS for the filter gradients.
-CONV_ROWS = False
-WGRAD_ROWS = False
 # The float32 dots' precision on GPUs: None lets them run in TF32, as XLA's float32 convolutions
 # do there by default; jax.lax.Precision.HIGHEST makes them IEEE float32 (the GPU tests).
 PRECISION: jax.lax.Precision | None = None
@@ -115,14 +108,12 @@ TUNABLE = (
     "STAGES",
     "TAP_LOOP",
     "CONV_STAGES",
-    "CONV_ROWS",
-    "WGRAD_ROWS",
 )
 
 
 # Constants that must be powers of two (Triton's block shapes, warps) or at least 1; switches 0/1.
 _POWERS_OF_TWO = ("BLOCK", "NUM_WARPS", "WGRAD_BLOCK", "WGRAD_STEPS", "WGRAD_WARPS")
-_SWITCHES = ("WGRAD_G_FIRST", "TAP_LOOP", "CONV_ROWS", "WGRAD_ROWS")
+_SWITCHES = ("WGRAD_G_FIRST", "TAP_LOOP")
 
 
 def parse_constants(setting: str | dict) -> dict[str, int]:
@@ -265,85 +256,55 @@ def _round_up(n: int, multiple: int) -> int:
 
 @dataclasses.dataclass(frozen=True)
 class _Pass:
-    """One convolution of a stack: k x k taps over the `size_in` x `size_in` input of `channels`
-    channels zero-padded by `pad`, giving `size` x `size` of `features` (VALID, stride 1)."""
+    """One convolution of a stack: k x k taps over the `size_in` x `size_in` input zero-padded
+    by `pad`, giving `size` x `size` (VALID, stride 1)."""
 
     images: int
     size_in: int
     size: int
     kernel: int
     pad: int
-    channels: int
-    features: int
 
     @property
     def out(self) -> _Grid:
         return _Grid(self.images, self.size)
 
     @property
-    def width(self) -> int:
-        """The lanes of a kernel row's load (`loader(by_rows=True)`)."""
-        return channels_for(self.kernel * self.channels)
-
-    @property
     def input_gradient(self) -> _Pass:
         """The convolution that computes this one's input gradient (with the kernel flipped
         and transposed, `_taps_of(..., flip=True)`)."""
-        return _Pass(
-            self.images,
-            self.size,
-            self.size_in,
-            self.kernel,
-            self.kernel - 1 - self.pad,
-            self.features,
-            self.channels,
-        )
+        return _Pass(self.images, self.size, self.size_in, self.kernel, self.kernel - 1 - self.pad)
 
-    def loader(self, x_ref, rows, dtype, by_rows: bool = False):
-        """tap t = (i, j) -> [len(rows), channels]: for the output pixel (y, x) at each of
-        `rows`, input pixel (y + i - pad, x + j - pad), zero where that is padding or the row
-        is past the pixels. x_ref is the input's rows as one dimension. `by_rows`: t is a
-        kernel row i instead, -> [len(rows), width], lane j * channels + c holding channel c of
-        input pixel (y + i - pad, x + j - pad) for j < kernel (zeros past them)."""
+    def loader(self, x_ref, rows, c: int, dtype):
+        """tap t = (i, j) -> [len(rows), c]: for the output pixel (y, x) at each of `rows`,
+        input pixel (y + i - pad, x + j - pad), zero where that is padding or the row is past
+        the pixels. x_ref is the input's rows as one dimension."""
         keep, image, y, x = self.out.position(rows)
         base = (image * self.size_in + y - self.pad) * self.size_in + x - self.pad
-        c, k, last = self.channels, self.kernel, self.size_in - 1
-        lanes = jnp.arange(self.width if by_rows else c, dtype=jnp.int32)
-        pixel = jax.lax.div(lanes, c) if by_rows else None  # j of each lane
-        inside = lanes < k * c
+        lanes = jnp.arange(c, dtype=jnp.int32)[None, :]
         if not self.pad:  # a VALID convolution reads inside its input
             base = jnp.where(keep, base, 0)
+        k, last = self.kernel, self.size_in - 1
 
         def load(t):
-            if by_rows:
-                i, j = t, 0
-            else:
-                i, j = (jax.lax.div(t, k), jax.lax.rem(t, k)) if _traced(t) else divmod(t, k)
-            idx = (base + i * self.size_in + j)[:, None] * c + lanes[None, :]
+            i, j = (jax.lax.div(t, k), jax.lax.rem(t, k)) if _traced(t) else divmod(t, k)
+            idx = base + i * self.size_in + j
             if not self.pad:
-                if not by_rows:
-                    return x_ref[idx].astype(dtype)
-                mask = jnp.broadcast_to(inside[None, :], idx.shape)
-                return plt.load(x_ref.at[idx], mask=mask, other=0).astype(dtype)
+                return x_ref[idx[:, None] * c + lanes].astype(dtype)
             ok = keep
             # (the checks that can fail for this tap: the output spans [0, size) and
             # size - 1 + k - 1 - 2 * pad = size_in - 1; a traced tap checks all four)
-            if _traced(i) or i < self.pad:
+            if _traced(t) or i < self.pad:
                 ok &= y + i - self.pad >= 0
-            if _traced(i) or i > k - 1 - self.pad:
+            if _traced(t) or i > k - 1 - self.pad:
                 ok &= y + i - self.pad <= last
-            ok = ok[:, None]
-            if by_rows:
-                col = x[:, None] + pixel[None, :] - self.pad
-                ok = ok & inside[None, :] & (col >= 0) & (col <= last)
-            else:
-                if _traced(t) or j < self.pad:
-                    ok &= (x + j - self.pad >= 0)[:, None]
-                if _traced(t) or j > k - 1 - self.pad:
-                    ok &= (x + j - self.pad <= last)[:, None]
-                ok = jnp.broadcast_to(ok, idx.shape)
-            idx = jnp.where(ok, idx, 0)
-            return plt.load(x_ref.at[idx], mask=ok, other=0).astype(dtype)
+            if _traced(t) or j < self.pad:
+                ok &= x + j - self.pad >= 0
+            if _traced(t) or j > k - 1 - self.pad:
+                ok &= x + j - self.pad <= last
+            idx = jnp.where(ok, idx, 0)[:, None] * c + lanes
+            mask = jnp.broadcast_to(ok[:, None], idx.shape)
+            return plt.load(x_ref.at[idx], mask=mask, other=0).astype(dtype)
 
         return load
 
@@ -448,18 +409,12 @@ class _Targets:
         return plt.load(y_ref.at[idx], mask=ok, other=0).astype(jnp.float32), ok
 
 
-def _loader(x_ref, crop_ref, rows, layer, dtype, by_rows: bool):
-    """tap t -> the input of `layer` (a `_Pass` or `_Pixels`) for the output pixels at `rows`
-    in `dtype`, for a `_Pass` a kernel row at a time if `by_rows` (`_Pass.loader`); a `_Pixels`
-    layer's always are."""
+def _loader(x_ref, crop_ref, rows, layer, c: int, dtype):
+    """tap t -> the input of `layer` (a `_Pass` or `_Pixels`) for the output pixels at `rows`,
+    [len(rows), c] in `dtype`."""
     if isinstance(layer, _Pixels):
         return layer.loader(x_ref, crop_ref, rows, dtype)
-    return layer.loader(x_ref, rows, dtype, by_rows)
-
-
-def _by_rows(layer, rows_switch: bool) -> bool:
-    """Whether a layer's taps are read a kernel row at a time (`CONV_ROWS`, `WGRAD_ROWS`)."""
-    return isinstance(layer, _Pixels) or bool(rows_switch)
+    return layer.loader(x_ref, rows, c, dtype)
 
 
 def _conv_kernel(*refs, layer, relu, has_bias, has_mask, targets):
@@ -470,10 +425,10 @@ def _conv_kernel(*refs, layer, relu, has_bias, has_mask, targets):
     w_ref = refs.pop(0)
     b_ref = refs.pop(0) if has_bias else None
     m_ref = refs.pop(0) if has_mask else None
-    f = o_ref.shape[-1]
+    f, c = o_ref.shape[-1], w_ref.shape[1]
     start = pl.program_id(0) * BLOCK
     rows = start + jnp.arange(BLOCK, dtype=jnp.int32)
-    taps = _loader(x_ref, crop_ref, rows, layer, w_ref.dtype, CONV_ROWS)
+    taps = _loader(x_ref, crop_ref, rows, layer, c, w_ref.dtype)
 
     def tap(t, acc):
         return acc + plt.dot(taps(t), w_ref[t], precision=PRECISION)
@@ -567,6 +522,7 @@ def _wgrad_kernel(*refs, layer, steps):
     g_ref = refs.pop(0)
     n, *acc_shape = w_ref.shape[1:]  # taps, then [c, f] ([f, c] with WGRAD_G_FIRST)
     f = g_ref.shape[-1]
+    c = acc_shape[1] if WGRAD_G_FIRST else acc_shape[0]
     p = pl.program_id(0)
 
     def product(x, g):
@@ -581,7 +537,7 @@ def _wgrad_kernel(*refs, layer, steps):
         # The last program's steps past the rows read zeros (whole blocks: see _Grid).
         inside = jnp.broadcast_to((rows < layer.out.rows)[:, None], (WGRAD_BLOCK, f))
         g = plt.load(g_ref.at[pl.ds(start, WGRAD_BLOCK), :], mask=inside, other=0)
-        taps = _loader(x_ref, crop_ref, rows, layer, g.dtype, WGRAD_ROWS)
+        taps = _loader(x_ref, crop_ref, rows, layer, c, g.dtype)
         out = tuple(acc + product(taps(t), g) for t, acc in enumerate(accs))
         return out, bacc + jnp.sum(g.astype(jnp.float32), axis=0)
 
@@ -611,7 +567,7 @@ def _wgrad_steps(rows: int, batch: int) -> int:
 def _wgrad(x, g, layer):
     """(sum_q (tap t of x for q)^T g[q] for each t, sum_q g[q]) over the rows of layer.out,
     in float32."""
-    c = layer.width if _by_rows(layer, WGRAD_ROWS) else x.shape[-1]
+    c = layer.width if isinstance(layer, _Pixels) else x.shape[-1]
     return _wgrad_over(layer, c, ())(*_pixel_args(x, layer), g)
 
 
@@ -639,7 +595,7 @@ def _wgrad_over(layer, c: int, axes: tuple[int, ...]):
 
 def _wgrad_call(layer, c: int, steps: int, *args):
     f = args[-1].shape[-1]
-    taps = layer.kernel if _by_rows(layer, WGRAD_ROWS) else layer.kernel**2
+    taps = layer.kernel if isinstance(layer, _Pixels) else layer.kernel**2
     programs = -(-layer.out.rows // (WGRAD_BLOCK * steps))
     acc_shape = (f, c) if WGRAD_G_FIRST else (c, f)
     w, b = pl.pallas_call(
@@ -662,10 +618,7 @@ def _plan(x_shape, layers, pads, stride, shift=0) -> tuple[list[int], list]:
     kernels = [k.shape[0] for k, _ in layers]
     sizes = _sizes(x_shape[1], kernels, pads, stride)
     n = x_shape[0]
-    passes = [
-        _Pass(n, sizes[i], sizes[i + 1], k.shape[0], p, k.shape[2], k.shape[3])
-        for i, ((k, _), p) in enumerate(zip(layers, pads))
-    ]
+    passes = [_Pass(n, sizes[i], sizes[i + 1], k, p) for i, (k, p) in enumerate(zip(kernels, pads))]
     if stride > 1:
         passes[0] = _Pixels(x_shape[1], x_shape[-1], stride, kernels[0], _Grid(n, sizes[1]), shift)
     return sizes, passes
@@ -673,14 +626,13 @@ def _plan(x_shape, layers, pads, stride, shift=0) -> tuple[list[int], list]:
 
 def _taps_of(k: jax.Array, layer, flip: bool = False) -> jax.Array:
     """[K, K, C, F] -> one [C, F] matrix per tap (i, j), in the order i * K + j; flipped and
-    transposed for an input gradient ([F, C] at tap (K-1-i, K-1-j)). For a layer read a kernel
-    row at a time (a `_Pixels` layer; a `_Pass` with CONV_ROWS), one [width, F] matrix per
-    kernel row instead: its K * C rows (the K taps' matrices stacked), then zeros."""
-    if flip:
-        k = jnp.swapaxes(jnp.flip(k, (0, 1)), 2, 3)
-    if _by_rows(layer, CONV_ROWS):
+    transposed for an input gradient ([F, C] at tap (K-1-i, K-1-j)); for a `_Pixels` layer, one
+    [layer.width, F] matrix per kernel row (its K * C rows, then zeros)."""
+    if isinstance(layer, _Pixels):
         k = k.reshape(k.shape[0], -1, k.shape[-1])
         return jnp.pad(k, ((0, 0), (0, layer.width - k.shape[1]), (0, 0)))
+    if flip:
+        k = jnp.swapaxes(jnp.flip(k, (0, 1)), 2, 3)
     return k.reshape(-1, *k.shape[2:])
 
 
@@ -754,17 +706,14 @@ def _backward(acts, layers, passes, g, x_like, scale=None):
     for i in reversed(range(len(layers))):
         (k, b), layer = layers[i], passes[i]
         dk, db = _wgrad(acts[i], g, layer)
-        scaled = scale is not None and i == len(layers) - 1
-        if scaled:
-            dk, db = dk * scale, db * scale
-        # (per kernel row, [width, F], for a layer read a kernel row at a time)
-        dk = dk.reshape(k.shape[0], -1, k.shape[-1])[:, : k.shape[1] * k.shape[2]]
+        w = _taps_of(k, layer, flip=True)
+        if scale is not None and i == len(layers) - 1:
+            dk, db, w = dk * scale, db * scale, w * scale
+        dk = dk[:, : k.shape[1] * k.shape[2]] if isinstance(layer, _Pixels) else dk
         grads.append((dk.reshape(k.shape).astype(k.dtype), db.astype(b.dtype)))
         if i == 0 and not jnp.issubdtype(x_like.dtype, jnp.floating):
             return None, tuple(reversed(grads))
         # Input gradient, with the ReLU gradient of the layer below (the stack's input has none).
-        w = _taps_of(k, layer.input_gradient, flip=True)
-        w = w * scale if scaled else w
         g = _conv(g, w.astype(g.dtype), layer.input_gradient, mask=acts[i] if i else None)
     dx = passes[0].input_gradient.out.unflatten(g).astype(x_like.dtype)
     return dx, tuple(reversed(grads))

@@ -127,30 +127,22 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     [
         ("decoder", {"TAP_LOOP": False}),
         ("encoder_shifted", {"TAP_LOOP": False, "WGRAD_G_FIRST": True}),
-        ("decoder", {"CONV_ROWS": True, "WGRAD_ROWS": True}),
-        ("decoder", {"CONV_ROWS": True, "TAP_LOOP": False, "WGRAD_G_FIRST": True}),
-        ("encoder", {"CONV_ROWS": True, "WGRAD_ROWS": True}),
     ],
 )
 def test_kernel_settings_compute_the_same(monkeypatch, name, settings):
     """The kernels' settings change how, not what: a convolution's taps as a loop (traced tap
     indices, every padding check at run time) or unrolled (the checks a tap needs, fixed);
-    filter gradients as x^T g or g^T x; taps read one at a time or a kernel row at a time (for
-    the convolutions, their input gradients, the filter gradients). The same values and
-    gradients as the defaults."""
+    filter gradients as x^T g or g^T x. The same values and gradients as the defaults."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
     monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
     x, layers, _, stack, argnums = _case(name)
-    # (the output scaled to [-1, 1] under the sine, so that a gradient does not turn float32
-    # rounding, such as a kernel row's taps summed as one product, into large differences)
-    scale = float(jnp.abs(jax.jit(stack)(x, layers)).max())
-    default = _value_and_grad(stack, argnums, scale)(x, layers)
+    default = _value_and_grad(stack, argnums, 1.0)(x, layers)
     for setting, value in settings.items():
         assert getattr(wideconv, setting) != value
         monkeypatch.setattr(wideconv, setting, value)
-    changed = _value_and_grad(stack, argnums, scale)(x, layers)
+    changed = _value_and_grad(stack, argnums, 1.0)(x, layers)
     for a, b in zip(jax.tree.leaves(changed), jax.tree.leaves(default), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5 * max(1.0, float(np.abs(b).max())))
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
 
 
 def _value_and_grad(stack, argnums, scale):
@@ -349,7 +341,7 @@ def test_filter_gradients_of_any_steps_are_the_same_under_nested_vmap(monkeypatc
                 np.testing.assert_allclose(a[i, j], b, rtol=1e-5, atol=1e-5)
     # A filter gradient whose input is shared by the vmapped seeds (unbatched), its output
     # gradients not: each seed's is its own.
-    layer = wideconv._Pass(images=2, size_in=7, size=5, kernel=3, pad=0, channels=16, features=32)
+    layer = wideconv._Pass(images=2, size_in=7, size=5, kernel=3, pad=0)
     acts = wideconv._Grid(2, 7).flatten(x[0, 0])
     grads = jnp.stack([layer.out.flatten(_normal(8 + s, (2, 5, 5, 32))) for s in range(2)])
     shared = jax.jit(jax.vmap(lambda g: wideconv._wgrad(acts, g, layer)))(grads)

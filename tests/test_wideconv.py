@@ -127,6 +127,9 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     [
         ("decoder", {"TAP_LOOP": False}),
         ("encoder_shifted", {"TAP_LOOP": False, "WGRAD_G_FIRST": True}),
+        ("decoder", {"PAD_COPY": 3}),
+        ("encoder", {"PAD_COPY": 1, "TAP_LOOP": False}),
+        ("decoder", {"PAD_COPY": 2}),
     ],
 )
 def test_kernel_settings_compute_the_same(monkeypatch, name, settings):
@@ -386,6 +389,7 @@ def test_kernel_constants_hold_inside_their_block_only():
         ("TAP_LOOP=7", "TAP_LOOP is a switch, 0 or 1"),
         ("CONV_STAGES=0", "CONV_STAGES must be at least 1"),
         ("WGRAD_MIN_PROGRAMS=-1", "WGRAD_MIN_PROGRAMS must be at least 0"),
+        ("PAD_COPY=4", "PAD_COPY takes 0 to 3"),
     ]:
         with pytest.raises(ValueError, match=why):
             wideconv.parse_constants(bad)

@@ -41,7 +41,8 @@ rows are fetched while the previous tap's product runs), in programs of 128 rows
 update took 2.61-2.62 ms per seed against 2.89-2.90 with the taps unrolled in programs of 256
 (`python -m benchmarks.update ... --kernels`, benchmarks/results/kernels/). Slower there: the
 loop's 2 or 4 stages, 8 warps, programs of 64 or 512 rows; and filter gradients with a program
-per tap and block of rows (3.56 ms; commit f4ae598).
+per tap and block of rows (3.56 ms; commit f4ae598); and a kernel row's taps as one load and
+one product of K = 3 * C, padded to 128 lanes (slower in every setting; commit f1ae683).
 
 `conv_stack(x, layers, pads)` is the function of
 `for (k, b), p in zip(layers, pads): x = relu(VALID conv of x zero-padded by p with k, + b)`,
@@ -92,7 +93,9 @@ TAP_LOOP = True
 CONV_STAGES = 3
 # Padded layers read a copy of their input with the zeros written around it (one XLA pad), as
 # VALID ones: no load masks, no bounds checks per tap. Bits: 1 the convolutions (forward and
-# input gradients), 2 the filter gradients; 0 none.
+# input gradients), 2 the filter gradients; 0 none. On an H100 the copies cost more than the
+# masks (DEAR 2.75-2.88 ms per seed against 2.63); on an H200, where padded layers ran at a
+# third of the VALID layers' rows per second, not timed yet (benchmarks/RESULTS.md).
 PAD_COPY = 0
 # The float32 dots' precision on GPUs: None lets them run in TF32, as XLA's float32 convolutions
 # do there by default; jax.lax.Precision.HIGHEST makes them IEEE float32 (the GPU tests).

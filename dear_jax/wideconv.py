@@ -499,7 +499,7 @@ def _conv(x, w, layer, *, bias=None, relu=False, mask=None, targets=None):
     With `targets` = (a `_Targets`, its arguments: the targets, and with a shift their crop
     offsets), the output is instead the gradient of its loss for that output (zero where no
     target is defined), returned with each program's per-lane sums of the loss."""
-    x, layer = _unpadded(x, layer, 1)
+    x, layer = _as_valid(x, layer, 1)
     args = [*_pixel_args(x, layer), w]
     if bias is not None:
         args.append(bias.astype(jnp.float32))
@@ -560,9 +560,9 @@ def _wgrad_kernel(*refs, layer, steps):
     b_ref[p] = bacc
 
 
-def _unpadded(x, layer, bit: int):
+def _as_valid(x, layer, bit: int):
     """(x, layer) for a padded `_Pass` with this bit of PAD_COPY set: (x's rows zero-padded
-    around each image, the same convolution VALID on them); otherwise as they are."""
+    around each image, the same convolution as a VALID one on them); otherwise as they are."""
     if not (PAD_COPY & bit and isinstance(layer, _Pass) and layer.pad):
         return x, layer
     p, size_in = layer.pad, layer.size_in + 2 * layer.pad
@@ -593,7 +593,7 @@ def _wgrad(x, g, layer):
     """(sum_q (tap t of x for q)^T g[q] for each t, sum_q g[q]) over the rows of layer.out,
     in float32."""
     c = layer.width if isinstance(layer, _Pixels) else x.shape[-1]
-    x, layer = _unpadded(x, layer, 2)
+    x, layer = _as_valid(x, layer, 2)
     return _wgrad_over(layer, c, ())(*_pixel_args(x, layer), g)
 
 

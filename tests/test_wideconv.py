@@ -135,7 +135,9 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
 def test_kernel_settings_compute_the_same(monkeypatch, name, settings):
     """The kernels' settings change how, not what: a convolution's taps as a loop (traced tap
     indices, every padding check at run time) or unrolled (the checks a tap needs, fixed);
-    filter gradients as x^T g or g^T x. The same values and gradients as the defaults."""
+    filter gradients as x^T g or g^T x; padded layers reading a zero-padded copy of their input
+    as VALID ones (for the convolutions, the filter gradients or both). The same values and
+    gradients as the defaults."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
     monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
     x, layers, _, stack, argnums = _case(name)
@@ -144,6 +146,12 @@ def test_kernel_settings_compute_the_same(monkeypatch, name, settings):
         assert getattr(wideconv, setting) != value
         monkeypatch.setattr(wideconv, setting, value)
     changed = _value_and_grad(stack, argnums, 1.0)(x, layers)
+    if "PAD_COPY" in settings:  # the copies are made: XLA pads beside the kernels
+        pads = str(jax.make_jaxpr(_value_and_grad(stack, argnums, 1.0))(x, layers)).count("pad[")
+        monkeypatch.setattr(wideconv, "PAD_COPY", 0)
+        assert pads > str(jax.make_jaxpr(_value_and_grad(stack, argnums, 1.0))(x, layers)).count(
+            "pad["
+        )
     for a, b in zip(jax.tree.leaves(changed), jax.tree.leaves(default), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
 

@@ -41,8 +41,10 @@ rows are fetched while the previous tap's product runs), in programs of 128 rows
 update took 2.61-2.62 ms per seed against 2.89-2.90 with the taps unrolled in programs of 256
 (`python -m benchmarks.update ... --kernels`, benchmarks/results/kernels/). Slower there: the
 loop's 2 or 4 stages, 8 warps, programs of 64 or 512 rows; and filter gradients with a program
-per tap and block of rows (3.56 ms; commit f4ae598); and a kernel row's taps as one load and
-one product of K = 3 * C, padded to 128 lanes (slower in every setting; commit f1ae683).
+per tap and block of rows (3.56 ms; commit f4ae598); a kernel row's taps as one load and
+one product of K = 3 * C, padded to 128 lanes (slower in every setting; commit f1ae683); and
+padded layers reading a zero-padded copy of their input as VALID layers, without load masks
+(the copies cost more than the masks, on an H100 and on an H200; commit f5ff609).
 
 `conv_stack(x, layers, pads)` is the function of
 `for (k, b), p in zip(layers, pads): x = relu(VALID conv of x zero-padded by p with k, + b)`,
@@ -91,12 +93,6 @@ STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of 
 # its pipeline's stages.
 TAP_LOOP = True
 CONV_STAGES = 3
-# Padded layers read a copy of their input with the zeros written around it (one XLA pad), as
-# VALID ones: no load masks, no bounds checks per tap. Bits: 1 the convolutions (forward and
-# input gradients), 2 the filter gradients; 0 none. On an H100 the copies cost more than the
-# masks (DEAR 2.75-2.88 ms per seed against 2.63); on an H200, where padded layers ran at a
-# third of the VALID layers' rows per second, not timed yet (benchmarks/RESULTS.md).
-PAD_COPY = 0
 # The float32 dots' precision on GPUs: None lets them run in TF32, as XLA's float32 convolutions
 # do there by default; jax.lax.Precision.HIGHEST makes them IEEE float32 (the GPU tests).
 PRECISION: jax.lax.Precision | None = None
@@ -115,14 +111,12 @@ TUNABLE = (
     "STAGES",
     "TAP_LOOP",
     "CONV_STAGES",
-    "PAD_COPY",
 )
 
 
 # Constants that must be powers of two (Triton's block shapes, warps) or at least 1; switches 0/1.
 _POWERS_OF_TWO = ("BLOCK", "NUM_WARPS", "WGRAD_BLOCK", "WGRAD_STEPS", "WGRAD_WARPS")
 _SWITCHES = ("WGRAD_G_FIRST", "TAP_LOOP")
-_BITS = {"PAD_COPY": 3}  # constants of bit flags: their largest value
 
 
 def parse_constants(setting: str | dict) -> dict[str, int]:
@@ -149,8 +143,6 @@ def parse_constants(setting: str | dict) -> dict[str, int]:
             ) from None
         if name in _SWITCHES and number not in (0, 1):
             raise ValueError(f"kernel constant {item!r}: {name} is a switch, 0 or 1")
-        if name in _BITS and not 0 <= number <= _BITS[name]:
-            raise ValueError(f"kernel constant {item!r}: {name} takes 0 to {_BITS[name]}")
         if name in _POWERS_OF_TWO and (number < 1 or number & (number - 1)):
             raise ValueError(f"kernel constant {item!r}: {name} must be a power of two")
         minimum = 1 if name.endswith("STAGES") else 0
@@ -499,7 +491,6 @@ def _conv(x, w, layer, *, bias=None, relu=False, mask=None, targets=None):
     With `targets` = (a `_Targets`, its arguments: the targets, and with a shift their crop
     offsets), the output is instead the gradient of its loss for that output (zero where no
     target is defined), returned with each program's per-lane sums of the loss."""
-    x, layer = _as_valid(x, layer, 1)
     args = [*_pixel_args(x, layer), w]
     if bias is not None:
         args.append(bias.astype(jnp.float32))
@@ -560,19 +551,6 @@ def _wgrad_kernel(*refs, layer, steps):
     b_ref[p] = bacc
 
 
-def _as_valid(x, layer, bit: int):
-    """(x, layer) for a padded `_Pass` with this bit of PAD_COPY set: (x's rows zero-padded
-    around each image, the same convolution as a VALID one on them); otherwise as they are."""
-    if not (PAD_COPY & bit and isinstance(layer, _Pass) and layer.pad):
-        return x, layer
-    p, size_in = layer.pad, layer.size_in + 2 * layer.pad
-    images = _Grid(layer.images, layer.size_in).unflatten(x)
-    padded = jnp.pad(images, ((0, 0), (p, p), (p, p), (0, 0)))
-    return _Grid(layer.images, size_in).flatten(padded), dataclasses.replace(
-        layer, size_in=size_in, pad=0
-    )
-
-
 def _pixel_args(x, layer) -> list:
     """A layer's input as the kernels take it: flat, and with a shift its crop offsets."""
     if isinstance(layer, _Pixels) and layer.shift:
@@ -593,7 +571,6 @@ def _wgrad(x, g, layer):
     """(sum_q (tap t of x for q)^T g[q] for each t, sum_q g[q]) over the rows of layer.out,
     in float32."""
     c = layer.width if isinstance(layer, _Pixels) else x.shape[-1]
-    x, layer = _as_valid(x, layer, 2)
     return _wgrad_over(layer, c, ())(*_pixel_args(x, layer), g)
 
 

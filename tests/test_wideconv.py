@@ -127,17 +127,12 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     [
         ("decoder", {"TAP_LOOP": False}),
         ("encoder_shifted", {"TAP_LOOP": False, "WGRAD_G_FIRST": True}),
-        ("decoder", {"PAD_COPY": 3}),
-        ("encoder", {"PAD_COPY": 1, "TAP_LOOP": False}),
-        ("decoder", {"PAD_COPY": 2}),
     ],
 )
 def test_kernel_settings_compute_the_same(monkeypatch, name, settings):
     """The kernels' settings change how, not what: a convolution's taps as a loop (traced tap
     indices, every padding check at run time) or unrolled (the checks a tap needs, fixed);
-    filter gradients as x^T g or g^T x; padded layers reading a zero-padded copy of their input
-    as VALID ones (for the convolutions, the filter gradients or both). The same values and
-    gradients as the defaults."""
+    filter gradients as x^T g or g^T x. The same values and gradients as the defaults."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
     monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
     x, layers, _, stack, argnums = _case(name)
@@ -146,16 +141,6 @@ def test_kernel_settings_compute_the_same(monkeypatch, name, settings):
         assert getattr(wideconv, setting) != value
         monkeypatch.setattr(wideconv, setting, value)
     changed = _value_and_grad(stack, argnums, 1.0)(x, layers)
-    if "PAD_COPY" in settings:  # the copies are made: XLA pads beside the kernels
-
-        def pads():
-            return str(jax.make_jaxpr(_value_and_grad(stack, argnums, 1.0))(x, layers)).count(
-                "pad["
-            )
-
-        copied = pads()
-        monkeypatch.setattr(wideconv, "PAD_COPY", 0)
-        assert copied > pads()
     for a, b in zip(jax.tree.leaves(changed), jax.tree.leaves(default), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
 
@@ -401,7 +386,6 @@ def test_kernel_constants_hold_inside_their_block_only():
         ("TAP_LOOP=7", "TAP_LOOP is a switch, 0 or 1"),
         ("CONV_STAGES=0", "CONV_STAGES must be at least 1"),
         ("WGRAD_MIN_PROGRAMS=-1", "WGRAD_MIN_PROGRAMS must be at least 0"),
-        ("PAD_COPY=4", "PAD_COPY takes 0 to 3"),
     ]:
         with pytest.raises(ValueError, match=why):
             wideconv.parse_constants(bad)

@@ -47,8 +47,9 @@ kitchen's too with `--tasks light kettle`): a run belongs to a cell when its con
 cell's but for its seeds, envs per seed, dtype and replay (`GRID_MAY_DIFFER`). Per cell: the
 seeds that trained --frames frames, the runs stopped short and how far, how many seeds are
 missing; then a command per stopped run that kept a checkpoint (its resume) and per missing seed
-(one seed-run, a config.seed no run of the cell used); last the runs in no cell (sweeps
-included), each with the field that keeps it out.
+that no resume brings (one seed-run, a config.seed no run of the cell used); last the runs in no
+cell (sweeps included), each with the field that keeps it out. `python -m dear_jax.grid` runs
+those commands as a queue over GPUs.
 
 `curves` is the paper's learning-curve figure (`dear_jax/plot.py`): one panel per task, one line
 per experiment (per setting of a sweep: the beta-sweep figure from the sweep's run), the mean
@@ -59,10 +60,12 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import functools
 import json
 import math
 import pathlib
+import shlex
 
 import jax
 import numpy as np
@@ -488,10 +491,11 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000)
                 for k in sorted(fields)
                 if k.startswith(GRID_MAY_DIFFER) and fields[k] != cell["ref"].get(k)
             ]
-            cell["resume"].append(" ".join([*own, f"--workdir {workdir}"]))
+            cell["resume"].append([*own, "--workdir", str(workdir)])
     rows = []
     for cell in cells.values():
         missing = max(0, seeds - len(cell["seeds"]))
+        new = max(0, missing - len(cell["resume"]))  # a resume brings its seed
         free = (n for n in range(10**6) if n not in cell["used"])
         rows.append(
             {
@@ -502,11 +506,50 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000)
                 "short": cell["short"],
                 "resume": cell["resume"],
                 "missing": missing,
-                "next_seeds": [next(free) for _ in range(missing)],
+                "next_seeds": [next(free) for _ in range(new)],
                 "total_frames": cell["ref"]["total_frames"],
             }
         )
     return {"cells": rows, "outside": outside}
+
+
+@dataclasses.dataclass(frozen=True)
+class Job:
+    """A seed-run of the grid: its workdir's name and `run.py`'s arguments."""
+
+    name: str
+    args: tuple[str, ...]
+
+
+def grid_jobs(grid: dict, frames: int, root: str = "runs", overrides=()) -> list[Job]:
+    """The runs that complete `grid` (`grid_rows`) to `frames` frames per seed: first each stopped
+    run that kept a checkpoint (resumed in its workdir), then one seed-run per missing seed in
+    ROOT/TASK_METHOD_sSEED, task by task, the task's methods taking turns (a queue stopped part
+    way leaves a task's methods with seeds alike). `overrides`: more `--config.FIELD=VALUE`
+    arguments for the new seed-runs."""
+    cells = grid["cells"]
+
+    def spec(r):
+        return ("--config", f"configs/paper.py:{r['task']},{r['method']}")
+
+    def length(r):
+        return (f"--config.total_frames={frames}",) if frames != r["total_frames"] else ()
+
+    jobs = [
+        Job(pathlib.Path(args[-1]).name, (*spec(r), *length(r), *args))
+        for r in cells
+        for args in r["resume"]
+    ]
+    for task in dict.fromkeys(r["task"] for r in cells):
+        row = [r for r in cells if r["task"] == task]
+        for k in range(max(len(r["next_seeds"]) for r in row)):
+            for r in (r for r in row if k < len(r["next_seeds"])):
+                n = r["next_seeds"][k]
+                name = f"{task}_{r['method']}_s{n}"
+                seed = (f"--config.seed={n}", "--config.seeds=1")
+                workdir = ("--workdir", f"{root}/{name}")
+                jobs.append(Job(name, (*spec(r), *seed, *length(r), *overrides, *workdir)))
+    return jobs
 
 
 def grid_table(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000) -> str:
@@ -527,16 +570,7 @@ def grid_table(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000
         ],
     )
     lines = [f"The paper's grid at {frames:,} frames per seed, {seeds} seeds per cell", "", table]
-    commands = []
-    for r in rows:
-        spec = f"configs/paper.py:{r['task']},{r['method']}"
-        length = f" --config.total_frames={frames}" if frames != r["total_frames"] else ""
-        commands += [f"python run.py --config {spec}{length} {args}" for args in r["resume"]]
-        commands += [
-            f"python run.py --config {spec} --config.seed={n} --config.seeds=1{length} "
-            f"--workdir runs/{r['task']}_{r['method']}_s{n}"
-            for n in r["next_seeds"]
-        ]
+    commands = [f"python run.py {shlex.join(job.args)}" for job in grid_jobs(grid, frames)]
     if commands:
         lines += [
             "",

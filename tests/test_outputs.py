@@ -599,29 +599,36 @@ def test_the_papers_claims_are_checked_per_task_on_the_seeds(tmp_path):
     assert cos_row.replace("\\|", "").count("|") == len(claims.COLUMNS) + 1
 
 
+def paper_run(workdir, spec, seed, frames, seeds=1, summary=True, **fields):
+    """A run's workdir as `report grid` reads it: config.json of `configs/paper.py:SPEC` with
+    its seeds and the dotted `fields` set, and (with `summary`) the frames it reached."""
+    from configs import paper
+
+    config = paper.get_config(spec)
+    config.seed, config.seeds = seed, seeds
+    for key, value in fields.items():
+        *parents, leaf = key.split(".")
+        node = config
+        for part in parents:
+            node = node[part]
+        node[leaf] = value
+    workdir.mkdir(parents=True)
+    (workdir / "config.json").write_text(json.dumps(config.to_dict()))
+    if summary:
+        (workdir / "summary.json").write_text(json.dumps({"frames_per_seed": frames}))
+    return workdir
+
+
 def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
     """`report grid`: a run counts in the cell of configs/paper.py whose config it has, but for
     its seeds, envs per seed, dtype and replay (a field it lacks: its old behaviour,
     experiment.ADDED_FIELDS). A seed trained to the end twice counts once; a run stopped short is
     listed with its frames (a checkpoint: a resume command); free config.seed values fill the
-    missing seeds, one seed-run each; every other run is named with the field that keeps it out."""
-    from configs import paper
+    missing seeds that no resume brings, one seed-run each; every other run is named with the
+    field that keeps it out."""
 
     def run(name, spec, seed, frames, seeds=1, summary=True, **fields):
-        config = paper.get_config(spec)
-        config.seed, config.seeds = seed, seeds
-        for key, value in fields.items():
-            *parents, leaf = key.split(".")
-            node = config
-            for part in parents:
-                node = node[part]
-            node[leaf] = value
-        workdir = tmp_path / name
-        workdir.mkdir()
-        (workdir / "config.json").write_text(json.dumps(config.to_dict()))
-        if summary:
-            (workdir / "summary.json").write_text(json.dumps({"frames_per_seed": frames}))
-        return workdir
+        return paper_run(tmp_path / name, spec, seed, frames, seeds, summary, **fields)
 
     runs = [
         run("w_dear_s0", "walker,dear", 0, 1_000_000),
@@ -646,11 +653,16 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
         "done": [f"{here}/w_dear_s0", f"{here}/w_dear_s0_again"],
         "short": [f"{here}/w_dear_s1 (500,000)", f"{here}/w_dear_s4 (no summary: running?)"],
         "resume": [
-            "--config.agent.compute_dtype=bfloat16 --config.seed=1 --config.seeds=1 "
-            f"--workdir {runs[2].resolve()}"
+            [
+                "--config.agent.compute_dtype=bfloat16",
+                "--config.seed=1",
+                "--config.seeds=1",
+                "--workdir",
+                str(runs[2].resolve()),
+            ]
         ],
         "missing": 2,
-        "next_seeds": [2, 3],  # 0, 1 and 4 are taken
+        "next_seeds": [2],  # s1's resume brings the other; 0, 1 and 4 are taken
         "total_frames": 1_000_000,
     }
     assert (cell["cup", "sear"]["seeds_done"], cell["cup", "sear"]["next_seeds"]) == (2, [1])

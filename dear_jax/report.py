@@ -431,8 +431,10 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000)
     no cell, each with the field that keeps it out}."""
     from configs import paper
     from configs.base import get_config
-    from dear_jax.experiment import ADDED_FIELDS
+    from dear_jax.experiment import ADDED_FIELDS, RESUMABLE_CHANGES
 
+    # A resume restarts a run as it ran: with the fields it chose (but its length, --frames's).
+    kept = (*GRID_MAY_DIFFER, *(f for f in RESUMABLE_CHANGES if f != "total_frames"))
     # A field a run's config lacks: what the code did before the field, else today's default.
     defaults = {**lanes.flatten(get_config().to_dict()), **ADDED_FIELDS}
     cells = {}
@@ -489,7 +491,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000)
             own = [
                 f"--config.{k}={fields[k]}"
                 for k in sorted(fields)
-                if k.startswith(GRID_MAY_DIFFER) and fields[k] != cell["ref"].get(k)
+                if k.startswith(kept) and fields[k] != cell["ref"].get(k)
             ]
             cell["resume"].append([*own, "--workdir", str(workdir)])
     rows = []
@@ -522,11 +524,11 @@ class Job:
 
 
 def grid_jobs(grid: dict, frames: int, root: str = "runs", overrides=()) -> list[Job]:
-    """The runs that complete `grid` (`grid_rows`) to `frames` frames per seed: first each stopped
-    run that kept a checkpoint (resumed in its workdir), then one seed-run per missing seed in
-    ROOT/TASK_METHOD_sSEED, task by task, the task's methods taking turns (a queue stopped part
-    way leaves a task's methods with seeds alike). `overrides`: more `--config.FIELD=VALUE`
-    arguments for the new seed-runs."""
+    """The runs that complete `grid` (`grid_rows`) to `frames` frames per seed: first the stopped
+    runs that kept a checkpoint (resumed in their workdirs; no more than a cell misses), then one
+    seed-run per missing seed that no resume brings, in ROOT/TASK_METHOD_sSEED, task by task, the
+    task's methods taking turns (a queue stopped part way leaves a task's methods with seeds
+    alike). `overrides`: more `--config.FIELD=VALUE` arguments for the new seed-runs."""
     cells = grid["cells"]
 
     def spec(r):
@@ -535,10 +537,10 @@ def grid_jobs(grid: dict, frames: int, root: str = "runs", overrides=()) -> list
     def length(r):
         return (f"--config.total_frames={frames}",) if frames != r["total_frames"] else ()
 
-    jobs = [
+    jobs = [  # as many resumes as the cell misses seeds
         Job(pathlib.Path(args[-1]).name, (*spec(r), *length(r), *args))
         for r in cells
-        for args in r["resume"]
+        for args in r["resume"][: r["missing"]]
     ]
     for task in dict.fromkeys(r["task"] for r in cells):
         row = [r for r in cells if r["task"] == task]

@@ -422,8 +422,12 @@ class Distractor:
         return state
 
     def set_state(self, state: dict) -> None:
-        for k in self._STATE_ARRAYS:
-            setattr(self, k, np.array(state[k], dtype=getattr(self, k).dtype))
+        """The draws of `get_state`. A state saved with another batch (an evaluation env resumed
+        with another num_eval_episodes) gives its generator only: the per-env draws stay as they
+        are until the next full reset draws them, as each evaluation's first reset does."""
+        if len(state["video"]) == self.batch:
+            for k in self._STATE_ARRAYS:
+                setattr(self, k, np.array(state[k], dtype=getattr(self, k).dtype))
         self.rng.bit_generator.state = state["rng"]
 
     # -- outputs ----------------------------------------------------------------------------

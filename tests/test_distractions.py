@@ -217,6 +217,27 @@ def test_saved_state_continues_the_same_draws():
         np.testing.assert_array_equal(a, b)
 
 
+def test_a_state_saved_with_another_batch_continues_the_draws_after_a_reset():
+    """An evaluation env resumed with more episodes: the saved generator goes on, and the first
+    full reset draws every env (the per-env arrays of another batch are not taken)."""
+    _, one = make_distractor("hard", dynamic=False, batch=1)
+    one.reset()
+    _, three = make_distractor("hard", dynamic=False, batch=3, seed=99)
+    three.set_state(one.get_state())
+    assert three.video.shape == (3,)
+    expected = np.random.default_rng()
+    expected.bit_generator.state = one.rng.bit_generator.state
+    three.reset()
+    assert three.rng.bit_generator.state != one.rng.bit_generator.state  # it drew from it
+    _, fresh = make_distractor("hard", dynamic=False, batch=3, seed=7)
+    fresh.rng = expected
+    fresh.reset()
+    for key, value in fresh.perturb().items():
+        np.testing.assert_array_equal(value, three.perturb()[key])
+    for a, b in zip(fresh.background_index(), three.background_index(), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_dynamic_mode_moves_within_ranges():
     model, dis = make_distractor("hard", dynamic=True)
     dis.reset()

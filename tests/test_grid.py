@@ -63,7 +63,7 @@ def test_the_jobs_resume_stopped_runs_then_start_missing_seeds_task_by_task(tmp_
     commands; --set adds fields to the new seed-runs only."""
     done = [
         paper_run(tmp_path / "old" / "w_dear_s0", "walker,dear", 0, 1_000_000),
-        paper_run(tmp_path / "old" / "w_dear_s1", "walker,dear", 1, 400_000),
+        paper_run(tmp_path / "old" / "w_dear_s1", "walker,dear", 1, 400_000, progress=False),
         paper_run(tmp_path / "old" / "c_sear_s0", "cup,sear", 0, 1_000_000),
     ]
     (done[1] / "checkpoints").mkdir()
@@ -78,9 +78,10 @@ def test_the_jobs_resume_stopped_runs_then_start_missing_seeds_task_by_task(tmp_
         "cup_sear_s1",
         "cup_dear_s1",
     ]
-    assert jobs[0].args == (
+    assert jobs[0].args == (  # restarted with what it chose, resumable fields included
         "--config",
         "configs/paper.py:walker,dear",
+        "--config.progress=False",
         "--config.seed=1",
         "--config.seeds=1",
         "--workdir",
@@ -101,6 +102,9 @@ def test_the_jobs_resume_stopped_runs_then_start_missing_seeds_task_by_task(tmp_
     assert [line for line in printed if line.startswith("python run.py")] == [
         "python run.py " + " ".join(job.args) for job in plain
     ]
+    # A cell with its seeds resumes none of its stopped runs.
+    full = report.grid_rows(done, ["walker"], ["dear"], seeds=1)
+    assert full["cells"][0]["resume"] and report.grid_jobs(full, 1_000_000) == []
     # At 2M frames cup SEAR's seed is short (without a checkpoint: not resumed), and each new
     # run is told the length.
     cup = report.grid_rows(done, ["cup"], ["sear"], seeds=2, frames=2_000_000)

@@ -27,6 +27,11 @@
 #                       (evaluator.spare_device); runs sharing that GPU for their evaluations
 #                       start with XLA_PYTHON_CLIENT_PREALLOCATE=false, or each would claim
 #                       most of its memory
+#   grid ARGS...        the paper's grid's missing seed-runs as a detached queue, one per GPU at a
+#                       time (`python -m dear_jax.grid ARGS --root runs`, e.g. `grid results/*/*/
+#                       --set agent.compute_dtype=bfloat16 --set replay.disk=False`), its log in
+#                       runs/grid.out; `wait`, `stop` and `collect` treat it as a run (SIGTERM
+#                       reaches its runs). It takes the rest of the line: last stage
 #   wait S              sleep up to S seconds while runs train, printing their last log lines;
 #                       returns early once none is running
 #   stop [NAME...]      SIGTERM the runs named (every run `start` began if none; each saves a
@@ -105,6 +110,12 @@ while [ $# -gt 0 ]; do
       echo $! >"runs/$name.pid"
       echo "started runs/$name on GPU $visible ${pin[*]}: run.py ${args[*]}"
       ;;
+    grid)
+      setsid nohup python3 -m dear_jax.grid "$@" --root runs >runs/grid.out 2>&1 </dev/null &
+      echo $! >runs/grid.pid
+      echo "started the grid's queue: python -m dear_jax.grid $* --root runs"
+      set --
+      ;;
     wait)
       end=$((SECONDS + $1)); shift
       while running && [ $SECONDS -lt $end ]; do sleep 5; done
@@ -131,7 +142,7 @@ while [ $# -gt 0 ]; do
       ls -la "$out"
       ;;
     *)
-      echo "unknown stage '$stage'; valid: scaling multihost gpu bench start wait stop after collect" >&2
+      echo "unknown stage '$stage'; valid: scaling multihost gpu bench start grid wait stop after collect" >&2
       exit 2
       ;;
   esac

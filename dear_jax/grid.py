@@ -7,20 +7,25 @@
 The runs named (workdirs of earlier runs, e.g. `results/*/*/`) and every run under --root count
 towards the grid (`report.grid_rows`: a run belongs to a cell of `configs/paper.py:TASK,METHOD`
 when its config is the cell's but for its seeds, envs per seed, dtype and replay). The queue
-(`report.grid_jobs`): first each stopped run that kept a checkpoint, resumed in its workdir, then
-one seed-run per missing seed in ROOT/TASK_METHOD_sSEED, task by task, the methods of a task
-taking turns.
+(`report.grid_jobs`): first the stopped runs that kept a checkpoint and bring missing seeds,
+resumed in their workdirs, then one seed-run per missing seed in --root as TASK_METHOD_sSEED,
+task by task, the methods of a task taking turns.
 
-Each GPU runs --per-gpu jobs at a time (CUDA_VISIBLE_DEVICES), each job pinned to its equal share
-of this process's cores; when a job ends the next starts. A job's console goes to
-ROOT/NAME.out. At --time-limit (90m, 3h, 2h30m or seconds), or on SIGTERM or Ctrl-C, every running
-job gets SIGTERM, saves a checkpoint and its summary, and exits; the same command later resumes
-them. Without GPUs (none visible) the jobs run on the CPU, --per-gpu at a time. At the end: a
-line per job (finished, failed, stopped, not started) and the grid as `report grid` prints it.
+Each GPU (`--gpus`: ids as CUDA_VISIBLE_DEVICES takes them, in nvidia-smi's PCI order; default
+every GPU visible) runs --per-gpu jobs at a time, each pinned (taskset) to its equal share of
+this process's cores, with its share of the GPU's memory when several share it; when a job ends
+the next starts. A job's console goes to --root as NAME.out. At --time-limit (90m, 3h, 2h30m or
+seconds; no job starts in its last minute), or on SIGTERM, SIGINT (Ctrl-C) or SIGHUP, every
+running job gets SIGTERM, saves a checkpoint and its summary, and exits; a second signal stops
+them at once, and one still running 10 minutes after the first gets SIGKILL. The same command
+later resumes them. Without GPUs the jobs run on the CPU, --per-gpu at a time. At the end: a line
+per job (finished, stopped, failed, killed, not started) and the grid as `report grid` prints it.
+Exit status: 0 when every job finished, 1 when one failed, 75 when the time limit left some
+unfinished, 128 + the signal's number after a signal.
 
 --set FIELD=VALUE (repeatable) sets a field of each new seed-run, e.g. `--set envs_per_seed=16
---set agent.compute_dtype=bfloat16 --set progress=False`: only the fields a grid run may choose
-(`report.GRID_MAY_DIFFER` but its seeds, and `experiment.RESUMABLE_CHANGES` but its length).
+--set agent.compute_dtype=bfloat16 --set progress=False`: only a field a grid run chooses for
+itself (`report.grid_run_fields`, but its seeds).
 """
 
 from __future__ import annotations
@@ -31,28 +36,55 @@ import os
 import pathlib
 import re
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
 import time
 
 from dear_jax import report
-from dear_jax.experiment import RESUMABLE_CHANGES
 from dear_jax.logger import format_table
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]  # run.py and configs/ are here
+REPO = pathlib.Path(__file__).resolve().parents[1]  # run.py and configs/ are here
+SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+STOPPED = (143, 130, -signal.SIGTERM, -signal.SIGINT)  # how a run ends when asked to stop
+START_MARGIN_S = 60.0  # no job starts this close to the time limit
+KILL_AFTER_S = 600.0  # a run still going this long after its SIGTERM gets SIGKILL
+EX_TEMPFAIL = 75  # the time limit left jobs unfinished: run the same command again
+
+
+def _ranges(cores) -> str:
+    """[0, 1, 2, 5] -> "0-2,5"."""
+    out, start = [], None
+    for i, c in enumerate(cores):
+        if start is None:
+            start = c
+        if i + 1 == len(cores) or cores[i + 1] != c + 1:
+            out.append(str(c) if c == start else f"{start}-{c}")
+            start = None
+    return ",".join(out)
 
 
 @dataclasses.dataclass(frozen=True)
 class Slot:
-    """Where a job runs: a GPU (None: the CPU) and the cores it is pinned to."""
+    """Where a job runs: a GPU (None: the CPU), the cores it is pinned to, and the share of the
+    GPU's memory JAX may take (None: JAX's default)."""
 
     gpu: str | None
     cores: tuple[int, ...]
+    memory_fraction: float | None = None
 
     def __str__(self) -> str:
         where = "CPU" if self.gpu is None else f"GPU {self.gpu}"
-        return f"{where}, cores {self.cores[0]}-{self.cores[-1]}"
+        return f"{where}, cores {_ranges(self.cores)}"
+
+    def env(self) -> dict[str, str]:
+        """The job's environment: this process's, with its GPU (and memory share)."""
+        env = dict(os.environ, CUDA_VISIBLE_DEVICES="" if self.gpu is None else self.gpu)
+        env.setdefault("CUDA_DEVICE_ORDER", "PCI_BUS_ID")  # nvidia-smi's numbering
+        if self.memory_fraction is not None:
+            env.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", f"{self.memory_fraction:.2f}")
+        return env
 
 
 def visible_gpus() -> list[str]:
@@ -73,15 +105,17 @@ def visible_gpus() -> list[str]:
 
 
 def slots(gpus: list[str], per_gpu: int) -> list[Slot]:
-    """per_gpu slots on each GPU (on the CPU without GPUs), this process's cores split equally
-    among them in order (each slot at least one core)."""
+    """per_gpu slots on each GPU (on the CPU without GPUs), this process's cores split among
+    them in order, as equally as they go (more slots than cores: one core each, in turn); slots
+    sharing a GPU share its memory (0.9 of it in all)."""
     if per_gpu < 1:
         raise ValueError(f"--per-gpu must be at least 1, got {per_gpu}")
     places = [g for g in gpus for _ in range(per_gpu)] if gpus else [None] * per_gpu
     cores = sorted(os.sched_getaffinity(0))
-    share = max(1, len(cores) // len(places))
+    n, m = len(places), len(cores)
+    fraction = 0.9 / per_gpu if gpus and per_gpu > 1 else None
     return [
-        Slot(gpu, tuple(cores[i * share : (i + 1) * share] or cores[-share:]))
+        Slot(gpu, tuple(cores[i * m // n : (i + 1) * m // n] or [cores[i % m]]), fraction)
         for i, gpu in enumerate(places)
     ]
 
@@ -98,22 +132,30 @@ def parse_duration(text: str) -> float:
 
 
 def overrides(settings: list[str]) -> list[str]:
-    """--set FIELD=VALUE items -> run.py's `--config.FIELD=VALUE`, each FIELD one a grid run may
-    choose; otherwise a ValueError naming the valid ones."""
-    may = [p for p in report.GRID_MAY_DIFFER if p not in ("seed", "seeds")]
-    may += [f for f in RESUMABLE_CHANGES if f != "total_frames"]
+    """--set FIELD=VALUE items -> run.py's `--config.FIELD=VALUE`, each FIELD one a grid run
+    chooses for itself; otherwise a ValueError naming the valid ones."""
+    may = [f for f in report.grid_run_fields() if f not in ("seed", "seeds")]
     out = []
     for item in settings:
         field, eq, value = item.partition("=")
-        ok = any(field == p or (p.endswith(".") and field.startswith(p)) for p in may)
+        ok = any(field == f or (f.endswith(".") and field.startswith(f)) for f in may)
         if not eq or not field or not ok:
             raise ValueError(
                 f"--set {item!r}: give FIELD=VALUE with FIELD one a grid run may choose: "
-                f"{', '.join(p + '*' if p.endswith('.') else p for p in may)} (the seeds come "
+                f"{', '.join(f + '*' if f.endswith('.') else f for f in may)} (the seeds come "
                 "from the grid, the length from --frames; other fields make another experiment)"
             )
         out.append(f"--config.{field}={value}")
     return out
+
+
+def exit_code(rows: list[dict], stopping: str) -> int:
+    """The queue's exit status (see the module docstring) from its rows and why it stopped."""
+    if stopping in signal.Signals.__members__:
+        return 128 + signal.Signals[stopping]
+    if any(r["state"] in ("failed", "killed", "failed to start") for r in rows):
+        return 1
+    return 0 if all(r["state"] == "finished" for r in rows) else EX_TEMPFAIL
 
 
 def _stamp(start: float) -> str:
@@ -122,69 +164,113 @@ def _stamp(start: float) -> str:
 
 
 class Queue:
-    """Runs `jobs` (`report.Job`), one per free slot, each as `command(job)` (an argv) in
-    `cwd`, its console in log_dir/NAME.out, until all ended, the time limit passed or a signal
-    came (then the running ones get SIGTERM and are waited for)."""
+    """Runs `jobs` (`report.Job`), one per free slot, each as `command(job)` (an argv; pinned to
+    its slot's cores with taskset where it exists) in `cwd`, its console in log_dir/NAME.out,
+    until all ended, the time limit passed or a signal came (then the running ones get SIGTERM
+    and are waited for)."""
 
-    def __init__(self, jobs, places, command, log_dir, cwd=ROOT, time_limit=None, poll=1.0):
+    def __init__(
+        self, jobs, places, command, log_dir, cwd=REPO, time_limit=None, poll=1.0,
+        start_margin=START_MARGIN_S, kill_after=KILL_AFTER_S,
+    ):  # fmt: skip
         self.jobs, self.places, self.command = list(jobs), list(places), command
         self.log_dir, self.cwd, self.time_limit, self.poll = log_dir, cwd, time_limit, poll
+        self.start_margin, self.kill_after = start_margin, kill_after
         self.stopping = ""  # why the queue stops early: "" while it goes on
+        self._signals = 0  # signals received, each forwarded to the runs
 
-    def _stop(self, signum, _frame) -> None:
-        self.stopping = signal.Signals(signum).name
+    def _on_signal(self, signum, _frame) -> None:
+        self.stopping = self.stopping or signal.Signals(signum).name
+        self._signals += 1
 
     def _start(self, job, slot: Slot) -> subprocess.Popen:
-        env = dict(os.environ)
-        env["CUDA_VISIBLE_DEVICES"] = "" if slot.gpu is None else slot.gpu
+        argv = list(self.command(job))
+        if shutil.which("taskset"):
+            argv = ["taskset", "-c", _ranges(slot.cores), *argv]
         self.log_dir.mkdir(parents=True, exist_ok=True)
         with open(self.log_dir / f"{job.name}.out", "ab") as console:
             return subprocess.Popen(
-                self.command(job),
+                argv,
                 cwd=self.cwd,
-                env=env,
+                env=slot.env(),
                 stdin=subprocess.DEVNULL,
                 stdout=console,
                 stderr=subprocess.STDOUT,
                 start_new_session=True,  # a terminal's Ctrl-C reaches the queue only
-                preexec_fn=lambda: os.sched_setaffinity(0, slot.cores),
             )
 
     def run(self, echo=print) -> list[dict]:
-        """A row per job: name, where, state (finished, failed, stopped, not started), return
-        code and seconds."""
+        """A row per job, in order: job, where, state (finished, stopped, failed, killed, failed
+        to start, not started), rc and seconds."""
         start = time.monotonic()
-        queued, free = list(self.jobs), list(self.places)
-        running = {}  # Popen -> (job, slot, start)
-        rows = {job.name: {"job": job.name, "where": "-", "state": "not started"} for job in queued}
-        previous = {sig: signal.signal(sig, self._stop) for sig in (signal.SIGTERM, signal.SIGINT)}
-        signalled = False
+        queued, free = list(enumerate(self.jobs)), list(self.places)
+        running = {}  # Popen -> (index, slot, start)
+        rows = [{"job": job.name, "where": "-", "state": "not started"} for job in self.jobs]
+        previous = {sig: signal.signal(sig, self._on_signal) for sig in SIGNALS}
+        forwarded, stopped_at = 0, None
+
+        def starts_allowed() -> bool:
+            if self.time_limit is None:
+                return not self.stopping
+            left = self.time_limit - (time.monotonic() - start)
+            if left <= 0:
+                self.stopping = self.stopping or "the time limit"
+            return not self.stopping and left >= self.start_margin
+
         try:
-            while running or (queued and not self.stopping):
-                if self.time_limit is not None and time.monotonic() - start >= self.time_limit:
-                    self.stopping = self.stopping or "the time limit"
-                while queued and free and not self.stopping:
-                    job, slot = queued.pop(0), free.pop(0)
-                    running[self._start(job, slot)] = (job, slot, time.monotonic())
-                    rows[job.name].update(where=str(slot), state="running")
+            while running or (queued and starts_allowed()):
+                while queued and free and starts_allowed():
+                    (i, job), slot = queued.pop(0), free.pop(0)
+                    rows[i].update(where=str(slot))
+                    try:
+                        running[self._start(job, slot)] = (i, slot, time.monotonic())
+                    except OSError as e:
+                        rows[i].update(state="failed to start", error=str(e))
+                        echo(f"{_stamp(start)} {job.name} failed to start: {e}")
+                        free.append(slot)
+                        continue
+                    rows[i]["state"] = "running"
                     echo(f"{_stamp(start)} {job.name} started on {slot}; {len(queued)} queued")
-                if self.stopping and not signalled:
+                starts_allowed()  # the time limit may have passed
+                if self.stopping and (forwarded < max(1, self._signals)):
                     echo(f"{_stamp(start)} stopping on {self.stopping}: SIGTERM to the runs")
                     for process in running:
                         process.send_signal(signal.SIGTERM)
-                    signalled = True
+                    forwarded = max(1, self._signals)
+                    stopped_at = stopped_at or time.monotonic()
+                if stopped_at and time.monotonic() - stopped_at > self.kill_after:
+                    for process in running:
+                        process.kill()
                 time.sleep(self.poll)
                 for process in [p for p in running if p.poll() is not None]:
-                    job, slot, began = running.pop(process)
+                    i, slot, began = running.pop(process)
                     rc, seconds = process.returncode, round(time.monotonic() - began)
-                    state = "finished" if rc == 0 else "stopped" if signalled else "failed"
-                    rows[job.name].update(state=state, rc=rc, seconds=seconds)
-                    echo(f"{_stamp(start)} {job.name} {state} (rc {rc}, {seconds:,} s)")
+                    killed = rc == -signal.SIGKILL and stopped_at is not None
+                    state = (
+                        "finished" if rc == 0
+                        else "stopped" if rc in STOPPED
+                        else "killed" if killed
+                        else "failed"
+                    )  # fmt: skip
+                    rows[i].update(state=state, rc=rc, seconds=seconds)
+                    echo(f"{_stamp(start)} {self.jobs[i].name} {state} (rc {rc}, {seconds:,} s)")
                     free.append(slot)
-        finally:
+        finally:  # an error here leaves no run behind
+            for process in running:
+                process.send_signal(signal.SIGTERM)
+            for process in running:
+                try:
+                    process.wait(self.kill_after)
+                except subprocess.TimeoutExpired:
+                    process.kill()
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
-        return list(rows.values())
+        return rows
+
+
+def _workdirs(runs, root: pathlib.Path) -> list:
+    """The runs named and every run under root."""
+    return [*runs, *(p.parent for p in sorted(root.glob("*/config.json")))]
 
 
 def main(argv=None) -> list[dict] | None:
@@ -205,16 +291,18 @@ def main(argv=None) -> list[dict] | None:
     parser.add_argument("--time-limit", default=None, help="e.g. 90m, 3h: then SIGTERM the runs")
     parser.add_argument("--dry-run", action="store_true", help="print the queue, run nothing")
     args = parser.parse_args(argv)
-    if str(ROOT) not in sys.path:  # configs/, as run.py finds it
-        sys.path.insert(0, str(ROOT))
+    if str(REPO) not in sys.path:  # configs/, as run.py finds it
+        sys.path.insert(0, str(REPO))
     root = pathlib.Path(args.root).resolve()
     try:
         limit = None if args.time_limit is None else parse_duration(args.time_limit)
         extra = overrides(args.set)
         gpus = visible_gpus() if args.gpus is None else [g for g in args.gpus.split(",") if g]
         places = slots(gpus, args.per_gpu)
-        workdirs = [*args.runs, *(p.parent for p in sorted(root.glob("*/config.json")))]
-        grid = report.grid_rows(workdirs, args.tasks, args.methods, args.seeds, args.frames)
+        taken = {p.name for p in root.iterdir()} if root.is_dir() else set()
+        grid = report.grid_rows(
+            _workdirs(args.runs, root), args.tasks, args.methods, args.seeds, args.frames, taken
+        )
     except (FileNotFoundError, ValueError, KeyError) as e:
         parser.error(str(e))
     jobs = report.grid_jobs(grid, args.frames, str(root), extra)
@@ -225,17 +313,18 @@ def main(argv=None) -> list[dict] | None:
     queue = Queue(
         jobs,
         places,
-        lambda job: [sys.executable, str(ROOT / "run.py"), *job.args],
+        lambda job: [sys.executable, str(REPO / "run.py"), *job.args],
         root,
         time_limit=limit,
     )
     rows = queue.run()
     columns = ["job", "where", "state", "rc", "seconds"]
     print(format_table(columns, [[r.get(c, "-") for c in columns] for r in rows]))
-    done = [*args.runs, *(p.parent for p in sorted(root.glob("*/config.json")))]
+    done = _workdirs(args.runs, root)
     print(report.grid_table(done, args.tasks, args.methods, args.seeds, args.frames))
-    if queue.stopping in ("SIGTERM", "SIGINT"):
-        sys.exit(128 + signal.Signals[queue.stopping])
+    code = exit_code(rows, queue.stopping)
+    if code:
+        sys.exit(code)
     return rows
 
 

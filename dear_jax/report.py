@@ -413,6 +413,15 @@ def cosines_table(workdirs, rows: int = 20, at: int | None = None) -> tuple[list
 GRID_MAY_DIFFER = ("seed", "seeds", "envs_per_seed", "agent.compute_dtype", "replay.")
 
 
+def grid_run_fields() -> tuple[str, ...]:
+    """The fields (a name, or a prefix ending in ".") a seed-run of the grid chooses for itself
+    and keeps when it resumes: GRID_MAY_DIFFER and the resumable ones (experiment.
+    RESUMABLE_CHANGES) but its length, which the grid's frames set."""
+    from dear_jax.experiment import RESUMABLE_CHANGES
+
+    return (*GRID_MAY_DIFFER, *(f for f in RESUMABLE_CHANGES if f != "total_frames"))
+
+
 def _first_difference(fields: dict, ref: dict) -> str | None:
     """The first field (sorted) in which a run's flattened config differs from a cell's."""
     from dear_jax.experiment import RESUMABLE_CHANGES
@@ -425,16 +434,20 @@ def _first_difference(fields: dict, ref: dict) -> str | None:
     return None
 
 
-def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000) -> dict:
+def grid_rows(
+    workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000, taken=()
+) -> dict:
     """The cells (`configs/paper.py:TASK,METHOD`) of the paper's grid as far as `workdirs`
     trained them (see the module docstring): {"cells": a row per cell, "outside": the runs in
-    no cell, each with the field that keeps it out}."""
+    no cell, each with the field that keeps it out}. A cell's "resume" lists the stopped runs
+    that kept a checkpoint and bring seeds it misses (furthest first), "next_seeds" the
+    config.seed of each seed-run still to start: one no run of the cell used, whose workdir
+    name TASK_METHOD_sSEED is not in `taken`."""
     from configs import paper
     from configs.base import get_config
-    from dear_jax.experiment import ADDED_FIELDS, RESUMABLE_CHANGES
+    from dear_jax.experiment import ADDED_FIELDS
 
-    # A resume restarts a run as it ran: with the fields it chose (but its length, --frames's).
-    kept = (*GRID_MAY_DIFFER, *(f for f in RESUMABLE_CHANGES if f != "total_frames"))
+    kept = grid_run_fields()  # a resume restarts a run with what it chose
     # A field a run's config lacks: what the code did before the field, else today's default.
     defaults = {**lanes.flatten(get_config().to_dict()), **ADDED_FIELDS}
     cells = {}
@@ -448,7 +461,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000)
                 "seeds": set(),  # (config.seed, lane seed) of the seeds that reached `frames`
                 "done": [],
                 "short": [],
-                "resume": [],
+                "stopped": [],  # (frames reached, the seeds it brings, its resume's arguments)
                 "used": set(),
             }
     outside = []
@@ -493,12 +506,19 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000)
                 for k in sorted(fields)
                 if k.startswith(kept) and fields[k] != cell["ref"].get(k)
             ]
-            cell["resume"].append([*own, "--workdir", str(workdir)])
+            brings = {(seed, s) for s in range(config["seeds"])}
+            cell["stopped"].append((reached or 0, brings, [*own, "--workdir", str(workdir)]))
     rows = []
     for cell in cells.values():
         missing = max(0, seeds - len(cell["seeds"]))
-        new = max(0, missing - len(cell["resume"]))  # a resume brings its seed
-        free = (n for n in range(10**6) if n not in cell["used"])
+        resume, brought = [], set(cell["seeds"])
+        for _, brings, args in sorted(cell["stopped"], key=lambda s: -s[0]):
+            if len(brought) - len(cell["seeds"]) < missing and brings - brought:
+                resume.append(args)
+                brought |= brings
+        new = max(0, missing - (len(brought) - len(cell["seeds"])))
+        name = f"{cell['task']}_{cell['method']}_s{{}}"
+        free = (n for n in range(10**6) if n not in cell["used"] and name.format(n) not in taken)
         rows.append(
             {
                 "task": cell["task"],
@@ -506,7 +526,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000)
                 "seeds_done": len(cell["seeds"]),
                 "done": cell["done"],
                 "short": cell["short"],
-                "resume": cell["resume"],
+                "resume": resume,
                 "missing": missing,
                 "next_seeds": [next(free) for _ in range(new)],
                 "total_frames": cell["ref"]["total_frames"],
@@ -525,10 +545,11 @@ class Job:
 
 def grid_jobs(grid: dict, frames: int, root: str = "runs", overrides=()) -> list[Job]:
     """The runs that complete `grid` (`grid_rows`) to `frames` frames per seed: first the stopped
-    runs that kept a checkpoint (resumed in their workdirs; no more than a cell misses), then one
+    runs that kept a checkpoint and bring missing seeds (resumed in their workdirs), then one
     seed-run per missing seed that no resume brings, in ROOT/TASK_METHOD_sSEED, task by task, the
     task's methods taking turns (a queue stopped part way leaves a task's methods with seeds
-    alike). `overrides`: more `--config.FIELD=VALUE` arguments for the new seed-runs."""
+    alike). `overrides`: more `--config.FIELD=VALUE` arguments for the new seed-runs. Job names
+    are unique (a suffix _2, _3 where resumed workdirs share a name)."""
     cells = grid["cells"]
 
     def spec(r):
@@ -537,10 +558,10 @@ def grid_jobs(grid: dict, frames: int, root: str = "runs", overrides=()) -> list
     def length(r):
         return (f"--config.total_frames={frames}",) if frames != r["total_frames"] else ()
 
-    jobs = [  # as many resumes as the cell misses seeds
+    jobs = [
         Job(pathlib.Path(args[-1]).name, (*spec(r), *length(r), *args))
         for r in cells
-        for args in r["resume"][: r["missing"]]
+        for args in r["resume"]
     ]
     for task in dict.fromkeys(r["task"] for r in cells):
         row = [r for r in cells if r["task"] == task]
@@ -551,7 +572,13 @@ def grid_jobs(grid: dict, frames: int, root: str = "runs", overrides=()) -> list
                 seed = (f"--config.seed={n}", "--config.seeds=1")
                 workdir = ("--workdir", f"{root}/{name}")
                 jobs.append(Job(name, (*spec(r), *seed, *length(r), *overrides, *workdir)))
-    return jobs
+    names = [job.name for job in jobs]  # resumed workdirs of one name in several folders
+    return [
+        dataclasses.replace(job, name=f"{job.name}_{names[:i].count(job.name) + 1}")
+        if names.count(job.name) > 1
+        else job
+        for i, job in enumerate(jobs)
+    ]
 
 
 def grid_table(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000) -> str:

@@ -428,6 +428,13 @@ class Distractor:
         if len(state["video"]) == self.batch:
             for k in self._STATE_ARRAYS:
                 setattr(self, k, np.array(state[k], dtype=getattr(self, k).dtype))
+        else:
+            log.warning(
+                "distraction state of %d envs given to %d: its generator goes on, the next reset "
+                "draws the envs' backgrounds and colours",
+                len(state["video"]),
+                self.batch,
+            )
         self.rng.bit_generator.state = state["rng"]
 
     # -- outputs ----------------------------------------------------------------------------

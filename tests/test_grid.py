@@ -16,13 +16,16 @@ from test_outputs import paper_run
 
 from dear_jax import grid, report
 
-# A job: records its GPU, cores and times in OUT/NAME.json; sleeps SECONDS, or until SIGTERM
-# (SECONDS < 0), which it records and answers with exit 143, as run.py does after its checkpoint.
+# A job: records its GPU, memory share, cores and times in OUT/NAME.json; sleeps SECONDS, or
+# until SIGTERM (SECONDS = -1), which it records and answers with exit 143, as run.py does after
+# its checkpoint; SECONDS = -2: fails at once (exit 1).
 JOB = """
 import json, os, signal, sys, time
 name, out, seconds = sys.argv[1], sys.argv[2], float(sys.argv[3])
+if seconds == -2:
+    sys.exit(1)
 record = {"gpu": os.environ["CUDA_VISIBLE_DEVICES"], "cores": sorted(os.sched_getaffinity(0)),
-          "start": time.time()}
+          "memory": os.environ.get("XLA_PYTHON_CLIENT_MEM_FRACTION"), "start": time.time()}
 def stop(*_):
     record.update(end=time.time(), sigterm=True)
     open(os.path.join(out, name + ".json"), "w").write(json.dumps(record))
@@ -38,12 +41,14 @@ open(os.path.join(out, name + ".json"), "w").write(json.dumps(record))
 
 
 def _queue(tmp_path, names, places, seconds, **kwargs):
+    """A queue of JOBs named `names`; `seconds`: one for all, or a dict by name."""
     out = tmp_path / "out"
     out.mkdir(exist_ok=True)
     jobs = [report.Job(name, ()) for name in names]
 
     def command(job):
-        return [sys.executable, "-c", JOB, job.name, str(out), str(seconds)]
+        wait = seconds[job.name] if isinstance(seconds, dict) else seconds
+        return [sys.executable, "-c", JOB, job.name, str(out), str(wait)]
 
     queue = grid.Queue(jobs, places, command, tmp_path / "consoles", poll=0.02, **kwargs)
     return queue, out
@@ -104,7 +109,35 @@ def test_the_jobs_resume_stopped_runs_then_start_missing_seeds_task_by_task(tmp_
     ]
     # A cell with its seeds resumes none of its stopped runs.
     full = report.grid_rows(done, ["walker"], ["dear"], seeds=1)
-    assert full["cells"][0]["resume"] and report.grid_jobs(full, 1_000_000) == []
+    assert full["cells"][0]["short"] and report.grid_jobs(full, 1_000_000) == []
+    # A stopped run brings all its seeds, one config.seed counts once, the furthest resumes; and
+    # resumed workdirs of one name (in two folders) get names of their own.
+    three = paper_run(tmp_path / "old" / "c_dear_s0", "cup,dear", 0, 300_000, seeds=3)
+    again = paper_run(tmp_path / "older" / "c_dear_s0", "cup,dear", 0, 100_000, seeds=3)
+    other = paper_run(tmp_path / "older" / "c_dear_s5", "cup,dear", 5, 10_000)
+    for run in (three, again, other):
+        (run / "checkpoints").mkdir()
+    cup = report.grid_rows([three, again, other], ["cup"], ["dear"], seeds=3)
+    assert [args[-1] for args in cup["cells"][0]["resume"]] == [str(three.resolve())]
+    assert cup["cells"][0]["next_seeds"] == []
+    cup = report.grid_rows([three, again, other], ["cup"], ["dear"], seeds=4)
+    assert [args[-1] for args in cup["cells"][0]["resume"]] == [
+        str(three.resolve()),
+        str(other.resolve()),
+    ]
+    named = report.grid_jobs(
+        report.grid_rows([three, other], ["cup"], ["dear"], seeds=5), 1_000_000
+    )
+    assert [job.name for job in named] == ["c_dear_s0", "c_dear_s5", "cup_dear_s1"]
+    twin = paper_run(tmp_path / "older" / "c_dear_s7", "cup,dear", 7, 10_000)
+    twin2 = paper_run(tmp_path / "old" / "c_dear_s7", "cup,dear", 8, 10_000)
+    for run in (twin, twin2):
+        (run / "checkpoints").mkdir()
+    named = report.grid_jobs(report.grid_rows([twin, twin2], ["cup"], ["dear"], seeds=2), 1_000_000)
+    assert [job.name for job in named] == ["c_dear_s7_1", "c_dear_s7_2"]
+    # A new run's workdir name already taken under the root is skipped.
+    taken = report.grid_rows([], ["cup"], ["dear"], seeds=2, taken={"cup_dear_s0"})
+    assert taken["cells"][0]["next_seeds"] == [1, 2]
     # At 2M frames cup SEAR's seed is short (without a checkpoint: not resumed), and each new
     # run is told the length.
     cup = report.grid_rows(done, ["cup"], ["sear"], seeds=2, frames=2_000_000)
@@ -113,62 +146,90 @@ def test_the_jobs_resume_stopped_runs_then_start_missing_seeds_task_by_task(tmp_
     assert "--config.total_frames=2000000" in longer[0].args
 
 
-def test_each_slot_runs_one_job_at_a_time_on_its_gpu_and_cores(tmp_path):
-    """Five jobs on two GPUs, one at a time on each: every job runs once, with its slot's GPU
-    and cores, a slot's jobs one after the other, both slots busy at once."""
-    places = grid.slots(["3", "5"], per_gpu=1)
+def test_slots_split_the_cores_and_share_a_gpus_memory():
     cores = sorted(os.sched_getaffinity(0))
-    assert [p.gpu for p in places] == ["3", "5"]
-    assert sorted(c for p in places for c in p.cores) == cores[: len(places[0].cores) * 2]
+    two = grid.slots(["3", "5"], per_gpu=1)
+    assert [(p.gpu, p.memory_fraction) for p in two] == [("3", None), ("5", None)]
+    assert [c for p in two for c in p.cores] == (cores if len(cores) > 1 else cores * 2)
+    many = grid.slots(["0", "1"], per_gpu=3)  # more slots than cores, on a small machine
+    assert [p.gpu for p in many] == ["0", "0", "0", "1", "1", "1"]
+    assert {c for p in many for c in p.cores} == set(cores)  # every core serves
+    assert all(len(p.cores) >= 1 and p.memory_fraction == 0.3 for p in many)
+    assert many[0].env()["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.30" or (
+        "XLA_PYTHON_CLIENT_MEM_FRACTION" in os.environ
+    )
+    assert grid.slots([], per_gpu=2)[0].env()["CUDA_VISIBLE_DEVICES"] == ""
+    assert str(grid.Slot("2", (0, 1, 2, 5))) == "GPU 2, cores 0-2,5"
+
+
+def test_each_slot_runs_one_job_at_a_time_on_its_gpu_and_cores(tmp_path):
+    """Five jobs on two GPUs, one at a time on each (a failing one among them): every job runs
+    once, with its slot's GPU and cores, a slot's jobs one after the other, both slots started
+    at once; a job that fails is said to."""
+    places = grid.slots(["3", "5"], per_gpu=1)
     names = [f"job{i}" for i in range(5)]
-    queue, out = _queue(tmp_path, names, places, seconds=1.0)
-    rows = queue.run(echo=lambda line: None)
-    assert [(r["job"], r["state"], r["rc"]) for r in rows] == [(n, "finished", 0) for n in names]
+    lines = []
+    queue, out = _queue(tmp_path, names, places, seconds={**dict.fromkeys(names, 0.3), "job2": -2})
+    rows = queue.run(echo=lines.append)
+    assert [(r["job"], r["state"], r["rc"]) for r in rows] == [
+        (n, "failed" if n == "job2" else "finished", 1 if n == "job2" else 0) for n in names
+    ]
+    assert grid.exit_code(rows, queue.stopping) == 1
+    assert [line.split()[1:3] for line in lines[:2]] == [["job0", "started"], ["job1", "started"]]
     records = _records(out, names)
-    assert len(records) == 5
+    assert set(records) == set(names) - {"job2"}
     for place in places:
         mine = sorted(
             (r for r in records.values() if r["gpu"] == place.gpu), key=lambda r: r["start"]
         )
         assert mine and all(r["cores"] == list(place.cores) for r in mine)
         assert all(a["end"] <= b["start"] for a, b in zip(mine, mine[1:]))  # one at a time
-    first = [records["job0"], records["job1"]]
-    assert first[0]["gpu"] != first[1]["gpu"]
-    assert max(r["start"] for r in first) < min(r["end"] for r in first)  # side by side
+    assert records["job0"]["gpu"] != records["job1"]["gpu"]
     assert (tmp_path / "consoles" / "job4.out").exists()
+
+
+def _when_started(out, names, then):
+    """Calls `then` from a thread once every job of `names` is up (its SIGTERM handler set)."""
+
+    def wait():
+        while not all((out / f"{n}.started").exists() for n in names):
+            time.sleep(0.01)
+        then()
+
+    threading.Thread(target=wait, daemon=True).start()
 
 
 def test_the_time_limit_stops_the_runs_with_sigterm_and_starts_no_more(tmp_path):
     names = ["a", "b", "c"]
-    queue, out = _queue(tmp_path, names, grid.slots([], per_gpu=2), seconds=-1, time_limit=1.0)
-    began = time.monotonic()
+    queue, out = _queue(tmp_path, names, grid.slots([], per_gpu=2), seconds=-1)
+    _when_started(out, ["a", "b"], lambda: setattr(queue, "time_limit", 0.0))  # it passes
     rows = queue.run(echo=lambda line: None)
-    assert time.monotonic() - began < 30
     assert queue.stopping == "the time limit"
     assert [(r["job"], r["state"], r.get("rc")) for r in rows] == [
         ("a", "stopped", 143),
         ("b", "stopped", 143),
         ("c", "not started", None),
     ]
+    assert grid.exit_code(rows, queue.stopping) == grid.EX_TEMPFAIL
     records = _records(out, names)
     assert set(records) == {"a", "b"} and all(r["sigterm"] for r in records.values())
-    assert all(r["gpu"] == "" for r in records.values())  # no GPU: on the CPU
+    assert all(r["gpu"] == "" and r["memory"] is None for r in records.values())  # on the CPU
+    # Within the start margin of the limit no job starts.
+    margin = _queue(tmp_path, ["d"], grid.slots([], per_gpu=1), seconds=0, time_limit=30)[0]
+    assert [r["state"] for r in margin.run(echo=lambda line: None)] == ["not started"]
 
 
 def test_a_sigterm_to_the_queue_reaches_its_runs(tmp_path):
     names = ["a", "b"]
     queue, out = _queue(tmp_path, names, grid.slots([], per_gpu=1), seconds=-1)
 
-    def terminate():  # once the first job is up, as a scheduler's SIGTERM would come
-        while not (out / "a.started").exists():
-            time.sleep(0.01)
-        os.kill(os.getpid(), signal.SIGTERM)
-
-    threading.Thread(target=terminate, daemon=True).start()
+    # once the first job is up, as a scheduler's SIGTERM would come
+    _when_started(out, ["a"], lambda: os.kill(os.getpid(), signal.SIGTERM))
     before = signal.getsignal(signal.SIGTERM)
     rows = queue.run(echo=lambda line: None)
     assert queue.stopping == "SIGTERM"
     assert [(r["state"], r.get("rc")) for r in rows] == [("stopped", 143), ("not started", None)]
+    assert grid.exit_code(rows, queue.stopping) == 128 + signal.SIGTERM
     assert _records(out, names)["a"]["sigterm"]
     assert signal.getsignal(signal.SIGTERM) == before  # the handler is given back
 

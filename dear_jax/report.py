@@ -434,9 +434,7 @@ def _first_difference(fields: dict, ref: dict) -> str | None:
     return None
 
 
-def grid_rows(
-    workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000, taken=()
-) -> dict:
+def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000, taken=()) -> dict:
     """The cells (`configs/paper.py:TASK,METHOD`) of the paper's grid as far as `workdirs`
     trained them (see the module docstring): {"cells": a row per cell, "outside": the runs in
     no cell, each with the field that keeps it out}. A cell's "resume" lists the stopped runs

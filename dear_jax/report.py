@@ -547,7 +547,7 @@ def grid_jobs(grid: dict, frames: int, root: str = "runs", overrides=()) -> list
     seed-run per missing seed that no resume brings, in ROOT/TASK_METHOD_sSEED, task by task, the
     task's methods taking turns (a queue stopped part way leaves a task's methods with seeds
     alike). `overrides`: more `--config.FIELD=VALUE` arguments for the new seed-runs. Job names
-    are unique (a suffix _2, _3 where resumed workdirs share a name)."""
+    are unique (suffixes _1, _2, ... where resumed workdirs share a name)."""
     cells = grid["cells"]
 
     def spec(r):

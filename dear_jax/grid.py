@@ -2,7 +2,8 @@
 
     python -m dear_jax.grid [RUN ...] [--root runs] [--gpus 0,1,2,3] [--per-gpu 1]
         [--tasks walker cup finger] [--methods dear sear ted drqv2] [--seeds 3]
-        [--frames 1000000] [--set FIELD=VALUE ...] [--time-limit 3h] [--dry-run]
+        [--frames 1000000] [--set FIELD=VALUE ...] [--time-limit 3h [--start-margin 60]]
+        [--dry-run]
 
 The runs named (workdirs of earlier runs, e.g. `results/*/*/`) and every run under --root count
 towards the grid (`report.grid_rows`: a run belongs to a cell of `configs/paper.py:TASK,METHOD`
@@ -15,10 +16,10 @@ Each GPU (`--gpus`: ids as CUDA_VISIBLE_DEVICES takes them, in nvidia-smi's PCI 
 every GPU visible) runs --per-gpu jobs at a time, each pinned (taskset) to its equal share of
 this process's cores, with its share of the GPU's memory when several share it; when a job ends
 the next starts. A job's console goes to --root as NAME.out. At --time-limit (90m, 3h, 2h30m or
-seconds; no job starts in its last minute), or on SIGTERM, SIGINT (Ctrl-C) or SIGHUP, every
-running job gets SIGTERM, saves a checkpoint and its summary, and exits; a second signal stops
-them at once, and one still running 10 minutes after the first gets SIGKILL. The same command
-later resumes them. Without GPUs the jobs run on the CPU, --per-gpu at a time. At the end: a line
+seconds; no job starts in its last --start-margin, a minute by default: give a job's length where
+a stopped job cannot resume), or on SIGTERM, SIGINT (Ctrl-C) or SIGHUP, every running job gets
+SIGTERM, saves a checkpoint and its summary, and exits; a second signal stops them at once, and
+one still running 10 minutes after the first gets SIGKILL. The same command later resumes them. Without GPUs the jobs run on the CPU, --per-gpu at a time. At the end: a line
 per job (finished, stopped, failed, killed, not started) and the grid as `report grid` prints it.
 Exit status: 0 when every job finished, 1 when one failed, 75 when the time limit left some
 unfinished, 128 + the signal's number after a signal.
@@ -289,6 +290,9 @@ def main(argv=None) -> list[dict] | None:
     parser.add_argument("--frames", type=int, default=1_000_000, help="frames per seed")
     parser.add_argument("--set", action="append", default=[], help="FIELD=VALUE for new runs")
     parser.add_argument("--time-limit", default=None, help="e.g. 90m, 3h: then SIGTERM the runs")
+    parser.add_argument(
+        "--start-margin", default="60", help="no job starts this close to the time limit"
+    )
     parser.add_argument("--dry-run", action="store_true", help="print the queue, run nothing")
     args = parser.parse_args(argv)
     if str(REPO) not in sys.path:  # configs/, as run.py finds it
@@ -296,6 +300,7 @@ def main(argv=None) -> list[dict] | None:
     root = pathlib.Path(args.root).resolve()
     try:
         limit = None if args.time_limit is None else parse_duration(args.time_limit)
+        margin = parse_duration(args.start_margin)
         extra = overrides(args.set)
         gpus = visible_gpus() if args.gpus is None else [g for g in args.gpus.split(",") if g]
         places = slots(gpus, args.per_gpu)
@@ -316,6 +321,7 @@ def main(argv=None) -> list[dict] | None:
         lambda job: [sys.executable, str(REPO / "run.py"), *job.args],
         root,
         time_limit=limit,
+        start_margin=margin,
     )
     rows = queue.run()
     columns = ["job", "where", "state", "rc", "seconds"]

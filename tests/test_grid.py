@@ -259,7 +259,8 @@ def test_a_dry_run_prints_the_queue_of_the_runs_under_root(tmp_path, capsys):
     stopped = paper_run(root / "walker_dear_s1", "walker,dear", 1, 10_000)
     (stopped / "checkpoints").mkdir()
     grid.main(
-        ["--root", str(root), "--tasks", "walker", "--methods", "dear", "--gpus", "0", "--dry-run"]
+        ["--root", str(root), "--tasks", "walker", "--methods", "dear", "--gpus", "0"]
+        + ["--time-limit", "3h", "--start-margin", "25m", "--dry-run"]
     )
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("2 runs to complete the grid, 1 at a time")

@@ -42,7 +42,8 @@ def commit() -> str:
 
 
 def provenance() -> dict:
-    """commit, date (UTC), the devices JAX sees and the versions of python, jax, flax, mujoco."""
+    """commit, date (UTC), the devices JAX sees, the versions of python, jax, flax, mujoco, and
+    XLA_FLAGS where set (they change the compiled program)."""
     import flax
     import jax
     import mujoco
@@ -59,4 +60,5 @@ def provenance() -> dict:
         jax=jax.__version__,
         flax=flax.__version__,
         mujoco=mujoco.__version__,
+        **({"xla_flags": os.environ["XLA_FLAGS"]} if os.environ.get("XLA_FLAGS") else {}),
     )

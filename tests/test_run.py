@@ -172,6 +172,15 @@ def test_outputs_exist_and_parse(run):
     assert first["frames_per_seed"] == 240
 
 
+def test_provenance_records_xla_flags_only_where_set(monkeypatch):
+    from dear_jax.provenance import provenance
+
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    assert "xla_flags" not in provenance()
+    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_enable_triton_gemm=false")
+    assert provenance()["xla_flags"] == "--xla_gpu_enable_triton_gemm=false"
+
+
 def test_frames_and_updates_follow_the_papers_ratio(run):
     """Frames count per seed over its E envs; one update per 2 agent steps after seed frames."""
     workdir, first, resumed, *_ = run

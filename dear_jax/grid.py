@@ -7,10 +7,11 @@
 
 The runs named (workdirs of earlier runs, e.g. `results/*/*/`) and every run under --root count
 towards the grid (`report.grid_rows`: a run belongs to a cell of `configs/paper.py:TASK,METHOD`
-when its config is the cell's but for its seeds, envs per seed, dtype and replay). The queue
-(`report.grid_jobs`): first the stopped runs that kept a checkpoint and bring missing seeds,
-resumed in their workdirs, then one seed-run per missing seed in --root as TASK_METHOD_sSEED,
-task by task, the methods of a task taking turns.
+when its config is the cell's but for its seeds, envs per seed, dtype and replay; a task given as
+TASK,DIFFICULTY, e.g. `--tasks walker,medium-full`, makes cells of that distraction setting). The
+queue (`report.grid_jobs`): first the stopped runs that kept a checkpoint and bring missing
+seeds, resumed in their workdirs, then one seed-run per missing seed in --root as
+TASK_METHOD_sSEED (TASK_DIFFICULTY_METHOD_sSEED), task by task, the methods of a task taking turns.
 
 Each GPU (`--gpus`: ids as CUDA_VISIBLE_DEVICES takes them, in nvidia-smi's PCI order; default
 every GPU visible) runs --per-gpu jobs at a time, each pinned (taskset) to its equal share of
@@ -284,7 +285,9 @@ def main(argv=None) -> list[dict] | None:
     parser.add_argument("--root", default="runs", help="folder of the new runs")
     parser.add_argument("--gpus", default=None, help="e.g. 0,1,2,3 (default: every visible GPU)")
     parser.add_argument("--per-gpu", type=int, default=1, help="jobs at a time on each GPU")
-    parser.add_argument("--tasks", nargs="+", default=["walker", "cup", "finger"])
+    parser.add_argument(
+        "--tasks", nargs="+", default=["walker", "cup", "finger"], help=report.TASKS_HELP
+    )
     parser.add_argument("--methods", nargs="+", default=["dear", "sear", "ted", "drqv2"])
     parser.add_argument("--seeds", type=int, default=3, help="seeds per cell")
     parser.add_argument("--frames", type=int, default=1_000_000, help="frames per seed")

@@ -43,7 +43,8 @@ samples cancels wherever the sign is not systematic: it measures a bias between 
 magnitude |cos| how far from orthogonal each sample is.
 
 `grid` says how far the runs have taken the paper's grid (`configs/paper.py:TASK,METHOD`, the
-kitchen's too with `--tasks light kettle`): a run belongs to a cell when its config is the
+kitchen's too with `--tasks light kettle`; a task as TASK,DIFFICULTY, e.g. `--tasks
+walker,medium-full`, for another distraction setting): a run belongs to a cell when its config is the
 cell's but for its seeds, envs per seed, dtype and replay (`GRID_MAY_DIFFER`). Per cell: the
 seeds that trained --frames frames, the runs stopped short and how far, how many seeds are
 missing; then a command per stopped run that kept a checkpoint (its resume) and per missing seed
@@ -413,6 +414,9 @@ def cosines_table(workdirs, rows: int = 20, at: int | None = None) -> tuple[list
 GRID_MAY_DIFFER = ("seed", "seeds", "envs_per_seed", "agent.compute_dtype", "replay.")
 
 
+TASKS_HELP = "TASK, or TASK,DIFFICULTY (as configs/paper.py takes them), e.g. walker,medium-full"
+
+
 def grid_run_fields() -> tuple[str, ...]:
     """The fields (a name, or a prefix ending in ".") a seed-run of the grid chooses for itself
     and keeps when it resumes: GRID_MAY_DIFFER and the resumable ones (experiment.
@@ -435,8 +439,9 @@ def _first_difference(fields: dict, ref: dict) -> str | None:
 
 
 def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000, taken=()) -> dict:
-    """The cells (`configs/paper.py:TASK,METHOD`) of the paper's grid as far as `workdirs`
-    trained them (see the module docstring): {"cells": a row per cell, "outside": the runs in
+    """The cells (`configs/paper.py:TASK,METHOD`; a task given as TASK,DIFFICULTY, e.g.
+    "walker,medium-full": `configs/paper.py:TASK,METHOD,DIFFICULTY`) of the paper's grid as far
+    as `workdirs` trained them (see the module docstring): {"cells": a row per cell, "outside": the runs in
     no cell, each with the field that keeps it out}. A cell's "resume" lists the stopped runs
     that kept a checkpoint and bring seeds it misses (furthest first), "next_seeds" the
     config.seed of each seed-run still to start: one no run of the cell used, whose workdir
@@ -449,12 +454,16 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
     # A field a run's config lacks: what the code did before the field, else today's default.
     defaults = {**lanes.flatten(get_config().to_dict()), **ADDED_FIELDS}
     cells = {}
-    for task in tasks:
+    for task in tasks:  # TASK or TASK,DIFFICULTY
+        name, *difficulty = (part.strip() for part in task.split(","))
         for method in methods:
-            ref = lanes.flatten(paper.get_config(f"{task},{method}").to_dict())
+            spec = ",".join([name, method, *difficulty])
+            ref = lanes.flatten(paper.get_config(spec).to_dict())
             cells[task, method] = {
                 "task": task,
                 "method": method,
+                "spec": spec,
+                "name": "_".join([name, *difficulty, method]),
                 "ref": ref,
                 "seeds": set(),  # (config.seed, lane seed) of the seeds that reached `frames`
                 "done": [],
@@ -478,10 +487,11 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
         if not same:
             outside.append(f"{name}: {fields['env.task']}, {fields['agent.method']}: no such cell")
             continue
-        cell = same[0]
-        why = _first_difference(fields, cell["ref"])
-        if why:
-            outside.append(f"{name}: {why}")
+        # The cell whose config it has; else it is named with its first difference from the
+        # first cell of its task and method (the paper's setting where the grid has it).
+        cell = next((c for c in same if _first_difference(fields, c["ref"]) is None), None)
+        if cell is None:
+            outside.append(f"{name}: {_first_difference(fields, same[0]['ref'])}")
             continue
         seed = config.get("seed", 0)
         cell["used"].add(seed)
@@ -515,12 +525,14 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
                 resume.append(args)
                 brought |= brings
         new = max(0, missing - (len(brought) - len(cell["seeds"])))
-        name = f"{cell['task']}_{cell['method']}_s{{}}"
+        name = f"{cell['name']}_s{{}}"
         free = (n for n in range(10**6) if n not in cell["used"] and name.format(n) not in taken)
         rows.append(
             {
                 "task": cell["task"],
                 "method": cell["method"],
+                "spec": cell["spec"],
+                "name": cell["name"],
                 "seeds_done": len(cell["seeds"]),
                 "done": cell["done"],
                 "short": cell["short"],
@@ -544,14 +556,15 @@ class Job:
 def grid_jobs(grid: dict, frames: int, root: str = "runs", overrides=()) -> list[Job]:
     """The runs that complete `grid` (`grid_rows`) to `frames` frames per seed: first the stopped
     runs that kept a checkpoint and bring missing seeds (resumed in their workdirs), then one
-    seed-run per missing seed that no resume brings, in ROOT/TASK_METHOD_sSEED, task by task, the
+    seed-run per missing seed that no resume brings, in ROOT/TASK_METHOD_sSEED (a task given
+    with its difficulty: TASK_DIFFICULTY_METHOD_sSEED), task by task, the
     task's methods taking turns (a queue stopped part way leaves a task's methods with seeds
     alike). `overrides`: more `--config.FIELD=VALUE` arguments for the new seed-runs. Job names
     are unique (suffixes _1, _2, ... where resumed workdirs share a name)."""
     cells = grid["cells"]
 
     def spec(r):
-        return ("--config", f"configs/paper.py:{r['task']},{r['method']}")
+        return ("--config", f"configs/paper.py:{r['spec']}")
 
     def length(r):
         return (f"--config.total_frames={frames}",) if frames != r["total_frames"] else ()
@@ -566,7 +579,7 @@ def grid_jobs(grid: dict, frames: int, root: str = "runs", overrides=()) -> list
         for k in range(max(len(r["next_seeds"]) for r in row)):
             for r in (r for r in row if k < len(r["next_seeds"])):
                 n = r["next_seeds"][k]
-                name = f"{task}_{r['method']}_s{n}"
+                name = f"{r['name']}_s{n}"
                 seed = (f"--config.seed={n}", "--config.seeds=1")
                 workdir = ("--workdir", f"{root}/{name}")
                 jobs.append(Job(name, (*spec(r), *seed, *length(r), *overrides, *workdir)))
@@ -639,7 +652,7 @@ def main(argv=None):
     o.add_argument("--out", default=None, help="also write OUT.md")
     g = sub.add_parser("grid", help="how far the runs have taken the paper's grid")
     g.add_argument("runs", nargs="+", help="run workdirs")
-    g.add_argument("--tasks", nargs="+", default=["walker", "cup", "finger"])
+    g.add_argument("--tasks", nargs="+", default=["walker", "cup", "finger"], help=TASKS_HELP)
     g.add_argument("--methods", nargs="+", default=["dear", "sear", "ted", "drqv2"])
     g.add_argument("--seeds", type=int, default=3, help="seeds per cell")
     g.add_argument("--frames", type=int, default=1_000_000, help="frames per seed")

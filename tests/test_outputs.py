@@ -649,6 +649,8 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
     assert cell["walker", "dear"] == {
         "task": "walker",
         "method": "dear",
+        "spec": "walker,dear",
+        "name": "walker_dear",
         "seeds_done": 1,
         "done": [f"{here}/w_dear_s0", f"{here}/w_dear_s0_again"],
         "short": [f"{here}/w_dear_s1 (500,000)", f"{here}/w_dear_s4 (no summary: running?)"],
@@ -700,6 +702,23 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
         "Runs in no cell of this grid:" in text
         and "c_sear: ball_in_cup-catch, sear: no such cell" in text
     )
+    # A task with its difficulty is a cell of that setting: the full suite's run counts there,
+    # and its new seed-runs say the setting in their config and name.
+    both = report.grid_rows(runs, ["walker", "walker, medium-full"], ["dear"], seeds=2)
+    full = both["cells"][1]
+    assert (full["task"], full["spec"], full["done"]) == (
+        "walker, medium-full",
+        "walker,dear,medium-full",
+        [f"{here}/w_dear_full"],
+    )
+    assert f"{here}/w_dear_full" not in " ".join(both["outside"])
+    assert both["cells"][0]["done"] == cell["walker", "dear"]["done"]  # the paper's, unchanged
+    jobs = report.grid_jobs({"cells": [full], "outside": []}, 1_000_000)
+    assert [(job.name, job.args[:2]) for job in jobs] == [
+        ("walker_medium-full_dear_s0", ("--config", "configs/paper.py:walker,dear,medium-full"))
+    ]
+    with pytest.raises(ValueError, match="unknown difficulty 'loud'"):
+        report.grid_rows(runs, ["walker,loud"], ["dear"])
 
 
 def test_cosines_set_the_evaluation_and_the_training_log_side_by_side(tmp_path, capsys):

@@ -20,7 +20,8 @@ the next starts. A job's console goes to --root as NAME.out. At --time-limit (90
 seconds; no job starts in its last --start-margin, a minute by default: give a job's length where
 a stopped job cannot resume), or on SIGTERM, SIGINT (Ctrl-C) or SIGHUP, every running job gets
 SIGTERM, saves a checkpoint and its summary, and exits; a second signal stops them at once, and
-one still running 10 minutes after the first gets SIGKILL. The same command later resumes them. Without GPUs the jobs run on the CPU, --per-gpu at a time. At the end: a line
+one still running 10 minutes after the first gets SIGKILL. The same command later resumes them.
+Without GPUs the jobs run on the CPU, --per-gpu at a time. At the end: a line
 per job (finished, stopped, failed, killed, not started) and the grid as `report grid` prints it.
 Exit status: 0 when every job finished, 1 when one failed, 75 when the time limit left some
 unfinished, 128 + the signal's number after a signal.

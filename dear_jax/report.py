@@ -44,7 +44,7 @@ magnitude |cos| how far from orthogonal each sample is.
 
 `grid` says how far the runs have taken the paper's grid (`configs/paper.py:TASK,METHOD`, the
 kitchen's too with `--tasks light kettle`; a task as TASK,DIFFICULTY, e.g. `--tasks
-walker,medium-full`, for another distraction setting): a run belongs to a cell when its config is the
+walker,medium-full`, for another setting): a run belongs to a cell when its config is the
 cell's but for its seeds, envs per seed, dtype and replay (`GRID_MAY_DIFFER`). Per cell: the
 seeds that trained --frames frames, the runs stopped short and how far, how many seeds are
 missing; then a command per stopped run that kept a checkpoint (its resume) and per missing seed
@@ -414,7 +414,7 @@ def cosines_table(workdirs, rows: int = 20, at: int | None = None) -> tuple[list
 GRID_MAY_DIFFER = ("seed", "seeds", "envs_per_seed", "agent.compute_dtype", "replay.")
 
 
-TASKS_HELP = "TASK, or TASK,DIFFICULTY (as configs/paper.py takes them), e.g. walker,medium-full"
+TASKS_HELP = "TASK or TASK,DIFFICULTY[,MASK] (configs/paper.py's parts), e.g. walker,medium-full"
 
 
 def grid_run_fields() -> tuple[str, ...]:
@@ -439,13 +439,14 @@ def _first_difference(fields: dict, ref: dict) -> str | None:
 
 
 def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000, taken=()) -> dict:
-    """The cells (`configs/paper.py:TASK,METHOD`; a task given as TASK,DIFFICULTY, e.g.
-    "walker,medium-full": `configs/paper.py:TASK,METHOD,DIFFICULTY`) of the paper's grid as far
-    as `workdirs` trained them (see the module docstring): {"cells": a row per cell, "outside": the runs in
-    no cell, each with the field that keeps it out}. A cell's "resume" lists the stopped runs
-    that kept a checkpoint and bring seeds it misses (furthest first), "next_seeds" the
-    config.seed of each seed-run still to start: one no run of the cell used, whose workdir
-    name TASK_METHOD_sSEED is not in `taken`."""
+    """The cells (`configs/paper.py:TASK,METHOD`; a task given as TASK,DIFFICULTY[,MASK], e.g.
+    "walker,medium-full": `configs/paper.py:TASK,METHOD,DIFFICULTY[,MASK]`) of the paper's grid
+    as far as `workdirs` trained them (see the module docstring): {"cells": a row per cell,
+    "outside": the runs in no cell, each with the field that keeps it out}. Two tasks of one
+    setting (e.g. "walker" and "walker,medium", paper.py's default) are refused. A cell's
+    "resume" lists the stopped runs that kept a checkpoint and bring seeds it misses (furthest
+    first), "next_seeds" the config.seed of each seed-run still to start: one no run of the cell
+    used, whose workdir name (the cell's "name", then _sSEED) is not in `taken`."""
     from configs import paper
     from configs.base import get_config
     from dear_jax.experiment import ADDED_FIELDS
@@ -454,16 +455,20 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
     # A field a run's config lacks: what the code did before the field, else today's default.
     defaults = {**lanes.flatten(get_config().to_dict()), **ADDED_FIELDS}
     cells = {}
-    for task in tasks:  # TASK or TASK,DIFFICULTY
-        name, *difficulty = (part.strip() for part in task.split(","))
+    for given in tasks:  # TASK or TASK,DIFFICULTY[,MASK]
+        name, *setting = (part.strip() for part in given.split(","))
+        task = ",".join([name, *setting])
         for method in methods:
-            spec = ",".join([name, method, *difficulty])
+            spec = ",".join([name, method, *setting])
             ref = lanes.flatten(paper.get_config(spec).to_dict())
+            twin = next((c["task"] for c in cells.values() if c["ref"] == ref), None)
+            if twin is not None:
+                raise ValueError(f"tasks {twin!r} and {given!r} are one setting: give it once")
             cells[task, method] = {
                 "task": task,
                 "method": method,
                 "spec": spec,
-                "name": "_".join([name, *difficulty, method]),
+                "name": "_".join([name, *setting, method]),
                 "ref": ref,
                 "seeds": set(),  # (config.seed, lane seed) of the seeds that reached `frames`
                 "done": [],

@@ -702,21 +702,52 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
         "Runs in no cell of this grid:" in text
         and "c_sear: ball_in_cup-catch, sear: no such cell" in text
     )
-    # A task with its difficulty is a cell of that setting: the full suite's run counts there,
-    # and its new seed-runs say the setting in their config and name.
-    both = report.grid_rows(runs, ["walker", "walker, medium-full"], ["dear"], seeds=2)
+    # A task with its difficulty is a cell of that setting: the full suite's run counts there
+    # (spaces in the task are dropped), a stopped one resumes with the setting in its config, and
+    # new seed-runs say the setting in their config and workdir.
+    stopped = run("w_dear_full_s8", "walker,dear,medium-full", 8, 300_000, progress=False)
+    (stopped / "checkpoints").mkdir()
+    both = report.grid_rows([*runs, stopped], ["walker", "walker, medium-full"], ["dear"], seeds=3)
     full = both["cells"][1]
     assert (full["task"], full["spec"], full["done"]) == (
-        "walker, medium-full",
+        "walker,medium-full",
         "walker,dear,medium-full",
         [f"{here}/w_dear_full"],
     )
-    assert f"{here}/w_dear_full" not in " ".join(both["outside"])
+    assert not [line for line in both["outside"] if "w_dear_full" in line]
     assert both["cells"][0]["done"] == cell["walker", "dear"]["done"]  # the paper's, unchanged
     jobs = report.grid_jobs({"cells": [full], "outside": []}, 1_000_000)
-    assert [(job.name, job.args[:2]) for job in jobs] == [
-        ("walker_medium-full_dear_s0", ("--config", "configs/paper.py:walker,dear,medium-full"))
+    assert [job.args for job in jobs] == [
+        (
+            "--config",
+            "configs/paper.py:walker,dear,medium-full",
+            "--config.progress=False",
+            "--config.seed=8",
+            "--config.seeds=1",
+            "--workdir",
+            str(stopped.resolve()),
+        ),
+        (
+            "--config",
+            "configs/paper.py:walker,dear,medium-full",
+            "--config.seed=0",
+            "--config.seeds=1",
+            "--workdir",
+            "runs/walker_medium-full_dear_s0",
+        ),
     ]
+    taken = report.grid_rows(
+        runs, ["walker,medium-full"], ["dear"], 2, taken={"walker_medium-full_dear_s0"}
+    )
+    assert taken["cells"][0]["next_seeds"] == [1]
+    text = report.grid_table(runs, ["walker,medium-full"], ["dear"], seeds=2)
+    assert "| walker,medium-full | dear   |" in text
+    assert "--workdir runs/walker_medium-full_dear_s0" in text
+    # One setting twice (another spelling, paper.py's default difficulty) would fill one cell
+    # while the other asked for seeds forever: refused.
+    for twice in (["walker,medium-full", "walker , medium-full"], ["walker", "walker,medium"]):
+        with pytest.raises(ValueError, match="are one setting: give it once"):
+            report.grid_rows(runs, twice, ["dear"])
     with pytest.raises(ValueError, match="unknown difficulty 'loud'"):
         report.grid_rows(runs, ["walker,loud"], ["dear"])
 

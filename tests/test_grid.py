@@ -146,7 +146,7 @@ def test_the_jobs_resume_stopped_runs_then_start_missing_seeds_task_by_task(tmp_
     assert "--config.total_frames=2000000" in longer[0].args
 
 
-def test_slots_split_the_cores_and_share_a_gpus_memory():
+def test_slots_split_the_cores_and_share_a_gpus_memory(monkeypatch):
     cores = sorted(os.sched_getaffinity(0))
     two = grid.slots(["3", "5"], per_gpu=1)
     assert [(p.gpu, p.memory_fraction) for p in two] == [("3", None), ("5", None)]
@@ -155,9 +155,10 @@ def test_slots_split_the_cores_and_share_a_gpus_memory():
     assert [p.gpu for p in many] == ["0", "0", "0", "1", "1", "1"]
     assert {c for p in many for c in p.cores} == set(cores)  # every core serves
     assert all(len(p.cores) >= 1 and p.memory_fraction == 0.3 for p in many)
-    assert many[0].env()["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.30" or (
-        "XLA_PYTHON_CLIENT_MEM_FRACTION" in os.environ
-    )
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)
+    assert many[0].env()["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.30"
+    monkeypatch.setenv("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.5")  # the caller's share is kept
+    assert many[0].env()["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.5"
     assert grid.slots([], per_gpu=2)[0].env()["CUDA_VISIBLE_DEVICES"] == ""
     assert str(grid.Slot("2", (0, 1, 2, 5))) == "GPU 2, cores 0-2,5"
 

@@ -153,3 +153,7 @@ def test_losses_under_jit_and_vmap():
     z = jax.random.normal(key, (3, 4, 8))
     ortho = jax.jit(jax.vmap(losses.orthogonality_loss))(z[..., 4:], z[..., :4])
     assert ortho.shape == (3,)
+    for s in range(3):
+        np.testing.assert_allclose(
+            ortho[s], losses.orthogonality_loss(z[s, :, 4:], z[s, :, :4]), rtol=1e-6
+        )

@@ -150,5 +150,12 @@ def test_make_mask_names_valid_kinds():
     labels = jnp.zeros((84, 84), jnp.uint8)
     with pytest.raises(ValueError, match="valid"):
         M.make_mask(labels, jax.random.key(0), "blurry", 0.5)
-    out = M.make_mask(labels[None, None], jax.random.key(0), "approximate", 0.5)
+    # A block of agent pixels: "approximate" is the agent mask through the resize/blur/threshold
+    # recipe, which changes it (its edges), and "true" is the agent mask itself.
+    labels = labels.at[20:60, 30:50].set(M.LABEL_AGENT)[None, None]
+    out = M.make_mask(labels, jax.random.key(0), "approximate", 0.5)
     assert out.shape == (1, 1, 84, 84)
+    np.testing.assert_array_equal(out, M.approximate_mask(M.agent_mask(labels)))
+    true = M.make_mask(labels, jax.random.key(0), "true", 0.5)
+    np.testing.assert_array_equal(true, M.agent_mask(labels))
+    assert true.sum() == 40 * 20 and not np.array_equal(out, true)

@@ -464,6 +464,32 @@ def test_plot_two_workdirs(tmp_path):
     assert (dear / "curves.png").stat().st_size > 1000
 
 
+def test_plot_draws_each_experiments_mean_and_band(tmp_path, monkeypatch):
+    """One panel for the task; per method a line at the mean over seeds and a band at mean +- the
+    population std (or min to max); the legend names the method and its seed count. Seeds return
+    frame / 100 + (0, 10, 50): mean + 20, population std sqrt(1400 / 3)."""
+    import matplotlib.pyplot as plt
+
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)  # keep the figure to look at
+    dear = _fake_workdir(tmp_path, "a", "dear")
+    drq = _fake_workdir(tmp_path, "b", "drqv2", offset=-50)
+    for band, below, above in (("std", (1400 / 3) ** 0.5, (1400 / 3) ** 0.5), ("minmax", 20, 30)):
+        plot.plot([dear, drq], tmp_path / f"{band}.png", band=band)
+        (ax,) = figures.pop().axes
+        assert ax.get_title() == "walker-walk"
+        assert [t.get_text() for t in ax.get_legend().get_texts()] == ["dear (n=3)", "drqv2 (n=3)"]
+        assert len(ax.get_lines()) == len(ax.collections) == 2
+        frames = [10_000, 20_000, 30_000]
+        for line, band_area, offset in zip(ax.get_lines(), ax.collections, (0, -50)):
+            mean = np.array([120.0, 220.0, 320.0]) + offset
+            np.testing.assert_allclose(line.get_xdata(), frames)
+            np.testing.assert_allclose(line.get_ydata(), mean)
+            edge = band_area.get_paths()[0].vertices[:, 1]
+            assert edge.min() == pytest.approx(mean[0] - below)
+            assert edge.max() == pytest.approx(mean[-1] + above)
+
+
 def test_seeds_of_one_experiment_pool_over_workdirs(tmp_path):
     """Runs of the same config with other config.seed values (other machines, other days) are
     one experiment: one curve holding all their seeds, one Table II row naming where its seeds

@@ -225,10 +225,21 @@ def test_a_checkpoint_does_not_wait_for_the_evaluation_starting_at_its_frame(run
 
 
 def test_seeds_differ(run):
+    """Each seed has its own episodes and exploration, not only its own initial parameters: the
+    frames and actions its replay stored differ from the other seed's, and so do its losses."""
     workdir = run[0]
     a = read_csv(workdir / "seed_0" / "train.csv")
     b = read_csv(workdir / "seed_1" / "train.csv")
     assert not np.allclose(a["critic_loss"], b["critic_loss"], equal_nan=True)
+    c = tiny_config()
+    chunk = replay_disk.chunk_rows_for(c.replay.chunk_entries, c.envs_per_seed, 10**9)
+    first = [
+        np.load(workdir / "replay" / f"seed_{s}" / replay_disk.file_name(0, chunk)) for s in (0, 1)
+    ]
+    assert set(first[0].files) == set(first[1].files)
+    for key in ("frames", "actions"):
+        assert first[0][key].shape == first[1][key].shape
+        assert not np.array_equal(first[0][key], first[1][key]), key
 
 
 def test_resumed_run_equals_the_uninterrupted_one(run):

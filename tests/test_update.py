@@ -174,8 +174,15 @@ def test_acting_phases_and_schedule(dear):
     stepping = jnp.array([True, False, True, True, False, True, True, False])
     _, s5 = act(state, obs, jax.random.key(12), hp, explore=True, stepping=stepping)
     assert int(s5.steps) == 5
-    # During exploration actions are uniform, independent of the policy mean.
-    assert not np.allclose(a1, mean, atol=0.3) and np.all(np.abs(np.asarray(a1)) <= 1.0)
+    # During the first explore_steps steps actions are the uniform draw of the key's second half,
+    # whatever the policy; from then on the policy's (std 0 here: exactly its mean).
+    still = update.HParams(explore_steps=16.0, std_steps=100.0, std_init=0.0, std_final=0.0)
+    key = jax.random.key(14)
+    uniform = jax.random.uniform(jax.random.split(key)[1], mean.shape, minval=-1.0, maxval=1.0)
+    for steps, expected in ((0, uniform), (15, uniform), (16, mean)):
+        a, _ = act(same.replace(steps=jnp.int32(steps)), obs, key, still, explore=True)
+        np.testing.assert_array_equal(a, expected)
+    assert not np.allclose(uniform, mean, atol=0.3)
     late = s1.replace(steps=jnp.int32(10_000))
     a2, _ = act(late, obs, jax.random.key(13), hp, explore=True)
     # After the decay, std = 0.1: actions stay near the mean.

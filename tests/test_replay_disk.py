@@ -93,4 +93,10 @@ def test_disk_check_names_the_numbers_and_the_field(tmp_path):
         keep_checkpoints=3,
         total_rows=10**6,
     )
+    # Per seed: the buffer's rows, the rows written between two checkpoints (kept until the
+    # next), and the chunks the kept checkpoints' partial files and the writer hold.
     assert bound == 3 * (100 + 50 + 5 * 10) * 8 * 1000
+    # A run shorter than that writes every row once, plus at most one partial chunk.
+    short = dict(num_seeds=3, rows=100, chunk_rows=10, num_envs=8, entry_bytes=1000)
+    short.update(rows_between_checkpoints=50, keep_checkpoints=3, total_rows=120)
+    assert replay_disk.disk_bound(**short) == 3 * (120 + 10) * 8 * 1000

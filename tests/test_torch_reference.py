@@ -113,6 +113,8 @@ def test_one_update_on_cpu():
     assert set(metrics) == {"critic_loss", "mask_loss", "ortho_loss", "actor_loss"}
     assert all(np.isfinite(float(v)) for v in metrics.values())
     online = list(agent.critic.parameters())
+    # The target starts as a copy of the critic, which the update moved.
+    assert any(not torch.equal(cur, old) for old, cur in zip(before, online))
     for old, new, cur in zip(before, agent.critic_target.parameters(), online):
         # target = (1 - tau) old + tau online
         torch.testing.assert_close(new, torch.lerp(old, cur, T.TAU))

@@ -2,16 +2,17 @@
 
     python -m dear_jax.grid [RUN ...] [--root runs] [--gpus 0,1,2,3] [--per-gpu 1]
         [--tasks walker cup finger] [--methods dear sear ted drqv2] [--seeds 3]
-        [--frames 1000000] [--set FIELD=VALUE ...] [--time-limit 3h [--start-margin 60]]
-        [--dry-run]
+        [--frames 1000000] [--seeds-per-run 1] [--set FIELD=VALUE ...]
+        [--time-limit 3h [--start-margin 60]] [--dry-run]
 
 The runs named (workdirs of earlier runs, e.g. `results/*/*/`) and every run under --root count
 towards the grid (`report.grid_rows`: a run belongs to a cell of `configs/paper.py:TASK,METHOD`
 when its config is the cell's but for its seeds, envs per seed, dtype and replay; a task given as
 TASK,DIFFICULTY, e.g. `--tasks walker,medium-full`, makes cells of that distraction setting). The
 queue (`report.grid_jobs`): first the stopped runs that kept a checkpoint and bring missing
-seeds, resumed in their workdirs, then one seed-run per missing seed in --root as
-TASK_METHOD_sSEED (TASK_DIFFICULTY_METHOD_sSEED), task by task, the methods of a task taking turns.
+seeds, resumed in their workdirs, then one seed-run per missing seed (--seeds-per-run K: per K
+missing seeds, trained as lanes of one process) in --root as TASK_METHOD_sSEED
+(TASK_DIFFICULTY_METHOD_sSEED), task by task, the methods of a task taking turns.
 
 Each GPU (`--gpus`: ids as CUDA_VISIBLE_DEVICES takes them, in nvidia-smi's PCI order; default
 every GPU visible) runs --per-gpu jobs at a time, each pinned (taskset) to its equal share of
@@ -292,6 +293,7 @@ def main(argv=None) -> list[dict] | None:
     parser.add_argument("--methods", nargs="+", default=["dear", "sear", "ted", "drqv2"])
     parser.add_argument("--seeds", type=int, default=3, help="seeds per cell")
     parser.add_argument("--frames", type=int, default=1_000_000, help="frames per seed")
+    parser.add_argument("--seeds-per-run", type=int, default=1, help=report.SEEDS_PER_RUN_HELP)
     parser.add_argument("--set", action="append", default=[], help="FIELD=VALUE for new runs")
     parser.add_argument("--time-limit", default=None, help="e.g. 90m, 3h: then SIGTERM the runs")
     parser.add_argument(
@@ -314,7 +316,10 @@ def main(argv=None) -> list[dict] | None:
         )
     except (FileNotFoundError, ValueError, KeyError) as e:
         parser.error(str(e))
-    jobs = report.grid_jobs(grid, args.frames, str(root), extra)
+    try:
+        jobs = report.grid_jobs(grid, args.frames, str(root), extra, args.seeds_per_run)
+    except ValueError as e:
+        parser.error(str(e))
     print(f"{len(jobs)} runs to complete the grid, {len(places)} at a time:")
     print("\n".join(f"  {job.name}: python run.py {shlex.join(job.args)}" for job in jobs))
     if args.dry_run or not jobs:
@@ -331,7 +336,11 @@ def main(argv=None) -> list[dict] | None:
     columns = ["job", "where", "state", "rc", "seconds"]
     print(format_table(columns, [[r.get(c, "-") for c in columns] for r in rows]))
     done = _workdirs(args.runs, root)
-    print(report.grid_table(done, args.tasks, args.methods, args.seeds, args.frames))
+    print(
+        report.grid_table(
+            done, args.tasks, args.methods, args.seeds, args.frames, args.seeds_per_run
+        )
+    )
     code = exit_code(rows, queue.stopping)
     if code:
         sys.exit(code)

@@ -414,6 +414,7 @@ def cosines_table(workdirs, rows: int = 20, at: int | None = None) -> tuple[list
 GRID_MAY_DIFFER = ("seed", "seeds", "envs_per_seed", "agent.compute_dtype", "replay.")
 
 
+SEEDS_PER_RUN_HELP = "missing seeds a new seed-run trains side by side, as lanes of one process"
 TASKS_HELP = "TASK or TASK,DIFFICULTY[,MASK] (configs/paper.py's parts), e.g. walker,medium-full"
 
 
@@ -558,14 +559,20 @@ class Job:
     args: tuple[str, ...]
 
 
-def grid_jobs(grid: dict, frames: int, root: str = "runs", overrides=()) -> list[Job]:
+def grid_jobs(
+    grid: dict, frames: int, root: str = "runs", overrides=(), seeds_per_run: int = 1
+) -> list[Job]:
     """The runs that complete `grid` (`grid_rows`) to `frames` frames per seed: first the stopped
-    runs that kept a checkpoint and bring missing seeds (resumed in their workdirs), then one
-    seed-run per missing seed that no resume brings, in ROOT/TASK_METHOD_sSEED (a task given
-    with its difficulty: TASK_DIFFICULTY_METHOD_sSEED), task by task, the
-    task's methods taking turns (a queue stopped part way leaves a task's methods with seeds
-    alike). `overrides`: more `--config.FIELD=VALUE` arguments for the new seed-runs. Job names
-    are unique (suffixes _1, _2, ... where resumed workdirs share a name)."""
+    runs that kept a checkpoint and bring missing seeds (resumed in their workdirs), then the
+    seed-runs of the missing seeds that no resume brings, in ROOT/TASK_METHOD_sSEED (a task given
+    with its difficulty: TASK_DIFFICULTY_METHOD_sSEED), task by task, the task's methods taking
+    turns (a queue stopped part way leaves a task's methods with seeds alike). A seed-run trains
+    `seeds_per_run` of a cell's missing seeds side by side (lanes of one process; the last of a
+    cell the rest), from a config.seed no run of the cell used. `overrides`: more
+    `--config.FIELD=VALUE` arguments for the new seed-runs. Job names are unique (suffixes _1,
+    _2, ... where resumed workdirs share a name)."""
+    if seeds_per_run < 1:
+        raise ValueError(f"seeds per run must be at least 1, got {seeds_per_run}")
     cells = grid["cells"]
 
     def spec(r):
@@ -574,18 +581,25 @@ def grid_jobs(grid: dict, frames: int, root: str = "runs", overrides=()) -> list
     def length(r):
         return (f"--config.total_frames={frames}",) if frames != r["total_frames"] else ()
 
+    def runs(r):  # (config.seed, lanes) of each new seed-run of cell r
+        new = len(r["next_seeds"])
+        return [
+            (r["next_seeds"][j], min(seeds_per_run, new - j * seeds_per_run))
+            for j in range(-(-new // seeds_per_run))
+        ]
+
     jobs = [
         Job(pathlib.Path(args[-1]).name, (*spec(r), *length(r), *args))
         for r in cells
         for args in r["resume"]
     ]
     for task in dict.fromkeys(r["task"] for r in cells):
-        row = [r for r in cells if r["task"] == task]
-        for k in range(max(len(r["next_seeds"]) for r in row)):
-            for r in (r for r in row if k < len(r["next_seeds"])):
-                n = r["next_seeds"][k]
+        row = [(r, runs(r)) for r in cells if r["task"] == task]
+        for k in range(max(len(new) for _, new in row)):
+            for r, new in (x for x in row if k < len(x[1])):
+                n, count = new[k]
                 name = f"{r['name']}_s{n}"
-                seed = (f"--config.seed={n}", "--config.seeds=1")
+                seed = (f"--config.seed={n}", f"--config.seeds={count}")
                 workdir = ("--workdir", f"{root}/{name}")
                 jobs.append(Job(name, (*spec(r), *seed, *length(r), *overrides, *workdir)))
     names = [job.name for job in jobs]  # resumed workdirs of one name in several folders
@@ -597,7 +611,9 @@ def grid_jobs(grid: dict, frames: int, root: str = "runs", overrides=()) -> list
     ]
 
 
-def grid_table(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000) -> str:
+def grid_table(
+    workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000, seeds_per_run: int = 1
+) -> str:
     grid = grid_rows(workdirs, tasks, methods, seeds, frames)
     rows = grid["cells"]
     table = format_table(
@@ -615,7 +631,8 @@ def grid_table(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000
         ],
     )
     lines = [f"The paper's grid at {frames:,} frames per seed, {seeds} seeds per cell", "", table]
-    commands = [f"python run.py {shlex.join(job.args)}" for job in grid_jobs(grid, frames)]
+    jobs = grid_jobs(grid, frames, seeds_per_run=seeds_per_run)
+    commands = [f"python run.py {shlex.join(job.args)}" for job in jobs]
     if commands:
         lines += [
             "",
@@ -661,10 +678,15 @@ def main(argv=None):
     g.add_argument("--methods", nargs="+", default=["dear", "sear", "ted", "drqv2"])
     g.add_argument("--seeds", type=int, default=3, help="seeds per cell")
     g.add_argument("--frames", type=int, default=1_000_000, help="frames per seed")
+    g.add_argument("--seeds-per-run", type=int, default=1, help=SEEDS_PER_RUN_HELP)
     args = parser.parse_args(argv)
     if args.command == "grid":
         try:
-            print(grid_table(args.runs, args.tasks, args.methods, args.seeds, args.frames))
+            print(
+                grid_table(
+                    args.runs, args.tasks, args.methods, args.seeds, args.frames, args.seeds_per_run
+                )
+            )
         except (FileNotFoundError, ValueError, KeyError) as e:
             parser.error(str(e))
     if args.command == "cosines":

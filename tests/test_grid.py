@@ -144,6 +144,19 @@ def test_the_jobs_resume_stopped_runs_then_start_missing_seeds_task_by_task(tmp_
     longer = report.grid_jobs(cup, 2_000_000)
     assert [job.name for job in longer] == ["cup_sear_s1", "cup_sear_s2"]
     assert "--config.total_frames=2000000" in longer[0].args
+    # Two missing seeds per seed-run, as lanes of one process: walker SEAR's three seeds take a
+    # run of two and one of one (each its own config.seed); walker DEAR's resume brings one of
+    # its two missing seeds, so one seed-run of one lane starts.
+    three = report.grid_rows(done, ["walker"], ["dear", "sear"], seeds=3)
+    paired = report.grid_jobs(three, 1_000_000, seeds_per_run=2)
+    assert [(job.name, job.args[2:4]) for job in paired[1:]] == [
+        ("walker_dear_s2", ("--config.seed=2", "--config.seeds=1")),
+        ("walker_sear_s0", ("--config.seed=0", "--config.seeds=2")),
+        ("walker_sear_s1", ("--config.seed=1", "--config.seeds=1")),
+    ]
+    assert paired[0].name == "w_dear_s1"
+    with pytest.raises(ValueError, match="seeds per run must be at least 1, got 0"):
+        report.grid_jobs(three, 1_000_000, seeds_per_run=0)
 
 
 def test_slots_split_the_cores_and_share_a_gpus_memory(monkeypatch):

@@ -138,18 +138,29 @@ def test_every_lane_is_written_by_its_process(runs):
     assert summary["eval_device"] == "train"  # "auto" with several processes
     assert summary["frames_per_seed"] == END and len(summary["per_seed"]) == 2
     assert summary["updates_per_seed"] >= 5
+    chunks = []
     for seed in (0, 1):
         evals = read_csv(whole / f"seed_{seed}" / "eval.csv")
         assert list(evals["frame"]) == [0, CUT, END]
         assert (whole / "videos" / f"eval_{END}_seed_{seed}.mp4").is_file()
-        assert list((whole / "replay" / f"seed_{seed}").glob("*.npz"))
-    # The lanes learn from different episodes: their agents differ after the updates.
-    arrays = Checkpointer(whole / "checkpoints", fingerprint={}).read_arrays(END)
-    kernel = arrays["agent"]["params"]["critic"]
+        files = sorted((whole / "replay" / f"seed_{seed}").glob("*.npz"))
+        assert files
+        chunks.append(np.load(files[0]))
+    # The lanes learn from different episodes (each process steps its own): the frames their
+    # replays stored differ, and each agent kept learning after the checkpoint at CUT.
+    assert chunks[0]["frames"].shape == chunks[1]["frames"].shape
+    assert not np.array_equal(chunks[0]["frames"], chunks[1]["frames"])
     import jax
 
-    first = jax.tree.leaves(kernel)[0]
+    ckpt = Checkpointer(whole / "checkpoints", fingerprint={})
+    start, end = (ckpt.read_arrays(frame)["agent"]["params"]["critic"] for frame in (CUT, END))
+    first = jax.tree.leaves(end)[0]
     assert first.shape[0] == 2 and not np.array_equal(first[0], first[1])
+    for lane in (0, 1):
+        assert any(
+            not np.array_equal(a[lane], b[lane])
+            for a, b in zip(jax.tree.leaves(start), jax.tree.leaves(end))
+        )
     assert sorted(p.name for p in whole.glob("run*.lock")) == []  # both locks released
 
 

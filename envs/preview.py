@@ -1,7 +1,8 @@
 """Preview a task before training: a PNG grid of RGB frames above their agent masks.
 
     python -m envs.preview walker-walk --out preview.png [--distraction medium] \
-        [--mask noisy|approximate] [--background-dir DAVIS_ROOT] [--dynamic]
+        [--distraction-types background|all] [--mask noisy|approximate] \
+        [--background-dir DAVIS_ROOT] [--dynamic]
 
 Runs a few envs for a few random-action steps through `envs.make` (the same path training uses:
 physics, render pool, distraction compositing, mask variant) and writes, per env, one row of
@@ -62,6 +63,12 @@ def main(argv=None) -> None:
     parser.add_argument("task", help="registry name, e.g. walker-walk")
     parser.add_argument("--out", required=True, help="PNG file to write")
     parser.add_argument("--distraction", default="none", help="none | easy | medium | hard")
+    parser.add_argument(
+        "--distraction-types",
+        default="background",
+        help="background (the paper's setting, as configs/paper.py's DIFFICULTY), all (the full "
+        "suite: background, color, camera), or a comma-separated subset",
+    )
     parser.add_argument("--dynamic", action="store_true", help="distractions move in an episode")
     parser.add_argument("--mask", default="true", help="true | noisy | approximate")
     parser.add_argument("--mask-drop-prob", type=float, default=0.8)
@@ -78,13 +85,19 @@ def main(argv=None) -> None:
     import cv2
 
     import envs
+    from envs import distractions
 
+    try:
+        distractions.parse_types(args.distraction_types)
+    except ValueError as e:
+        parser.error(str(e))
     with envs.make(
         args.task,
         num_seeds=1,
         envs_per_seed=args.envs,
         backend=args.backend,
         distraction=args.distraction,
+        distraction_types=args.distraction_types,
         dynamic=args.dynamic,
         background_dir=args.background_dir,
         split=args.split,

@@ -1,0 +1,41 @@
+"""`python -m envs.preview`: a task's frames above their masks, in the distraction setting asked."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from envs import preview
+
+SIDE = 84 * 2 + 2  # a tile drawn at scale 2, with its gap
+
+
+def _preview(tmp_path, name, *args):
+    out = tmp_path / f"{name}.png"
+    preview.main(["walker-walk", "--out", str(out), "--envs", "1", "--frames", "2", *args])
+    image = cv2.imread(str(out))
+    assert image.shape == (2 * SIDE + 2, 2 * SIDE + 2, 3)  # an RGB row above a mask row
+    return image[: SIDE + 2], image[SIDE + 2 :]
+
+
+def test_preview_draws_the_papers_background_only_setting_by_default(tmp_path):
+    """--distraction medium with the default types changes the background only: the masks (the
+    agent seen from the camera) are those of the undistracted env on the same episode starts;
+    with all types the camera moves, and so do the masks."""
+    plain_rgb, plain_mask = _preview(tmp_path, "none")
+    rgb, mask = _preview(tmp_path, "background", "--distraction", "medium")
+    np.testing.assert_array_equal(mask, plain_mask)
+    assert not np.array_equal(rgb, plain_rgb)
+    _, full_mask = _preview(
+        tmp_path, "all", "--distraction", "medium", "--distraction-types", "all"
+    )
+    assert not np.array_equal(full_mask, plain_mask)
+
+
+def test_preview_refuses_an_unknown_distraction_type(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        preview.main(
+            ["walker-walk", "--out", str(tmp_path / "x.png"), "--distraction-types", "fog"]
+        )
+    assert "unknown 'fog' in distraction types" in capsys.readouterr().err

@@ -88,12 +88,11 @@ def experiments(workdirs, threshold: float, at: int | None, last: int) -> dict:
     for pool in plot.pools([pathlib.Path(w) for w in workdirs]):
         task, method = plot.task_name(pool.config), pool.config["agent"]["method"]
         runs = ", ".join(w.name for w in pool.workdirs)
-        if pool.label:
-            raise ValueError(f"{runs}: a sweep (setting {pool.label}); claims compare methods")
         if (task, method) in found:
+            setting = f" ({pool.label})" if pool.label else ""
             raise ValueError(
-                f"{runs}: a second experiment of {method} on {task}; give the runs of one "
-                "experiment per method and task"
+                f"{runs}: a second experiment of {method} on {task}{setting}; claims compare "
+                "methods: give the runs of one experiment per method and task"
             )
         rows, series = [], []
         for _, lane in pool.seeds:

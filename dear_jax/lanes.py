@@ -153,8 +153,8 @@ class Pool:
     (other machines, other days): `seeds` holds (workdir, lane folder) per seed, in the order
     the workdirs were given."""
 
-    config: dict  # the first workdir's config.json
-    label: str  # the setting ("" without a sweep)
+    config: dict  # the first workdir's config.json, its lane's swept values in `agent`, no sweep
+    label: str  # the swept numbers that set it apart ("beta=10"; "" where nothing does)
     seeds: list[tuple[pathlib.Path, pathlib.Path]]
 
     @property
@@ -162,38 +162,69 @@ class Pool:
         return list(dict.fromkeys(w for w, _ in self.seeds))
 
 
+def _lane_fields(config: dict, lane: Lane, defaults: dict) -> dict:
+    """A lane's flattened config as a run of that setting alone would have it: its swept values
+    in `agent` (in the type the field has there), no sweep."""
+    fields = {**defaults, **flatten(config)}
+    for key in SWEEPABLE:
+        fields[f"sweep.{key}"] = ""
+    for key, value in lane.settings:
+        kind = type(fields.get(f"agent.{key}", value))
+        fields[f"agent.{key}"] = kind(value)
+    return fields
+
+
+def _unflatten(fields: dict) -> dict:
+    """{"a.b": 1} -> {"a": {"b": 1}}."""
+    out: dict = {}
+    for dotted, value in fields.items():
+        *parents, key = dotted.split(".")
+        node = out
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[key] = value
+    return out
+
+
 def pools(workdirs, defaults: dict, ignored: tuple[str, ...]) -> list[Pool]:
-    """The workdirs' lanes pooled by experiment: two workdirs hold seeds of the same experiment
-    when their config.json agree on every field but `ignored` (the seeds, and what a run may
-    change without changing what it learns), a field a config lacks read from `defaults` (the
-    trainer's config of today, flattened, so runs logged before a field existed keep its
-    default); lanes pool by setting. A seed is (config.seed, lane seed): the same seed in two
-    workdirs is refused, since it would be counted twice."""
-    found: dict[tuple[str, str], Pool] = {}
-    origin: dict[tuple[str, str, tuple[int, int]], pathlib.Path] = {}
+    """The workdirs' seeds pooled by experiment: two seeds belong to one experiment when their
+    lanes' configs (`_lane_fields`: a sweep's lane as a run of its setting alone) agree on every
+    field but `ignored` (the seeds, and what a run may change without changing what it learns),
+    a field a config lacks read from `defaults` (the trainer's config of today, flattened, so
+    runs logged before a field existed keep its default). So a sweep's beta=10 lanes and runs
+    given --config.agent.beta=10 pool, wherever and whenever they ran. A seed is (config.seed,
+    lane seed): the same seed of one experiment in two workdirs is refused, since it would be
+    counted twice. Each pool's label names its values of the swept numbers (`SWEEPABLE`) in
+    which it differs from another pool of the same task and method; "" where none."""
+    found: dict[str, tuple[dict, Pool]] = {}
+    origin: dict[tuple[str, tuple[int, int]], pathlib.Path] = {}
     for workdir in map(pathlib.Path, workdirs):
-        by_setting = groups(workdir)
+        groups(workdir)  # checks the workdir
         config = json.loads((workdir / "config.json").read_text())
-        fields = {**defaults, **flatten(config)}
-        key = json.dumps(
-            {k: v for k, v in fields.items() if k not in ignored and k != "seed"},
-            sort_keys=True,
-            default=str,
-        )
-        seed_of = {lane.name: lane.seed for lane in lanes(ConfigDict(config))}
-        for label, dirs in by_setting.items():
-            pool = found.setdefault((key, label), Pool(config, label, []))
-            for lane_dir in dirs:
-                seed = (config.get("seed", 0), seed_of[lane_dir.name])
-                first = origin.setdefault((key, label, seed), workdir)
-                if first != workdir:
-                    raise ValueError(
-                        f"{first} and {workdir} both trained seed {seed[1]} of config.seed="
-                        f"{seed[0]} of the same experiment: the same seed twice. Give each run "
-                        "of an experiment its own --config.seed"
-                    )
-                pool.seeds.append((workdir, lane_dir))
-    return list(found.values())
+        flat = flatten(config)
+        for lane in lanes(ConfigDict(config)):
+            fields = _lane_fields(config, lane, defaults)
+            kept = {k: v for k, v in fields.items() if k not in ignored and k != "seed"}
+            key = json.dumps(kept, sort_keys=True, default=str)
+            # The config as written, with the lane's values: no default fills a field it lacks.
+            own = {k: fields[k] for k in [*flat, *(f"agent.{k}" for k, _ in lane.settings)]}
+            _, pool = found.setdefault(key, (kept, Pool(_unflatten(own), "", [])))
+            seed = (config.get("seed", 0), lane.seed)
+            first = origin.setdefault((key, seed), workdir)
+            if first != workdir:
+                raise ValueError(
+                    f"{first} and {workdir} both trained seed {seed[1]} of config.seed="
+                    f"{seed[0]} of the same experiment: the same seed twice. Give each run "
+                    "of an experiment its own --config.seed"
+                )
+            pool.seeds.append((workdir, workdir / lane.name))
+    swept = tuple(f"agent.{k}" for k in SWEEPABLE)
+    for kept, pool in found.values():
+        rest = {k: v for k, v in kept.items() if k not in swept}
+        siblings = [other for other, _ in found.values() if rest.items() <= other.items()]
+        varying = [k for k in swept if len({json.dumps(s.get(k)) for s in siblings}) > 1]
+        pool.label = "_".join(f"{k.removeprefix('agent.')}={kept[k]:g}" for k in varying)
+    return [pool for _, pool in found.values()]
 
 
 def flatten(tree: dict, prefix: str = "") -> dict:

@@ -545,6 +545,54 @@ def test_seeds_of_one_experiment_pool_over_workdirs(tmp_path):
         plot.pools([a, twice])
 
 
+def test_a_sweeps_lanes_pool_with_runs_of_their_setting(tmp_path):
+    """A sweep's lane is a run of its setting alone: the beta=10 lanes of a sweep and a run given
+    agent.beta=10 are one experiment, the beta=100 lanes and a plain DEAR run (beta 100, the
+    default) another; each pool is labelled by the swept number that sets it apart, in the type
+    the field has (an int stays an int). Another seed-run of the same seed is refused."""
+    from configs import base
+
+    def run(name, seed, sweep=None, **agent):
+        c = base.make("walker", "dear")
+        c.seeds, c.seed = 3, seed
+        c.agent.update(agent)
+        c.sweep.update(sweep or {})
+        fields = c.to_dict()
+        workdir = _fake_workdir(tmp_path, name, "dear", sweep=fields.pop("sweep"), **fields)
+        summary = {"frames_per_seed": 30_000, "wall_s": 100.0, "action_dim": 6}
+        (workdir / "summary.json").write_text(json.dumps(summary))
+        return workdir
+
+    sweep = run("sweep", 0, sweep={"beta": "10,100"})
+    beta10 = run("beta10", 1, beta=10.0)
+    plain = run("plain", 2)
+    steps = run("steps", 3, sweep={"std_steps": "1000"})
+    assert base.make("walker", "dear").agent.beta == 100.0
+    pools = plot.pools([sweep, beta10, plain, steps])
+    got = {p.label: [(w.name, d.name) for w, d in p.seeds] for p in pools}
+    assert got == {
+        "beta=10_std_steps=500000": [("sweep", f"beta=10_seed_{s}") for s in range(3)]
+        + [("beta10", f"seed_{s}") for s in range(3)],
+        "beta=100_std_steps=500000": [("sweep", f"beta=100_seed_{s}") for s in range(3)]
+        + [("plain", f"seed_{s}") for s in range(3)],
+        "beta=100_std_steps=1000": [("steps", f"std_steps=1000_seed_{s}") for s in range(3)],
+    }
+    assert [p.config["agent"]["beta"] for p in pools] == [10.0, 100.0, 100.0]
+    assert [type(p.config["agent"]["std_steps"]) for p in pools] == [int, int, int]
+    assert all(not any(p.config["sweep"].values()) for p in pools)
+    # Without the std_steps run, beta alone tells the pools apart.
+    assert [p.label for p in plot.pools([sweep, plain])] == ["beta=10", "beta=100"]
+    assert [p.label for p in plot.pools([plain])] == [""]
+    rows = report.pooled_rows([sweep, beta10], threshold=150.0)
+    assert [(r["run"], r["seeds"]) for r in rows] == [
+        ("sweep (3) + beta10 (3) beta=10", 6),
+        ("sweep beta=100", 3),
+    ]
+    twice = run("beta10_again", 0, beta=10.0)  # the sweep's seed 0 of beta=10
+    with pytest.raises(ValueError, match="both trained seed 0 of config.seed=0"):
+        plot.pools([sweep, twice])
+
+
 def test_plot_draws_a_line_per_setting_of_a_sweep(tmp_path):
     run = _fake_workdir(tmp_path, "sweep", "dear", sweep={"beta": "0,100"})
     assert sorted(p.name for p in run.iterdir() if p.is_dir()) == [

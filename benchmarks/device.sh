@@ -31,7 +31,10 @@
 #                       time (`python -m dear_jax.grid ARGS --root runs`, e.g. `grid results/*/*/
 #                       --set agent.compute_dtype=bfloat16 --set replay.disk=False`), its log in
 #                       runs/grid.out; `wait`, `stop` and `collect` treat it as a run (SIGTERM
-#                       reaches its runs). It takes the rest of the line: last stage
+#                       reaches its runs). It takes the rest of the line: last stage. Two queues
+#                       side by side: give each its GPUs (`--gpus 0,1`), their cores and the second
+#                       a name: `CORES=0-31 bash benchmarks/device.sh grid ... --gpus 0,1`, then
+#                       `GRID=ablations CORES=32-63 bash benchmarks/device.sh grid ... --gpus 2,3`
 #   wait S              sleep up to S seconds while runs train, printing their last log lines;
 #                       returns early once none is running
 #   stop [NAME...]      SIGTERM the runs named (every run `start` began if none; each saves a
@@ -111,9 +114,11 @@ while [ $# -gt 0 ]; do
       echo "started runs/$name on GPU $visible ${pin[*]}: run.py ${args[*]}"
       ;;
     grid)
-      setsid nohup python3 -m dear_jax.grid "$@" --root runs >runs/grid.out 2>&1 </dev/null &
-      echo $! >runs/grid.pid
-      echo "started the grid's queue: python -m dear_jax.grid $* --root runs"
+      name=${GRID:-grid} pin=()
+      [ -n "${CORES:-}" ] && pin=(taskset -c "$CORES")  # the cores its jobs share out
+      setsid nohup "${pin[@]}" python3 -m dear_jax.grid "$@" --root runs >"runs/$name.out" 2>&1 </dev/null &
+      echo $! >"runs/$name.pid"
+      echo "started the grid's queue runs/$name: python -m dear_jax.grid $* --root runs"
       set --
       ;;
     wait)

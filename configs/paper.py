@@ -1,6 +1,6 @@
 """Any experiment of the paper's grid from one file, named by its config string:
 
-    python run.py --config configs/paper.py:TASK,METHOD[,DIFFICULTY[,MASK]]
+    python run.py --config configs/paper.py:TASK,METHOD[,DIFFICULTY[,MASK]][,WEIGHT=VALUE...]
 
 This is the one way to name an experiment of the grid; the other files of configs/ are the
 promised walker_dear.py and smoke.py, DrQ-v2's own walker settings and the two ablations.
@@ -10,14 +10,17 @@ METHOD: drqv2, dear, sear, ted; DIFFICULTY (DMC only): none, easy, medium (defau
 the paper's setting, background videos only, static, a new video each episode; with "-full"
 (e.g. medium-full) the full Distracting Control Suite: background, colours and camera;
 MASK: true (default), noisy (each agent pixel dropped with p = 0.8), approximate.
-E.g. `paper.py:cup,sear,hard` or `paper.py:walker,dear,medium-full,noisy`. The default workdir
-is runs/paper_<the parts joined by _>. The weight ablations are sweeps in one run:
-walker_dear_beta_sweep.py and walker_dear_loss_ablation.py.
+WEIGHT=VALUE (after the others, any number): a number of the update the method reads, as a sweep
+may vary it (dear_jax/lanes.py, e.g. beta=10, alpha=0): one setting of the weight ablations.
+E.g. `paper.py:cup,sear,hard`, `paper.py:walker,dear,medium-full,noisy` or
+`paper.py:walker,dear,alpha=0,beta=0`. The default workdir is runs/paper_<the parts joined by _>.
+The weight ablations as sweeps in one run: walker_dear_beta_sweep.py, walker_dear_loss_ablation.py.
 """
 
 from ml_collections import ConfigDict
 
 from configs import base, kitchen
+from dear_jax import lanes
 
 METHODS = ("drqv2", "dear", "sear", "ted")
 LEVELS = ("easy", "medium", "hard")
@@ -27,8 +30,12 @@ MASKS = ("true", "noisy", "approximate")
 
 def get_config(spec: str = "walker,dear,medium") -> ConfigDict:
     parts = [p.strip() for p in spec.split(",")]
-    if not 2 <= len(parts) <= 4:
-        raise ValueError(f"config string {spec!r}: give TASK,METHOD[,DIFFICULTY[,MASK]]")
+    weights = [p for p in parts if "=" in p]
+    parts = parts[: len(parts) - len(weights)]
+    if not 2 <= len(parts) <= 4 or "=" in ",".join(parts):
+        raise ValueError(
+            f"config string {spec!r}: give TASK,METHOD[,DIFFICULTY[,MASK]][,WEIGHT=VALUE...]"
+        )
     task, method, difficulty, mask = parts + ["medium", "true"][len(parts) - 2 :]
     tasks = (*base.TASK_SHORT_NAMES, *kitchen.KITCHEN_TASKS)
     for name, value, valid in (
@@ -49,4 +56,18 @@ def get_config(spec: str = "walker,dear,medium") -> ConfigDict:
         if level != "none":
             c.env.distraction_types = "all" if full else "background"
     c.env.mask = mask
+    for part in weights:
+        name, value = (x.strip() for x in part.split("=", 1))
+        if name not in lanes.SWEEPABLE:
+            valid = ", ".join(lanes.SWEEPABLE)
+            raise ValueError(f"unknown setting {name!r} in {spec!r}; valid: {valid}")
+        probe = ConfigDict(c.to_dict())
+        probe.sweep[name] = value
+        try:  # a number, of a field the method reads
+            numbers = lanes.sweep_values(probe).get(name, ())
+        except ValueError as e:
+            raise ValueError(f"{part!r} in {spec!r}: {e}") from None
+        if len(numbers) != 1:
+            raise ValueError(f"{part!r} in {spec!r}: give one number, e.g. beta=10")
+        c.agent[name] = type(c.agent[name])(numbers[0])
     return c

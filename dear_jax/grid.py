@@ -7,12 +7,13 @@
 
 The runs named (workdirs of earlier runs, e.g. `results/*/*/`) and every run under --root count
 towards the grid (`report.grid_rows`: a run belongs to a cell of `configs/paper.py:TASK,METHOD`
-when its config is the cell's but for its seeds, envs per seed, dtype and replay; a task given as
-TASK,DIFFICULTY, e.g. `--tasks walker,medium-full`, makes cells of that distraction setting). The
+when its config is the cell's but for its seeds, envs per seed, dtype and replay; a task given
+with more of paper.py's parts makes cells of that setting: `--tasks walker,medium-full` of the
+full suite, `walker,beta=10` of a weight ablation's setting, for the methods that read beta). The
 queue (`report.grid_jobs`): first the stopped runs that kept a checkpoint and bring missing
 seeds, resumed in their workdirs, then one seed-run per missing seed (--seeds-per-run K: per K
 missing seeds, trained as lanes of one process) in --root as TASK_METHOD_sSEED
-(TASK_DIFFICULTY_METHOD_sSEED), task by task, the methods of a task taking turns.
+(with the task's other parts: walker_beta=10_dear_s0), task by task, the methods of a task taking turns.
 
 Each GPU (`--gpus`: ids as CUDA_VISIBLE_DEVICES takes them, in nvidia-smi's PCI order; default
 every GPU visible) runs --per-gpu jobs at a time, each pinned (taskset) to its equal share of

@@ -43,8 +43,9 @@ samples cancels wherever the sign is not systematic: it measures a bias between 
 magnitude |cos| how far from orthogonal each sample is.
 
 `grid` says how far the runs have taken the paper's grid (`configs/paper.py:TASK,METHOD`, the
-kitchen's too with `--tasks light kettle`; a task as TASK,DIFFICULTY, e.g. `--tasks
-walker,medium-full`, for another setting): a run belongs to a cell when its config is the
+kitchen's too with `--tasks light kettle`; a task with more of paper.py's parts for another
+setting, e.g. `--tasks walker,medium-full`, or `walker,beta=10` for the weight ablations' cells
+of the methods that read beta, to `--frames 500000`): a run belongs to a cell when its config is the
 cell's but for its seeds, envs per seed, dtype and replay (`GRID_MAY_DIFFER`). Per cell: the
 seeds that trained --frames frames, the runs stopped short and how far, how many seeds are
 missing; then a command per stopped run that kept a checkpoint (its resume) and per missing seed
@@ -53,8 +54,8 @@ cell (sweeps included), each with the field that keeps it out. `python -m dear_j
 those commands as a queue over GPUs.
 
 `curves` is the paper's learning-curve figure (`dear_jax/plot.py`): one panel per task, one line
-per experiment (per setting of a sweep: the beta-sweep figure from the sweep's run), the mean
-over its pooled seeds with the spread shaded.
+per experiment (per setting of a sweep, a sweep's lanes pooled with runs of their setting: the
+beta-sweep figure), the mean over its pooled seeds with the spread shaded.
 """
 
 from __future__ import annotations
@@ -415,7 +416,10 @@ GRID_MAY_DIFFER = ("seed", "seeds", "envs_per_seed", "agent.compute_dtype", "rep
 
 
 SEEDS_PER_RUN_HELP = "missing seeds a new seed-run trains side by side, as lanes of one process"
-TASKS_HELP = "TASK or TASK,DIFFICULTY[,MASK] (configs/paper.py's parts), e.g. walker,medium-full"
+TASKS_HELP = (
+    "TASK or TASK,DIFFICULTY[,MASK][,WEIGHT=VALUE...] (configs/paper.py's parts), e.g. "
+    "walker,medium-full or walker,beta=10 (cells of the methods that read the weight)"
+)
 
 
 def grid_run_fields() -> tuple[str, ...]:
@@ -440,8 +444,9 @@ def _first_difference(fields: dict, ref: dict) -> str | None:
 
 
 def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000, taken=()) -> dict:
-    """The cells (`configs/paper.py:TASK,METHOD`; a task given as TASK,DIFFICULTY[,MASK], e.g.
-    "walker,medium-full": `configs/paper.py:TASK,METHOD,DIFFICULTY[,MASK]`) of the paper's grid
+    """The cells (`configs/paper.py:TASK,METHOD`; a task given with more of paper.py's parts, e.g.
+    "walker,medium-full" or "walker,beta=10": `configs/paper.py:TASK,METHOD,MORE`, for the methods
+    that read its weights) of the paper's grid
     as far as `workdirs` trained them (see the module docstring): {"cells": a row per cell,
     "outside": the runs in no cell, each with the field that keeps it out}. Two tasks of one
     setting (e.g. "walker" and "walker,medium", paper.py's default) are refused. A cell's
@@ -456,10 +461,14 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
     # A field a run's config lacks: what the code did before the field, else today's default.
     defaults = {**lanes.flatten(get_config().to_dict()), **ADDED_FIELDS}
     cells = {}
-    for given in tasks:  # TASK or TASK,DIFFICULTY[,MASK]
+    for given in tasks:  # TASK or TASK,DIFFICULTY[,MASK][,WEIGHT=VALUE...]
         name, *setting = (part.strip() for part in given.split(","))
         task = ",".join([name, *setting])
-        for method in methods:
+        weights = [part.split("=")[0].strip() for part in setting if "=" in part]
+        readers = [m for m in methods if all(m in lanes.USED_BY.get(w, (m,)) for w in weights)]
+        if not readers:
+            raise ValueError(f"task {given!r}: none of {', '.join(methods)} reads {weights}")
+        for method in readers:
             spec = ",".join([name, method, *setting])
             ref = lanes.flatten(paper.get_config(spec).to_dict())
             twin = next((c["task"] for c in cells.values() if c["ref"] == ref), None)
@@ -565,7 +574,7 @@ def grid_jobs(
     """The runs that complete `grid` (`grid_rows`) to `frames` frames per seed: first the stopped
     runs that kept a checkpoint and bring missing seeds (resumed in their workdirs), then the
     seed-runs of the missing seeds that no resume brings, in ROOT/TASK_METHOD_sSEED (a task given
-    with its difficulty: TASK_DIFFICULTY_METHOD_sSEED), task by task, the task's methods taking
+    with more parts: those too, e.g. walker_medium-full_dear_s0), task by task, the task's methods taking
     turns (a queue stopped part way leaves a task's methods with seeds alike). A seed-run trains
     `seeds_per_run` of a cell's missing seeds side by side (lanes of one process; the last of a
     cell the rest), from a config.seed no run of the cell used. `overrides`: more

@@ -826,6 +826,63 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
         report.grid_rows(runs, ["walker,loud"], ["dear"])
 
 
+def test_grid_cells_of_a_weight_setting(tmp_path):
+    """A task with WEIGHT=VALUE parts makes cells of that setting for the methods that read the
+    weight (alpha: DEAR and SEAR; beta: DEAR): runs given that weight count there (to --frames:
+    a 1M run counts at 500k), the paper's DEAR runs in beta=100's cell, which is the paper's
+    own (given twice: refused); new seed-runs carry the setting in their spec and workdir."""
+    from configs import paper
+
+    c = paper.get_config("walker,dear,alpha=0,beta=0")
+    assert (c.agent.alpha, c.agent.beta) == (0.0, 0.0)
+    assert paper.get_config("walker,dear,std_steps=1000").agent.std_steps == 1000  # an int field
+    for bad, message in (
+        ("walker,drqv2,beta=1", "'beta=1' in 'walker,drqv2,beta=1': sweep.beta has no effect"),
+        ("walker,dear,gamma=1", "unknown setting 'gamma' .*; valid: alpha, beta, "),
+        ("walker,dear,beta=x", "'beta=x' in .*: sweep.beta='x': give comma-separated numbers"),
+        ("walker,dear,beta=", "'beta=' in .*: give one number"),
+        ("walker,beta=1,dear", r"give TASK,METHOD\[,DIFFICULTY\[,MASK\]\]\[,WEIGHT=VALUE...\]"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            paper.get_config(bad)
+
+    def run(name, spec, seed, frames):
+        return paper_run(tmp_path / name, spec, seed, frames)
+
+    runs = [
+        run("dear_s0", "walker,dear", 0, 1_000_000),
+        run("beta10_s0", "walker,dear,beta=10", 0, 500_000),
+        run("alpha0_sear_s0", "walker,sear,alpha=0", 0, 500_000),
+        run("beta10_short", "walker,dear,beta=10", 1, 200_000),
+    ]
+    tasks = ["walker,beta=10", "walker,beta=100", "walker,alpha=0"]
+    grid = report.grid_rows(runs, tasks, paper.METHODS, seeds=2, frames=500_000)
+    got = {
+        (r["task"], r["method"]): (r["done"], r["short"], r["next_seeds"]) for r in grid["cells"]
+    }
+    here = tmp_path.name
+    assert got == {
+        ("walker,beta=10", "dear"): (
+            [f"{here}/beta10_s0"],
+            [f"{here}/beta10_short (200,000)"],
+            [2],
+        ),
+        ("walker,beta=100", "dear"): ([f"{here}/dear_s0"], [], [1]),
+        ("walker,alpha=0", "dear"): ([], [], [0, 1]),
+        ("walker,alpha=0", "sear"): ([f"{here}/alpha0_sear_s0"], [], [1]),
+    }
+    jobs = report.grid_jobs(grid, 500_000)
+    assert jobs[0].name == "walker_beta=10_dear_s2"
+    assert jobs[0].args[:2] == ("--config", "configs/paper.py:walker,dear,beta=10")
+    assert "--config.total_frames=500000" in jobs[0].args
+    with pytest.raises(ValueError, match="are one setting: give it once"):
+        report.grid_rows(runs, ["walker", "walker,beta=100"], ["dear"])
+    with pytest.raises(
+        ValueError, match=r"task 'walker,beta=1': none of drqv2, ted reads \['beta'\]"
+    ):
+        report.grid_rows(runs, ["walker,beta=1"], ["drqv2", "ted"])
+
+
 def test_cosines_set_the_evaluation_and_the_training_log_side_by_side(tmp_path, capsys):
     """`report cosines`, per seed: the last evaluation's cosines, and the training log's last
     rows (each the mean over the updates since the row before: updates x batch samples),

@@ -32,9 +32,11 @@
 #                       --set agent.compute_dtype=bfloat16 --set replay.disk=False`), its log in
 #                       runs/grid.out; `wait`, `stop` and `collect` treat it as a run (SIGTERM
 #                       reaches its runs). It takes the rest of the line: last stage. Two queues
-#                       side by side: give each its GPUs (`--gpus 0,1`), their cores and the second
-#                       a name: `CORES=0-31 bash benchmarks/device.sh grid ... --gpus 0,1`, then
+#                       side by side: give each its GPUs (`--gpus 0,1`), their cores, the second a
+#                       name, and tasks of their own (neither sees the other's cells):
+#                       `CORES=0-31 bash benchmarks/device.sh grid ... --gpus 0,1`, then
 #                       `GRID=ablations CORES=32-63 bash benchmarks/device.sh grid ... --gpus 2,3`
+#                       (runs/ablations.out)
 #   wait S              sleep up to S seconds while runs train, printing their last log lines;
 #                       returns early once none is running
 #   stop [NAME...]      SIGTERM the runs named (every run `start` began if none; each saves a
@@ -115,6 +117,8 @@ while [ $# -gt 0 ]; do
       ;;
     grid)
       name=${GRID:-grid} pin=()
+      [[ $name =~ ^[A-Za-z0-9_.-]+$ ]] || { echo "GRID names a queue (letters, digits, _.-), got '$name'" >&2; exit 2; }
+      alive "$name" && { echo "a queue named $name is running: give another GRID=NAME" >&2; exit 2; }
       [ -n "${CORES:-}" ] && pin=(taskset -c "$CORES")  # the cores its jobs share out
       setsid nohup "${pin[@]}" python3 -m dear_jax.grid "$@" --root runs >"runs/$name.out" 2>&1 </dev/null &
       echo $! >"runs/$name.pid"

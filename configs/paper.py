@@ -56,18 +56,27 @@ def get_config(spec: str = "walker,dear,medium") -> ConfigDict:
         if level != "none":
             c.env.distraction_types = "all" if full else "background"
     c.env.mask = mask
+    given = set()
     for part in weights:
         name, value = (x.strip() for x in part.split("=", 1))
         if name not in lanes.SWEEPABLE:
             valid = ", ".join(lanes.SWEEPABLE)
             raise ValueError(f"unknown setting {name!r} in {spec!r}; valid: {valid}")
-        probe = ConfigDict(c.to_dict())
-        probe.sweep[name] = value
-        try:  # a number, of a field the method reads
-            numbers = lanes.sweep_values(probe).get(name, ())
-        except ValueError as e:
-            raise ValueError(f"{part!r} in {spec!r}: {e}") from None
-        if len(numbers) != 1:
-            raise ValueError(f"{part!r} in {spec!r}: give one number, e.g. beta=10")
-        c.agent[name] = type(c.agent[name])(numbers[0])
+        if name in given:
+            raise ValueError(f"{name} given twice in {spec!r}")
+        given.add(name)
+        readers = lanes.USED_BY.get(name, METHODS)
+        if method not in readers:
+            raise ValueError(
+                f"{part!r} in {spec!r}: {method} does not read {name} (read by "
+                f"{', '.join(readers)})"
+            )
+        kind = type(c.agent[name])
+        try:
+            number = float(value)
+        except ValueError:
+            raise ValueError(f"{part!r} in {spec!r}: give a number, e.g. {name}=10") from None
+        if kind is int and not number.is_integer():
+            raise ValueError(f"{part!r} in {spec!r}: {name} is a whole number")
+        c.agent[name] = kind(number)
     return c

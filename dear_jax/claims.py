@@ -88,11 +88,15 @@ def experiments(workdirs, threshold: float, at: int | None, last: int) -> dict:
     for pool in plot.pools([pathlib.Path(w) for w in workdirs]):
         task, method = plot.task_name(pool.config), pool.config["agent"]["method"]
         runs = ", ".join(w.name for w in pool.workdirs)
-        if (task, method) in found:
-            setting = f" ({pool.label})" if pool.label else ""
+        if pool.changed:
             raise ValueError(
-                f"{runs}: a second experiment of {method} on {task}{setting}; claims compare "
-                "methods: give the runs of one experiment per method and task"
+                f"{runs}: {method} with its own {', '.join(pool.changed)} ({pool.label}: a sweep "
+                "or a weight setting); claims compare the methods as the paper sets them"
+            )
+        if (task, method) in found:
+            raise ValueError(
+                f"{runs}: a second experiment of {method} on {task}; give the runs of one "
+                "experiment per method and task"
             )
         rows, series = [], []
         for _, lane in pool.seeds:

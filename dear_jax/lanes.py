@@ -153,78 +153,95 @@ class Pool:
     (other machines, other days): `seeds` holds (workdir, lane folder) per seed, in the order
     the workdirs were given."""
 
-    config: dict  # the first workdir's config.json, its lane's swept values in `agent`, no sweep
-    label: str  # the swept numbers that set it apart ("beta=10"; "" where nothing does)
+    config: dict  # the first workdir's config.json
+    label: str  # its setting, e.g. "beta=10" (`pools`); "" for a method's own
     seeds: list[tuple[pathlib.Path, pathlib.Path]]
+    # The numbers in which it is not its method's own setting: swept, or a loss weight changed
+    changed: tuple[str, ...] = ()
 
     @property
     def workdirs(self) -> list[pathlib.Path]:
         return list(dict.fromkeys(w for w, _ in self.seeds))
 
 
-def _lane_fields(config: dict, lane: Lane, defaults: dict) -> dict:
-    """A lane's flattened config as a run of that setting alone would have it: its swept values
-    in `agent` (in the type the field has there), no sweep."""
-    fields = {**defaults, **flatten(config)}
-    for key in SWEEPABLE:
-        fields[f"sweep.{key}"] = ""
-    for key, value in lane.settings:
-        kind = type(fields.get(f"agent.{key}", value))
-        fields[f"agent.{key}"] = kind(value)
-    return fields
-
-
-def _unflatten(fields: dict) -> dict:
-    """{"a.b": 1} -> {"a": {"b": 1}}."""
-    out: dict = {}
-    for dotted, value in fields.items():
-        *parents, key = dotted.split(".")
-        node = out
-        for part in parents:
-            node = node.setdefault(part, {})
-        node[key] = value
-    return out
+def _reads(method: str, key: str) -> bool:
+    return method in USED_BY.get(key, (method,))
 
 
 def pools(workdirs, defaults: dict, ignored: tuple[str, ...]) -> list[Pool]:
-    """The workdirs' seeds pooled by experiment: two seeds belong to one experiment when their
-    lanes' configs (`_lane_fields`: a sweep's lane as a run of its setting alone) agree on every
-    field but `ignored` (the seeds, and what a run may change without changing what it learns),
-    a field a config lacks read from `defaults` (the trainer's config of today, flattened, so
-    runs logged before a field existed keep its default). So a sweep's beta=10 lanes and runs
-    given --config.agent.beta=10 pool, wherever and whenever they ran. A seed is (config.seed,
-    lane seed): the same seed of one experiment in two workdirs is refused, since it would be
-    counted twice. Each pool's label names its values of the swept numbers (`SWEEPABLE`) in
-    which it differs from another pool of the same task and method; "" where none."""
-    found: dict[str, tuple[dict, Pool]] = {}
-    origin: dict[tuple[str, tuple[int, int]], pathlib.Path] = {}
+    """The workdirs' lanes pooled by experiment: two workdirs hold seeds of the same experiment
+    when their config.json agree on every field but `ignored` (the seeds, and what a run may
+    change without changing what it learns) and the loss weights their method does not read, a
+    field a config lacks read from `defaults` (the trainer's config of today, flattened, so
+    runs logged before a field existed keep its default); lanes pool by setting. A seed is
+    (config.seed, lane seed): the same seed in two workdirs is refused, since it would be
+    counted twice.
+
+    A pool's label names its values of the per-lane numbers (`SWEEPABLE`) its method reads that
+    set it apart: those its run swept, the loss weights it changed from `defaults`, and those in
+    which it differs from another pool of its task and method ("beta=10_seed_0"'s "beta=10", or
+    "beta=100" for the paper's DEAR beside a beta=10 run); `changed` the first two."""
+    found: dict[tuple[str, str], Pool] = {}
+    values: dict[tuple[str, str], dict] = {}  # each pool's numbers, its lane's swept ones in
+    origin: dict[tuple[str, str, tuple[int, int]], pathlib.Path] = {}
     for workdir in map(pathlib.Path, workdirs):
-        groups(workdir)  # checks the workdir
+        by_setting = groups(workdir)
         config = json.loads((workdir / "config.json").read_text())
-        flat = flatten(config)
-        for lane in lanes(ConfigDict(config)):
-            fields = _lane_fields(config, lane, defaults)
-            kept = {k: v for k, v in fields.items() if k not in ignored and k != "seed"}
-            key = json.dumps(kept, sort_keys=True, default=str)
-            # The config as written, with the lane's values: no default fills a field it lacks.
-            own = {k: fields[k] for k in [*flat, *(f"agent.{k}" for k, _ in lane.settings)]}
-            _, pool = found.setdefault(key, (kept, Pool(_unflatten(own), "", [])))
-            seed = (config.get("seed", 0), lane.seed)
-            first = origin.setdefault((key, seed), workdir)
-            if first != workdir:
-                raise ValueError(
-                    f"{first} and {workdir} both trained seed {seed[1]} of config.seed="
-                    f"{seed[0]} of the same experiment: the same seed twice. Give each run "
-                    "of an experiment its own --config.seed"
-                )
-            pool.seeds.append((workdir, workdir / lane.name))
-    swept = tuple(f"agent.{k}" for k in SWEEPABLE)
-    for kept, pool in found.values():
-        rest = {k: v for k, v in kept.items() if k not in swept}
-        siblings = [other for other, _ in found.values() if rest.items() <= other.items()]
-        varying = [k for k in swept if len({json.dumps(s.get(k)) for s in siblings}) > 1]
-        pool.label = "_".join(f"{k.removeprefix('agent.')}={kept[k]:g}" for k in varying)
-    return [pool for _, pool in found.values()]
+        fields = {**defaults, **flatten(config)}
+        method = fields.get("agent.method")
+        for key in USED_BY:  # a weight its method does not read changes nothing
+            if not _reads(method, key) and f"agent.{key}" in defaults:
+                fields[f"agent.{key}"] = defaults[f"agent.{key}"]
+        key = json.dumps(
+            {k: v for k, v in fields.items() if k not in ignored and k != "seed"},
+            sort_keys=True,
+            default=str,
+        )
+        run_lanes = lanes(ConfigDict(config))
+        seed_of = {lane.name: lane.seed for lane in run_lanes}
+        for lane in run_lanes:
+            numbers = {k: _number(fields.get(f"agent.{k}")) for k in SWEEPABLE if _reads(method, k)}
+            numbers.update(lane.settings)
+            values.setdefault((key, lane.label), numbers)
+            changed = tuple(
+                k
+                for k, v in numbers.items()
+                if k in dict(lane.settings)
+                or (k in USED_BY and f"agent.{k}" in defaults and v != defaults[f"agent.{k}"])
+            )
+            found.setdefault((key, lane.label), Pool(config, "", [], changed))
+        for label, dirs in by_setting.items():
+            pool = found[key, label]
+            for lane_dir in dirs:
+                seed = (config.get("seed", 0), seed_of[lane_dir.name])
+                first = origin.setdefault((key, label, seed), workdir)
+                if first != workdir:
+                    raise ValueError(
+                        f"{first} and {workdir} both trained seed {seed[1]} of config.seed="
+                        f"{seed[0]} of the same experiment: the same seed twice. Give each run "
+                        "of an experiment its own --config.seed"
+                    )
+                pool.seeds.append((workdir, lane_dir))
+
+    def experiment(pool):
+        return pool.config.get("env", {}).get("task"), pool.config.get("agent", {}).get("method")
+
+    for pool_key, pool in found.items():
+        same = [values[k] for k, p in found.items() if experiment(p) == experiment(pool)]
+        mine = values[pool_key]
+        varying = {k for k in mine if len({json.dumps(v.get(k)) for v in same}) > 1}
+        pool.label = "_".join(
+            f"{k}={mine[k]:g}" if isinstance(mine[k], float) else f"{k}={mine[k]}"
+            for k in mine
+            if k in pool.changed or k in varying
+        )
+    return list(found.values())
+
+
+def _number(value):
+    """An int or float field's value as a float (1000 and 1000.0 are one setting)."""
+    is_number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    return float(value) if is_number else value
 
 
 def flatten(tree: dict, prefix: str = "") -> dict:

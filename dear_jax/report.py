@@ -44,8 +44,8 @@ magnitude |cos| how far from orthogonal each sample is.
 
 `grid` says how far the runs have taken the paper's grid (`configs/paper.py:TASK,METHOD`, the
 kitchen's too with `--tasks light kettle`; a task with more of paper.py's parts for another
-setting, e.g. `--tasks walker,medium-full`, or `walker,beta=10` for the weight ablations' cells
-of the methods that read beta, to `--frames 500000`): a run belongs to a cell when its config is the
+setting, e.g. `--tasks walker,medium-full`, or `walker,beta=10`: a weight ablation's cell, for
+the methods that read beta): a run belongs to a cell when its config is the
 cell's but for its seeds, envs per seed, dtype and replay (`GRID_MAY_DIFFER`). Per cell: the
 seeds that trained --frames frames, the runs stopped short and how far, how many seeds are
 missing; then a command per stopped run that kept a checkpoint (its resume) and per missing seed
@@ -54,8 +54,8 @@ cell (sweeps included), each with the field that keeps it out. `python -m dear_j
 those commands as a queue over GPUs.
 
 `curves` is the paper's learning-curve figure (`dear_jax/plot.py`): one panel per task, one line
-per experiment (per setting of a sweep, a sweep's lanes pooled with runs of their setting: the
-beta-sweep figure), the mean over its pooled seeds with the spread shaded.
+per experiment (per setting of a sweep: the beta-sweep figure from the sweep's run; labelled by
+the numbers that set it apart, `lanes.pools`), the mean over its pooled seeds with the spread shaded.
 """
 
 from __future__ import annotations
@@ -467,7 +467,8 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
         weights = [part.split("=")[0].strip() for part in setting if "=" in part]
         readers = [m for m in methods if all(m in lanes.USED_BY.get(w, (m,)) for w in weights)]
         if not readers:
-            raise ValueError(f"task {given!r}: none of {', '.join(methods)} reads {weights}")
+            read = ", ".join(weights)
+            raise ValueError(f"task {given!r}: none of {', '.join(methods)} reads {read}")
         for method in readers:
             spec = ",".join([name, method, *setting])
             ref = lanes.flatten(paper.get_config(spec).to_dict())

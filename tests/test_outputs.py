@@ -545,52 +545,52 @@ def test_seeds_of_one_experiment_pool_over_workdirs(tmp_path):
         plot.pools([a, twice])
 
 
-def test_a_sweeps_lanes_pool_with_runs_of_their_setting(tmp_path):
-    """A sweep's lane is a run of its setting alone: the beta=10 lanes of a sweep and a run given
-    agent.beta=10 are one experiment, the beta=100 lanes and a plain DEAR run (beta 100, the
-    default) another; each pool is labelled by the swept number that sets it apart, in the type
-    the field has (an int stays an int). Another seed-run of the same seed is refused."""
+def test_pools_are_labelled_by_the_numbers_that_set_them_apart(tmp_path):
+    """A pool's label names the per-lane numbers its method reads that set it apart: what its
+    run swept, a loss weight changed from the default, and what differs from another pool of
+    its task and method (an int field and its float are one value). A weight the method does
+    not read changes nothing: such runs pool. A sweep's lanes stay their own experiment."""
     from configs import base
 
-    def run(name, seed, sweep=None, **agent):
-        c = base.make("walker", "dear")
+    def run(name, seed, method="dear", sweep=None, task="walker", **agent):
+        c = base.make(task, method)
         c.seeds, c.seed = 3, seed
         c.agent.update(agent)
         c.sweep.update(sweep or {})
         fields = c.to_dict()
-        workdir = _fake_workdir(tmp_path, name, "dear", sweep=fields.pop("sweep"), **fields)
+        workdir = _fake_workdir(tmp_path, name, method, sweep=fields.pop("sweep"), **fields)
         summary = {"frames_per_seed": 30_000, "wall_s": 100.0, "action_dim": 6}
         (workdir / "summary.json").write_text(json.dumps(summary))
         return workdir
 
-    sweep = run("sweep", 0, sweep={"beta": "10,100"})
-    beta10 = run("beta10", 1, beta=10.0)
-    plain = run("plain", 2)
-    steps = run("steps", 3, sweep={"std_steps": "1000"})
-    assert base.make("walker", "dear").agent.beta == 100.0
-    pools = plot.pools([sweep, beta10, plain, steps])
-    got = {p.label: [(w.name, d.name) for w, d in p.seeds] for p in pools}
-    assert got == {
-        "beta=10_std_steps=500000": [("sweep", f"beta=10_seed_{s}") for s in range(3)]
-        + [("beta10", f"seed_{s}") for s in range(3)],
-        "beta=100_std_steps=500000": [("sweep", f"beta=100_seed_{s}") for s in range(3)]
-        + [("plain", f"seed_{s}") for s in range(3)],
-        "beta=100_std_steps=1000": [("steps", f"std_steps=1000_seed_{s}") for s in range(3)],
-    }
-    assert [p.config["agent"]["beta"] for p in pools] == [10.0, 100.0, 100.0]
-    assert [type(p.config["agent"]["std_steps"]) for p in pools] == [int, int, int]
-    assert all(not any(p.config["sweep"].values()) for p in pools)
-    # Without the std_steps run, beta alone tells the pools apart.
-    assert [p.label for p in plot.pools([sweep, plain])] == ["beta=10", "beta=100"]
-    assert [p.label for p in plot.pools([plain])] == [""]
-    rows = report.pooled_rows([sweep, beta10], threshold=150.0)
-    assert [(r["run"], r["seeds"]) for r in rows] == [
-        ("sweep (3) + beta10 (3) beta=10", 6),
-        ("sweep beta=100", 3),
+    def labels(*workdirs):
+        return [(p.workdirs[0].name, p.label, p.changed) for p in plot.pools(workdirs)]
+
+    plain, beta10 = run("plain", 0), run("beta10", 1, beta=10.0)
+    assert labels(plain) == [("plain", "", ())]
+    assert labels(beta10) == [("beta10", "beta=10", ("beta",))]
+    assert labels(plain, beta10) == [("plain", "beta=100", ()), ("beta10", "beta=10", ("beta",))]
+    steps = run("steps", 2, std_steps=1000)
+    assert labels(plain, steps) == [
+        ("plain", "std_steps=500000", ()),
+        ("steps", "std_steps=1000", ()),
     ]
-    twice = run("beta10_again", 0, beta=10.0)  # the sweep's seed 0 of beta=10
-    with pytest.raises(ValueError, match="both trained seed 0 of config.seed=0"):
-        plot.pools([sweep, twice])
+    # Swept: the sweep's keys, even one of a single value; its lanes are not the plain run's.
+    sweep = run("sweep", 0, sweep={"alpha": "0", "beta": "0,100"})
+    assert labels(sweep, plain) == [
+        ("sweep", "alpha=0_beta=0", ("alpha", "beta")),
+        ("sweep", "alpha=0_beta=100", ("alpha", "beta")),
+        ("plain", "alpha=0.25_beta=100", ()),
+    ]
+    # DrQ-v2 reads neither weight: runs differing only in beta are one experiment.
+    drq, drq_beta = run("drq", 0, method="drqv2"), run("drq_beta", 1, method="drqv2", beta=10.0)
+    ((_, label, changed),) = labels(drq, drq_beta)
+    assert (label, changed) == ("", ())
+    assert len(plot.pools([drq, drq_beta])[0].seeds) == 6
+    rows = report.pooled_rows([plain, beta10], threshold=150.0)
+    assert [r["run"] for r in rows] == ["plain beta=100", "beta10 beta=10"]
+    out = report.main(["curves", str(plain), str(beta10), "--out", str(tmp_path / "c.png")])
+    assert cv2.imread(str(out)).std() > 0
 
 
 def test_plot_draws_a_line_per_setting_of_a_sweep(tmp_path):
@@ -654,13 +654,22 @@ def test_the_papers_claims_are_checked_per_task_on_the_seeds(tmp_path):
     assert efficiency_vs_ted(260)["evidence"].endswith("ratio 1.00")
     assert efficiency_vs_ted(300)["verdict"] == "undecided: the runs are too short to tell"
     assert efficiency_vs_ted(360)["verdict"] == "undecided: neither's median seed reaches it"
-    # Without SEAR, its claims say so; a second DEAR experiment on the task is refused.
+    # Without SEAR, its claims say so; a second DEAR experiment on the task is refused, and so
+    # are DEAR with a loss weight of its own and a sweep's lanes.
     without = {r["claim"]: r["verdict"] for r in claims.check(runs[::2], threshold=200)}
     assert without["DEAR's return >= SEAR's"] == "no data: no SEAR run"
     assert without["DEAR's |cos| far below SEAR's"] == "no data: no SEAR run"
-    other = _fake_workdir(tmp_path, "dear_beta", "dear", agent={"method": "dear", "beta": 1.0})
-    with pytest.raises(ValueError, match="dear_beta: a second experiment of dear on walker-walk"):
+    other = _fake_workdir(
+        tmp_path, "dear_noisy", "dear", env={"task": "walker-walk", "mask": "noisy"}
+    )
+    with pytest.raises(ValueError, match="dear_noisy: a second experiment of dear on walker-walk"):
         claims.check([runs[0], other])
+    beta = _fake_workdir(tmp_path, "dear_beta", "dear", agent={"method": "dear", "beta": 1.0})
+    with pytest.raises(ValueError, match=r"dear_beta: dear with its own beta \(beta=1: a sweep "):
+        claims.check([beta])
+    sweep = _fake_workdir(tmp_path, "dear_sweep", "dear", sweep={"beta": "100"})
+    with pytest.raises(ValueError, match=r"dear_sweep: dear with its own beta \(beta=100: "):
+        claims.check([sweep])
     out = tmp_path / "claims"
     report.main(["claims", *map(str, runs), "--threshold", "200", "--last", "2", "--out", str(out)])
     saved = json.loads(out.with_suffix(".json").read_text())
@@ -837,10 +846,12 @@ def test_grid_cells_of_a_weight_setting(tmp_path):
     assert (c.agent.alpha, c.agent.beta) == (0.0, 0.0)
     assert paper.get_config("walker,dear,std_steps=1000").agent.std_steps == 1000  # an int field
     for bad, message in (
-        ("walker,drqv2,beta=1", "'beta=1' in 'walker,drqv2,beta=1': sweep.beta has no effect"),
+        ("walker,drqv2,beta=1", r"'beta=1' in 'walker,drqv2,beta=1': drqv2 does not read beta \("),
         ("walker,dear,gamma=1", "unknown setting 'gamma' .*; valid: alpha, beta, "),
-        ("walker,dear,beta=x", "'beta=x' in .*: sweep.beta='x': give comma-separated numbers"),
-        ("walker,dear,beta=", "'beta=' in .*: give one number"),
+        ("walker,dear,beta=x", "'beta=x' in .*: give a number, e.g. beta=10"),
+        ("walker,dear,beta=", "'beta=' in .*: give a number"),
+        ("walker,dear,beta=1,beta=2", "beta given twice in 'walker,dear,beta=1,beta=2'"),
+        ("walker,dear,std_steps=10.5", "std_steps is a whole number"),
         ("walker,beta=1,dear", r"give TASK,METHOD\[,DIFFICULTY\[,MASK\]\]\[,WEIGHT=VALUE...\]"),
     ):
         with pytest.raises(ValueError, match=message):
@@ -877,9 +888,7 @@ def test_grid_cells_of_a_weight_setting(tmp_path):
     assert "--config.total_frames=500000" in jobs[0].args
     with pytest.raises(ValueError, match="are one setting: give it once"):
         report.grid_rows(runs, ["walker", "walker,beta=100"], ["dear"])
-    with pytest.raises(
-        ValueError, match=r"task 'walker,beta=1': none of drqv2, ted reads \['beta'\]"
-    ):
+    with pytest.raises(ValueError, match="task 'walker,beta=1': none of drqv2, ted reads beta"):
         report.grid_rows(runs, ["walker,beta=1"], ["drqv2", "ted"])
 
 

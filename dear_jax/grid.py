@@ -12,8 +12,8 @@ with more of paper.py's parts makes cells of that setting: `--tasks walker,mediu
 full suite, `walker,beta=10` of a weight ablation's setting, for the methods that read beta). The
 queue (`report.grid_jobs`): first the stopped runs that kept a checkpoint and bring missing
 seeds, resumed in their workdirs, then one seed-run per missing seed (--seeds-per-run K: per K
-missing seeds, trained as lanes of one process) in --root as TASK_METHOD_sSEED
-(with the task's other parts: walker_beta=10_dear_s0), task by task, the methods of a task taking turns.
+missing seeds, trained as lanes of one process) in --root as TASK_METHOD_sSEED (with the
+task's other parts: walker_beta=10_dear_s0), task by task, the methods of a task taking turns.
 
 Each GPU (`--gpus`: ids as CUDA_VISIBLE_DEVICES takes them, in nvidia-smi's PCI order; default
 every GPU visible) runs --per-gpu jobs at a time, each pinned (taskset) to its equal share of

@@ -182,7 +182,7 @@ def pools(workdirs, defaults: dict, ignored: tuple[str, ...]) -> list[Pool]:
     which it differs from another pool of its task and method ("beta=10_seed_0"'s "beta=10", or
     "beta=100" for the paper's DEAR beside a beta=10 run); `changed` the first two."""
     found: dict[tuple[str, str], Pool] = {}
-    values: dict[tuple[str, str], dict] = {}  # each pool's numbers, its lane's swept ones in
+    values: dict[tuple[str, str], dict] = {}  # each pool's per-lane numbers (its lane's values)
     origin: dict[tuple[str, str, tuple[int, int]], pathlib.Path] = {}
     for workdir in map(pathlib.Path, workdirs):
         by_setting = groups(workdir)
@@ -203,10 +203,11 @@ def pools(workdirs, defaults: dict, ignored: tuple[str, ...]) -> list[Pool]:
             numbers = {k: _number(fields.get(f"agent.{k}")) for k in SWEEPABLE if _reads(method, k)}
             numbers.update(lane.settings)
             values.setdefault((key, lane.label), numbers)
+            swept = dict(lane.settings)
             changed = tuple(
                 k
                 for k, v in numbers.items()
-                if k in dict(lane.settings)
+                if k in swept
                 or (k in USED_BY and f"agent.{k}" in defaults and v != defaults[f"agent.{k}"])
             )
             found.setdefault((key, lane.label), Pool(config, "", [], changed))

@@ -55,7 +55,7 @@ those commands as a queue over GPUs.
 
 `curves` is the paper's learning-curve figure (`dear_jax/plot.py`): one panel per task, one line
 per experiment (per setting of a sweep: the beta-sweep figure from the sweep's run; labelled by
-the numbers that set it apart, `lanes.pools`), the mean over its pooled seeds with the spread shaded.
+the numbers that set it apart, `lanes.pools`), the mean over its pooled seeds, the spread shaded.
 """
 
 from __future__ import annotations
@@ -446,8 +446,8 @@ def _first_difference(fields: dict, ref: dict) -> str | None:
 def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000, taken=()) -> dict:
     """The cells (`configs/paper.py:TASK,METHOD`; a task given with more of paper.py's parts, e.g.
     "walker,medium-full" or "walker,beta=10": `configs/paper.py:TASK,METHOD,MORE`, for the methods
-    that read its weights) of the paper's grid
-    as far as `workdirs` trained them (see the module docstring): {"cells": a row per cell,
+    that read its weights) of the paper's grid as far as `workdirs` trained them (see the module
+    docstring): {"cells": a row per cell,
     "outside": the runs in no cell, each with the field that keeps it out}. Two tasks of one
     setting (e.g. "walker" and "walker,medium", paper.py's default) are refused. A cell's
     "resume" lists the stopped runs that kept a checkpoint and bring seeds it misses (furthest
@@ -575,8 +575,8 @@ def grid_jobs(
     """The runs that complete `grid` (`grid_rows`) to `frames` frames per seed: first the stopped
     runs that kept a checkpoint and bring missing seeds (resumed in their workdirs), then the
     seed-runs of the missing seeds that no resume brings, in ROOT/TASK_METHOD_sSEED (a task given
-    with more parts: those too, e.g. walker_medium-full_dear_s0), task by task, the task's methods taking
-    turns (a queue stopped part way leaves a task's methods with seeds alike). A seed-run trains
+    with more parts: those too, e.g. walker_medium-full_dear_s0), task by task, the task's methods
+    taking turns (a queue stopped part way leaves a task's methods with seeds alike). A seed-run trains
     `seeds_per_run` of a cell's missing seeds side by side (lanes of one process; the last of a
     cell the rest), from a config.seed no run of the cell used. `overrides`: more
     `--config.FIELD=VALUE` arguments for the new seed-runs. Job names are unique (suffixes _1,

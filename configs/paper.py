@@ -65,8 +65,8 @@ def get_config(spec: str = "walker,dear,medium") -> ConfigDict:
         if name in given:
             raise ValueError(f"{name} given twice in {spec!r}")
         given.add(name)
-        readers = lanes.USED_BY.get(name, METHODS)
-        if method not in readers:
+        if not lanes.reads(method, name):
+            readers = lanes.USED_BY[name]
             raise ValueError(
                 f"{part!r} in {spec!r}: {method} does not read {name} (read by "
                 f"{', '.join(readers)})"

@@ -47,6 +47,11 @@ USED_BY = {
 }
 
 
+def reads(method: str, key: str) -> bool:
+    """Whether `method`'s update reads agent.`key` (every method reads the non-weights)."""
+    return method in USED_BY.get(key, (method,))
+
+
 def default_sweep() -> ConfigDict:
     """configs/base.py's `sweep`: every sweepable key, empty (not swept)."""
     return ConfigDict(dict.fromkeys(SWEEPABLE, ""))
@@ -96,7 +101,7 @@ def sweep_values(config: ConfigDict) -> dict[str, tuple[float, ...]]:
         if not values:
             continue
         method = config.agent.method
-        if method not in USED_BY.get(key, (method,)):
+        if not reads(method, key):
             raise ValueError(
                 f"sweep.{key} has no effect on agent.method={method!r}: only "
                 f"{', '.join(USED_BY[key])} use agent.{key}"
@@ -164,10 +169,6 @@ class Pool:
         return list(dict.fromkeys(w for w, _ in self.seeds))
 
 
-def _reads(method: str, key: str) -> bool:
-    return method in USED_BY.get(key, (method,))
-
-
 def pools(workdirs, defaults: dict, ignored: tuple[str, ...]) -> list[Pool]:
     """The workdirs' lanes pooled by experiment: two workdirs hold seeds of the same experiment
     when their config.json agree on every field but `ignored` (the seeds, and what a run may
@@ -190,7 +191,7 @@ def pools(workdirs, defaults: dict, ignored: tuple[str, ...]) -> list[Pool]:
         fields = {**defaults, **flatten(config)}
         method = fields.get("agent.method")
         for key in USED_BY:  # a weight its method does not read changes nothing
-            if not _reads(method, key) and f"agent.{key}" in defaults:
+            if not reads(method, key) and f"agent.{key}" in defaults:
                 fields[f"agent.{key}"] = defaults[f"agent.{key}"]
         key = json.dumps(
             {k: v for k, v in fields.items() if k not in ignored and k != "seed"},
@@ -200,7 +201,7 @@ def pools(workdirs, defaults: dict, ignored: tuple[str, ...]) -> list[Pool]:
         run_lanes = lanes(ConfigDict(config))
         seed_of = {lane.name: lane.seed for lane in run_lanes}
         for lane in run_lanes:
-            numbers = {k: _number(fields.get(f"agent.{k}")) for k in SWEEPABLE if _reads(method, k)}
+            numbers = {k: _number(fields.get(f"agent.{k}")) for k in SWEEPABLE if reads(method, k)}
             numbers.update(lane.settings)
             values.setdefault((key, lane.label), numbers)
             swept = dict(lane.settings)

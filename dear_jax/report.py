@@ -465,7 +465,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
         name, *setting = (part.strip() for part in given.split(","))
         task = ",".join([name, *setting])
         weights = [part.split("=")[0].strip() for part in setting if "=" in part]
-        readers = [m for m in methods if all(m in lanes.USED_BY.get(w, (m,)) for w in weights)]
+        readers = [m for m in methods if all(lanes.reads(m, w) for w in weights)]
         if not readers:
             read = ", ".join(weights)
             raise ValueError(f"task {given!r}: none of {', '.join(methods)} reads {read}")

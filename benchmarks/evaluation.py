@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import collections
 import os
-import runpy
 import shutil
 import signal
 import subprocess
@@ -43,6 +42,7 @@ import numpy as np  # noqa: E402
 
 from benchmarks.common import save_json  # noqa: E402
 from dear_jax import evaluator, experiment, update  # noqa: E402
+from dear_jax.config import load_config  # noqa: E402
 from dear_jax.logger import format_table  # noqa: E402
 
 STAGES = ("policy", "physics", "render", "post", "video")
@@ -181,7 +181,7 @@ def main():
         policy_on, _, env_on = placement.partition(":")
         if policy_on not in ("accelerator", "cpu") or env_on not in ("default", "cpu"):
             p.error(f"placement {placement!r}: POLICY in accelerator/cpu, ENV in default/cpu")
-    config = runpy.run_path(args.config)["get_config"]()
+    config = load_config(args.config)  # e.g. configs/paper.py:walker,dear
     config.seeds = args.seeds
     config.env.episode_frames = args.steps * config.env.action_repeat
     cores = sorted(os.sched_getaffinity(0))

@@ -19,7 +19,6 @@ import argparse
 import functools
 import logging
 import pathlib
-import runpy
 import tempfile
 import time
 
@@ -29,7 +28,7 @@ import numpy as np
 
 from benchmarks.common import save_json
 from dear_jax import experiment, replay, train, update
-from dear_jax.config import check_override_keys
+from dear_jax.config import check_override_keys, load_config
 from dear_jax.logger import format_table, read_csv
 from dear_jax.programs import build_programs
 from dear_jax.signals import Stopped
@@ -40,8 +39,7 @@ PYTORCH_ANCHOR_FPS = (
 
 
 def bench_config(args):
-    path, *spec = args.config.split(":", 1)  # e.g. configs/paper.py:walker,dear
-    c = runpy.run_path(path)["get_config"](*spec)
+    c = load_config(args.config)  # e.g. configs/paper.py:walker,dear
     c.seeds, c.envs_per_seed = args.seeds, args.envs
     c.replay.seed_frames = args.warmup_frames // 2
     c.total_frames = args.warmup_frames + args.frames

@@ -44,6 +44,12 @@ def get_config() -> ConfigDict:
     # process on a GPU (it slowed training least there), "cpu" on a CPU-only machine, "train"
     # for a run of several processes (their evaluations are programs over every process's lanes).
     c.eval_device = "auto"
+    # Evaluation processes side by side ("cpu" or "accelerator"): the k-th evaluation goes to
+    # process k mod N, each with its own stream of episodes. More than one lets the next
+    # evaluation start while one still runs, where one outlasts the training between two (on
+    # the paper's grid, finger's DrQ-v2 and TED trained that far in 6.7 s and an evaluation took
+    # 9.6: the loop waited for them; benchmarks/RESULTS.md, "Evaluation").
+    c.eval_processes = 1
     c.log_every_frames = 5_000  # per seed: train metrics to CSV / TensorBoard
     c.checkpoint_every_frames = 100_000  # per seed; 0 disables periodic checkpoints
     c.keep_checkpoints = 3

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import difflib
 import pathlib
+import runpy
 
 from ml_collections import ConfigDict
 
@@ -53,3 +54,13 @@ def resolve_config_path(name: str, configs_dir: str | pathlib.Path) -> pathlib.P
         f"config file {name!r} not found (nor in {configs_dir}).{hint} "
         f"Configs in {configs_dir}: {', '.join(available)}"
     )
+
+
+CONFIGS = pathlib.Path(__file__).resolve().parent.parent / "configs"
+
+
+def load_config(value: str) -> ConfigDict:
+    """The config `run.py --config=VALUE` trains: a file path or a bare name in configs/, and
+    after a colon the string its get_config() takes (e.g. "paper.py:walker,dear")."""
+    name, *spec = value.split(":", 1)
+    return runpy.run_path(str(resolve_config_path(name, CONFIGS)))["get_config"](*spec)

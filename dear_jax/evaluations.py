@@ -1,12 +1,13 @@
 """The training loop's evaluations: when one is due, starting it (in a background thread while
 training goes on, or at once), and logging each one's row when it has ended, in order.
 
-Background evaluations run one at a time, in order, and queue: the loop waits only when
-MAX_PENDING_EVALS are already started and not logged, so one evaluation that outlasts the
-training between two of them does not stall the loop. Each still evaluates the parameters of
-its own frame, on the eval env's next episodes, as it would unqueued. Evaluations draw from
-their own stream of keys (one per frame), so how often a run evaluates never changes its
-training.
+Background evaluations run one at a time per evaluator (config.eval_processes of them side by
+side: the one of index frame // eval_every_frames mod N), in order, and queue: the loop waits
+only when MAX_PENDING_EVALS + N - 1 are already started and not logged, so one evaluation that
+outlasts the training between two of them does not stall the loop. Each still evaluates the
+parameters of its own frame, on its evaluator's next episodes, as it would unqueued. Evaluations
+draw from their own stream of keys (one per frame), so how often a run evaluates never changes
+its training.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import numpy as np
 
 from dear_jax.carry import Carry
 from dear_jax.devices import Hosts
-from dear_jax.evaluator import EvalAborted, EvalProcess, LocalEvaluator
+from dear_jax.evaluator import EvalAborted, EvalProcess, EvalProcesses, LocalEvaluator
 from dear_jax.logger import RunLogger
 from dear_jax.progress import Progress
 
@@ -45,12 +46,13 @@ def eval_due(carry: Carry, total_frames: int) -> bool:
 
 class Evaluations:
     """The queue of evaluations started and not yet logged, oldest first. `background`: in a
-    thread of their own (`config.eval_in_background`; one process only: several processes must
-    issue their programs in the same order); else each runs when it is started."""
+    thread of their own per evaluator slot (`config.eval_in_background`; one process only:
+    several processes must issue their programs in the same order); else each runs when it is
+    started."""
 
     def __init__(
         self,
-        evaluator: LocalEvaluator | EvalProcess,
+        evaluator: LocalEvaluator | EvalProcess | EvalProcesses,
         carry: Carry,
         *,
         hosts: Hosts,
@@ -70,11 +72,16 @@ class Evaluations:
         self.logger, self.progress = logger, progress
         self.pending: collections.deque[dict] = collections.deque()
         self.closing = False  # the loop has ended: evaluations still in this process abort
-        self.thread = (
-            concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="eval")
+        # One thread per evaluator: each runs its evaluations in the order they were started.
+        self.threads = (
+            [
+                concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=f"eval{i}")
+                for i in range(evaluator.slots)
+            ]
             if background
             else None
         )
+        self.max_pending = MAX_PENDING_EVALS + evaluator.slots - 1
 
     @property
     def beside_training(self) -> bool:
@@ -82,7 +89,7 @@ class Evaluations:
         its own), its steps' programs queued among the training's."""
         return (
             bool(self.pending)
-            and self.thread is not None
+            and self.threads is not None
             and isinstance(self.evaluator, LocalEvaluator)
         )
 
@@ -94,8 +101,11 @@ class Evaluations:
         lv, frame = self.carry.lv, self.carry.counters["frame"]
         if not eval_due(self.carry, self.total_frames) or stop:
             return
-        background = self.thread is not None
-        self.finish(keep=MAX_PENDING_EVALS - 1 if background else 0)
+        background = self.threads is not None
+        self.finish(keep=self.max_pending - 1 if background else 0)
+        # Which evaluator: from the frame, so that a resumed run evaluates where it would have.
+        slot = frame // self.every_frames % self.evaluator.slots
+        evaluator = self.evaluator.evaluator_for(slot)
         # A copy: the loop donates the agent's buffers to its next update.
         params = self.carry.agent.params
         params = jax.tree.map(jnp.copy, params) if background else params
@@ -110,7 +120,7 @@ class Evaluations:
             # (or in their own process) run to their end first, so the checkpoint after them
             # holds their rows. A loop that fails ends those in this process (`closing`).
             abort = (lambda: self.closing) if background else (lambda: bool(stop))
-            metrics = self.evaluator.evaluate(params, key, videos=videos, stop=abort)
+            metrics = evaluator.evaluate(params, key, videos=videos, stop=abort)
             return metrics, time.perf_counter() - t0
 
         pending = {"frame": frame, "wall_s": wall_s}
@@ -120,7 +130,7 @@ class Evaluations:
         lv["last_eval_frame"] = frame
         lv["next_eval"] = (frame // self.every_frames + 1) * self.every_frames
         if background:
-            pending["future"] = self.thread.submit(run)
+            pending["future"] = self.threads[slot].submit(run)
         else:
             pending["future"] = future = concurrent.futures.Future()
             try:
@@ -168,7 +178,8 @@ class Evaluations:
         """After the loop (also after a failure): no evaluation in this process is left running
         on the env the run closes next: it aborts at its next step. (The evaluation process's
         `close` waits for the child instead.)"""
-        if self.thread is not None:
+        if self.threads is not None:
             self.closing = True
             local = isinstance(self.evaluator, LocalEvaluator)
-            self.thread.shutdown(wait=local, cancel_futures=True)
+            for thread in self.threads:
+                thread.shutdown(wait=local, cancel_futures=True)

@@ -39,6 +39,7 @@ import multiprocessing
 import os
 import pickle
 import signal
+import threading
 import time
 import traceback
 
@@ -104,6 +105,12 @@ def evaluate(env, step, params, key, *, video: bool, stop=lambda: False, hosts=N
     return metrics, clips
 
 
+def eval_states(state: dict) -> list[dict]:
+    """The eval envs' host states in a checkpoint's `eval_env_rng`: one per evaluation process
+    (`EvalProcesses`), or the one of a single evaluator."""
+    return list(state["processes"]) if "processes" in state else [state]
+
+
 def write_videos(clips: dict, paths) -> None:
     """Each seed's clip (`evaluate`'s) to its path, paths[seed] (a .mp4 path or None: not written)."""
     for s, clip in clips.items():
@@ -115,14 +122,20 @@ class LocalEvaluator:
     """Evaluations in this process: `env` (on the training's devices) and the training's
     `Programs.evaluate_step`."""
 
+    slots = 1  # evaluations at once
+
     def __init__(self, env, step, hosts=None):
         self.env, self.step, self.hosts = env, step, hosts
+
+    def evaluator_for(self, index: int) -> LocalEvaluator:
+        """The evaluator of a run's index-th evaluation: this one."""
+        return self
 
     def host_state(self) -> dict:
         return self.env.host_state()
 
     def set_host_state(self, state: dict) -> None:
-        self.env.set_host_state(state)
+        self.env.set_host_state(eval_states(state)[0])
 
     def evaluate(self, params, key, *, videos=None, stop=lambda: False) -> dict:
         """Per-seed metrics; with `videos` (a path or None per seed), writes those videos."""
@@ -144,20 +157,34 @@ class EvalProcess:
     this side closes the pipe (or exits, even by SIGKILL). It ignores SIGINT and SIGTERM: the
     training process handles those, and lets the evaluations in flight or queued end before it
     checkpoints.
-    An evaluation here always runs to its end (`stop` is not read)."""
+    An evaluation here always runs to its end (`stop` is not read). Calls from several threads
+    take turns. `stream`: which of config.eval_processes this is (`EvalProcesses`): its eval
+    env's seed."""
 
-    def __init__(self, config):
+    slots = 1
+
+    def __init__(self, config, stream: int = 0):
         # Never fork a process that holds CUDA: the process's fork server (as the render
         # workers', envs/render_pool.py) holds none and forks it with jax and the envs imported.
         ctx = multiprocessing.get_context("forkserver")
         ctx.set_forkserver_preload(["dear_jax.evaluator"])
         self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_serve, args=(child, pickle.dumps(config)), name="eval")
+        self._proc = ctx.Process(
+            target=_serve, args=(child, pickle.dumps(config), stream), name=f"eval{stream}"
+        )
         self._proc.start()
         child.close()
         self._state = None  # the eval env's host state, as of the last answer
+        self._lock = threading.Lock()  # one request and its answer at a time
+
+    def evaluator_for(self, index: int) -> EvalProcess:
+        return self
 
     def _call(self, *request, timeout: float | None = None):
+        with self._lock:
+            return self._exchange(request, timeout)
+
+    def _exchange(self, request: tuple, timeout: float | None):
         if request:
             self._conn.send(request)
         start = time.monotonic()
@@ -173,8 +200,9 @@ class EvalProcess:
         return payload
 
     def _ready(self) -> None:
-        if self._state is None:  # its first answer: built, with the env's initial host state
-            self._call(timeout=_START_TIMEOUT_S)
+        with self._lock:
+            if self._state is None:  # its first answer: built, with the env's initial host state
+                self._exchange((), _START_TIMEOUT_S)
 
     def host_state(self) -> dict:
         self._ready()
@@ -182,7 +210,7 @@ class EvalProcess:
 
     def set_host_state(self, state: dict) -> None:
         self._ready()
-        self._call("set_host_state", state)
+        self._call("set_host_state", eval_states(state)[0])
 
     def evaluate(self, params, key, *, videos=None, stop=lambda: False) -> dict:
         """As LocalEvaluator.evaluate; the child writes the videos."""
@@ -212,7 +240,39 @@ class EvalProcess:
         self.close()
 
 
-def _serve(conn, config_bytes: bytes) -> None:
+class EvalProcesses:
+    """config.eval_processes evaluation processes side by side: a run's index-th evaluation
+    runs in process index mod N (`evaluator_for`), so that the next can start while one still
+    runs. Process i draws its episodes from its own stream (`experiment.make_eval_env`); the host
+    state a checkpoint keeps is every process's, and one saved by fewer processes (or a single
+    evaluator) restores theirs, the others starting their streams afresh."""
+
+    def __init__(self, config):
+        self.processes = [EvalProcess(config, stream=i) for i in range(config.eval_processes)]
+        self.slots = len(self.processes)
+
+    def evaluator_for(self, index: int) -> EvalProcess:
+        return self.processes[index % self.slots]
+
+    def host_state(self) -> dict:
+        return {"processes": [p.host_state() for p in self.processes]}
+
+    def set_host_state(self, state: dict) -> None:
+        for process, saved in zip(self.processes, eval_states(state)):
+            process.set_host_state(saved)
+
+    def close(self) -> None:
+        for process in self.processes:
+            process.close()
+
+    def __enter__(self) -> EvalProcesses:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _serve(conn, config_bytes: bytes, stream: int = 0) -> None:
     """The child: build the eval env and the policy (on the host's CPU, or on the accelerator),
     then answer requests."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -233,6 +293,7 @@ def _serve(conn, config_bytes: bytes) -> None:
             config,
             policy_on="accelerator" if on_accelerator else "cpu",
             env_on="cpu" if config.env.eval_backend == "cpu" else "default",
+            stream=stream,
         )
         conn.send(("ok", None, env.host_state()))
         while True:
@@ -272,7 +333,7 @@ def spare_device(devices: list, training) -> jax.Device:
     return devices[used] if used < len(devices) else devices[0]
 
 
-def build(config, *, policy_on: str, env_on: str = "default"):
+def build(config, *, policy_on: str, env_on: str = "default", stream: int = 0):
     """The evaluation process's env and policy: (env, step, place), `place` putting the policy's
     parameters where `step` runs them.
 
@@ -281,7 +342,7 @@ def build(config, *, policy_on: str, env_on: str = "default"):
     "cpu": the float32 policy on XLA:CPU. env_on: where the env's array work (uploads, frame
     stack, compositing) runs, the process's default device ("default") or XLA:CPU ("cpu", which
     sets the process's default device, with CPU physics only; the evaluation process's choice
-    with CPU physics). The env is `experiment.make_eval_env`'s: CPU physics on
+    with CPU physics). The env is `experiment.make_eval_env`'s (of evaluation process `stream`): CPU physics on
     env.eval_physics_threads threads. On an H100 beside a training run, ms per evaluation step
     of the DrQ-v2 learning check (benchmarks/evaluation.py --load): policy on the accelerator
     with the env "default" 34.7 (1 physics thread) / 30.9 (8), "cpu" 28.9 / 24.5; policy and env
@@ -309,7 +370,7 @@ def build(config, *, policy_on: str, env_on: str = "default"):
             jax.config.update("jax_default_device", policy_device)
     else:
         policy_device = jax.devices("cpu")[0]
-    env = make_eval_env(config, hosts=Hosts(None, lanes.num_lanes(config)))
+    env = make_eval_env(config, hosts=Hosts(None, lanes.num_lanes(config)), stream=stream)
     acfg = agent_config(config, env.spec.action_dim)
     programs = build_programs(acfg, hparams(config), config)
     step = programs.evaluate_step if policy_on == "accelerator" else programs.evaluate_step_host

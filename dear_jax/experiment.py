@@ -43,6 +43,7 @@ RESUMABLE_CHANGES = (
     "env.eval_physics_threads",
     "eval_in_background",
     "eval_device",
+    "eval_processes",
     "agent.seed_axis",
     "agent.shift_impl",
     "agent.filter_gradient",
@@ -66,6 +67,8 @@ def fingerprint(config: ConfigDict) -> dict:
 
 # Offset of process p's env seeds (and episode-start keys): p * HOST_SEED_STRIDE.
 HOST_SEED_STRIDE = 1_000_033
+# Offset of evaluation process i's eval-env seed (config.eval_processes): i * EVAL_STREAM_STRIDE.
+EVAL_STREAM_STRIDE = 1_000_037
 
 EVAL_DEVICES = ("auto", "cpu", "accelerator", "train")
 OWN_PROCESS = ("cpu", "accelerator")  # eval_device values that evaluate in a child process
@@ -98,6 +101,8 @@ def validate(config: ConfigDict) -> None:
     for key, valid in choices.items():
         if _get(config, key) not in valid:
             raise ValueError(f"unknown {key} {_get(config, key)!r}; valid: {', '.join(valid)}")
+    if not (isinstance(config.eval_processes, int) and config.eval_processes >= 1):
+        raise ValueError(f"eval_processes must be an int >= 1, got {config.eval_processes!r}")
     try:
         distractions.parse_types(config.env.distraction_types)
     except ValueError as e:
@@ -214,6 +219,13 @@ def eval_device(config: ConfigDict, hosts: Hosts) -> str:
             f"eval_device={choice!r} evaluates in one process, and this run has {hosts.count}; "
             "set eval_device='train' or 'auto'"
         )
+    if config.eval_processes > 1 and choice not in OWN_PROCESS:
+        raise ValueError(
+            f"eval_processes={config.eval_processes} evaluates in processes of their own, and "
+            f"eval_device={config.eval_device!r} evaluates in the training's (here); set "
+            f"eval_processes=1, or eval_device to one of {', '.join(OWN_PROCESS)}"
+            + (" (a run of several processes evaluates in them)" if hosts.multi else "")
+        )
     return choice
 
 
@@ -259,18 +271,19 @@ def make_env(
 
 
 def make_eval_env(
-    config: ConfigDict, *, mesh: Mesh | None = None, hosts: Hosts | None = None
+    config: ConfigDict, *, mesh: Mesh | None = None, hosts: Hosts | None = None, stream: int = 0
 ) -> envs.Env:
     """The evaluation episodes' env: num_eval_episodes envs per seed of the validation split,
-    its own seed, env.eval_backend's physics; CPU physics on env.eval_physics_threads threads
-    (0: as many as this process may use cores, up to 8)."""
+    its own seed (evaluation process `stream`'s own, of config.eval_processes), env.eval_backend's
+    physics; CPU physics on env.eval_physics_threads threads (0: as many as this process may
+    use cores, up to 8)."""
     usable = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else range(os.cpu_count())
     threads = config.env.eval_physics_threads or min(8, len(usable))
     return make_env(
         config,
         envs_per_seed=config.num_eval_episodes,
         split="val",
-        seed=config.seed + 1,
+        seed=config.seed + 1 + stream * EVAL_STREAM_STRIDE,
         backend="cpu" if config.env.eval_backend == "cpu" else None,
         mesh=mesh,
         hosts=hosts,

@@ -31,7 +31,7 @@ from dear_jax.carry import Carry
 from dear_jax.checkpoint import Checkpointer
 from dear_jax.devices import Hosts, seed_sharding, uncommitted
 from dear_jax.evaluations import Evaluations, eval_due
-from dear_jax.evaluator import EvalProcess, LocalEvaluator
+from dear_jax.evaluator import EvalProcess, EvalProcesses, LocalEvaluator
 from dear_jax.experiment import agent_config
 from dear_jax.logger import RunLogger
 from dear_jax.programs import cached_programs
@@ -54,7 +54,7 @@ class Loop:
         ckpt: Checkpointer,
         store: replay_disk.ChunkStore | None,
         env: envs.Env,
-        evaluator: LocalEvaluator | EvalProcess,
+        evaluator: LocalEvaluator | EvalProcess | EvalProcesses,
         mesh: Mesh | None,
         hosts: Hosts,
     ):

@@ -1,7 +1,7 @@
 """Command-line reports about the agent and about finished runs.
 
     python -m dear_jax.report params [--action-dim 6]
-    python -m dear_jax.report table RUN [RUN ...] [--threshold 500] [--at FRAMES] [--out PREFIX]
+    python -m dear_jax.report table RUN [RUN ...] [--threshold 500] [--at FRAMES] [--last 11] [--out PREFIX]
     python -m dear_jax.report curves RUN [RUN ...] [--out results/curves.png] [--band std]
     python -m dear_jax.report claims RUN [RUN ...] [--threshold 500] [--at FRAMES] [--last 11] [--out PREFIX]
     python -m dear_jax.report grid RUN [RUN ...] [--tasks walker cup finger] [--seeds 3] [--frames 1000000]
@@ -26,6 +26,8 @@ and devices (`sources` in the CSV):
   abs cos(z_A, z_E)   the mean of its magnitude (signs cancel in the mean of the cosine; runs
                       logged before commit f3d5730 have no such column: "-")
   final return        that evaluation's return, mean ± std over seeds (population std, ddof 0)
+  mean of the last    each seed's mean return over its last --last evaluations (11 by default:
+  evaluations         900k-1M of a 1M-frame run), mean ± std over seeds; steadier than one
   frames to T         first evaluated frame at which a seed's return reaches --threshold (the
                       median over the seeds that reach it; "k/S" says how many did)
 It prints Markdown and, with --out PREFIX, writes PREFIX.md and PREFIX.csv. A sweep's run
@@ -132,6 +134,7 @@ TABLE_COLUMNS = (
     "paper cos",
     "eval frame",
     "final return",
+    "mean of the last evaluations",
     "frames to threshold",
     "commit, device",
 )
@@ -186,18 +189,21 @@ def _source(workdir: pathlib.Path, summary: dict, seeds: int) -> dict:
     }
 
 
-def run_rows(workdir, threshold: float, at: int | None = None) -> list[dict]:
+def run_rows(workdir, threshold: float, at: int | None = None, last: int = 11) -> list[dict]:
     """Table II's rows for one run workdir: one, or one per setting of a sweep."""
-    return pooled_rows([workdir], threshold, at)
+    return pooled_rows([workdir], threshold, at, last)
 
 
-def pooled_rows(workdirs, threshold: float, at: int | None = None) -> list[dict]:
+def pooled_rows(workdirs, threshold: float, at: int | None = None, last: int = 11) -> list[dict]:
     """Table II's numbers for run workdirs (config.json, summary.json, their lanes' CSVs): one
     row per experiment and setting, its seeds pooled over the workdirs that ran them
     (`plot.pools`); `sources` says which workdir gave how many seeds, with its commit, device
     and jax version. With `at`, the returns, cosines and frames to the threshold are those of
     the evaluations up to `at` frames per seed (runs stopped at different points compare at the
-    same frame)."""
+    same frame). Beside the final return, each seed's mean over its last `last` evaluations (one
+    evaluation swings far from the next), then their mean and std over seeds."""
+    if last < 1:
+        raise ValueError(f"last must be at least 1 evaluation, got {last}")
     workdirs = [pathlib.Path(w) for w in workdirs]
     files = {w: _run_files(w) for w in workdirs}
     rows = []
@@ -229,6 +235,7 @@ def pooled_rows(workdirs, threshold: float, at: int | None = None) -> list[dict]
         dirs = [d for _, d in pool.seeds]
         evals = [_until(read_csv(d / "eval.csv"), at, d / "eval.csv") for d in dirs]
         finals = np.array([e["episode_return"][-1] for e in evals])
+        lasts = np.array([e["episode_return"][-last:].mean() for e in evals])
         reached = []
         for e in evals:
             hit = np.nonzero(e["episode_return"] >= threshold)[0]
@@ -256,6 +263,9 @@ def pooled_rows(workdirs, threshold: float, at: int | None = None) -> list[dict]
                 "eval_frame": int(max(e["frame"][-1] for e in evals)),
                 "final_return_mean": float(finals.mean()),
                 "final_return_std": float(finals.std()),
+                "last_return_mean": float(lasts.mean()),
+                "last_return_std": float(lasts.std()),
+                "last": last,
                 "frames_to_threshold": float(np.median(reached)) if reached else math.nan,
                 "seeds_reaching_threshold": len(reached),
                 "threshold": threshold,
@@ -287,6 +297,7 @@ def _cells(r: dict) -> list:
         fmt(paper.get("cos"), ".0e"),
         _frames(r["eval_frame_min"], r["eval_frame"]),
         f"{r['final_return_mean']:.1f} ± {r['final_return_std']:.1f}",
+        f"{r['last_return_mean']:.1f} ± {r['last_return_std']:.1f}",
         f"{fmt(r['frames_to_threshold'], ',.0f')} ({reached})",
         r["code"],
     ]
@@ -297,15 +308,16 @@ def _frames(low: int, high: int) -> str:
 
 
 def runs_table(
-    workdirs, threshold: float, out: str | None = None, at: int | None = None
+    workdirs, threshold: float, out: str | None = None, at: int | None = None, last: int = 11
 ) -> tuple[list[dict], str]:
     """Rows and the Markdown text of Table II; with `out`, also writes out.md and out.csv."""
-    rows = pooled_rows(workdirs, threshold, at)
+    rows = pooled_rows(workdirs, threshold, at, last)
     when = "the last evaluation" if at is None else f"the last evaluation up to {at:,} frames"
     text = (
         f"Table II: {len(rows)} experiment(s), each with its seeds pooled over the runs named; "
         "s / 1000 frames per seed amortised over the seeds "
         f"trained together; returns and cosines of {when} (return: mean ± population std over "
+        f"seeds; beside it each seed's mean over its last {last} evaluations, mean ± std over "
         "seeds); frames to a return of "
         f"{threshold:g}\n\n" + format_table(TABLE_COLUMNS, [_cells(r) for r in rows]) + "\n"
     )
@@ -666,6 +678,7 @@ def main(argv=None):
     t.add_argument(
         "--at", type=int, default=None, help="read the evaluations up to this many frames per seed"
     )
+    t.add_argument("--last", type=int, default=11, help="evaluations a seed's mean return averages")
     c = sub.add_parser("curves", help="learning curves: a panel per task, a line per method")
     c.add_argument("runs", nargs="+", help="run workdirs")
     c.add_argument("--out", default="curves.png", help="PNG path")
@@ -721,7 +734,7 @@ def main(argv=None):
         return path
     if args.command == "table":
         try:
-            print(runs_table(args.runs, args.threshold, args.out, args.at)[1])
+            print(runs_table(args.runs, args.threshold, args.out, args.at, args.last)[1])
         except (FileNotFoundError, ValueError) as e:
             parser.error(str(e))
     if args.command == "params":

@@ -24,7 +24,7 @@ from ml_collections import ConfigDict
 from dear_jax import lanes, replay
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.devices import Hosts, batch_split, seed_groups, seed_mesh
-from dear_jax.evaluator import EvalProcess, LocalEvaluator
+from dear_jax.evaluator import EvalProcess, EvalProcesses, LocalEvaluator
 from dear_jax.experiment import (
     ADDED_FIELDS,
     OWN_PROCESS,
@@ -165,7 +165,7 @@ def _evaluator(config: ConfigDict, where: str, spec, mesh, hosts: Hosts):
     """The evaluator `where` (the resolved eval_device) says: a process of its own, started now
     (it builds while this process compiles), or the eval env here."""
     if where in OWN_PROCESS:
-        return EvalProcess(config)
+        return EvalProcess(config) if config.eval_processes == 1 else EvalProcesses(config)
     eval_env = make_eval_env(config, mesh=mesh, hosts=hosts)
     acfg = agent_config(config, spec.action_dim)
     return LocalEvaluator(eval_env, cached_programs(acfg, config, mesh).evaluate_step, hosts)

@@ -294,6 +294,28 @@ def test_background_evaluations_queue_without_holding_up_the_loop(run, tmp_path,
     assert_same_run(run[-1], tmp_path, 280)
 
 
+def test_evaluations_in_two_processes_log_what_one_evaluator_logs(run, tmp_path):
+    """eval_processes=2: the evaluations at frames 0 and 240 (and the closing one at 280) run in
+    one process, the one at 120 in the other, side by side. Without distractions an
+    evaluation's episodes follow from its key alone, so every eval row and every training row is
+    the uninterrupted fixture run's; the checkpoint keeps both processes' eval-env states."""
+    config = tiny_config(total_frames=280, eval_device="cpu", eval_processes=2)
+    train.train(config, tmp_path)
+    whole = run[-1]
+    for seed in (0, 1):
+        for kind in ("train", "eval"):
+            logs = [read_csv(w / f"seed_{seed}" / f"{kind}.csv") for w in (whole, tmp_path)]
+            assert set(logs[0]) == set(logs[1])
+            for column in set(logs[0]) - TIMING_COLUMNS:
+                np.testing.assert_array_equal(logs[0][column], logs[1][column], err_msg=column)
+    assert list(read_csv(tmp_path / "seed_0" / "eval.csv")["frame"]) == [0, 120, 240, 280]
+    ckpt = Checkpointer(tmp_path / "checkpoints", fingerprint={})
+    saved = ckpt.read_meta(ckpt.latest_step())[2]["eval_env_rng"]
+    states = evaluator.eval_states(saved)
+    assert len(states) == 2 and repr(states[0]) != repr(states[1])
+    assert evaluator.eval_states(states[1]) == [states[1]]  # a single evaluator's state
+
+
 def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
     """eval_device "auto" is a process of its own when the run has one process: on the GPU
     with a GPU, else on the host's CPU, where its policy runs in float32 whatever
@@ -315,6 +337,15 @@ def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
             experiment.eval_device(config, two)
     config.eval_device = "auto"
     assert experiment.eval_device(config, two) == "train"
+    # Evaluation processes side by side are processes of their own.
+    config.eval_processes = 2
+    with pytest.raises(ValueError, match="eval_processes=2 evaluates in processes of their own"):
+        experiment.eval_device(config, two)
+    assert experiment.eval_device(config, hosts) == "cpu"
+    config.eval_processes = 0
+    with pytest.raises(ValueError, match="eval_processes must be an int >= 1, got 0"):
+        experiment.validate(config)
+    config.eval_processes = 1
     config.eval_device = "train"
     acfg = experiment.agent_config(config, action_dim=6)
     programs = build_programs(acfg, experiment.hparams(config), config)
@@ -344,6 +375,15 @@ def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):
     finals = np.array([e["episode_return"][-1] for e in evals])
     assert row["final_return_mean"] == pytest.approx(finals.mean())
     assert row["final_return_std"] == pytest.approx(finals.std())
+    assert all(len(e["frame"]) > 2 for e in evals)
+    lasts = np.array([e["episode_return"][-2:].mean() for e in evals])
+    (two,) = report.run_rows(whole, threshold, last=2)
+    assert two["last_return_mean"] == pytest.approx(lasts.mean())
+    assert two["last_return_std"] == pytest.approx(lasts.std())
+    all_of = np.array([e["episode_return"].mean() for e in evals])  # fewer than 11 there
+    assert row["last_return_mean"] == pytest.approx(all_of.mean()) and row["last"] == 11
+    with pytest.raises(ValueError, match="last must be at least 1"):
+        report.run_rows(whole, threshold, last=0)
     assert row["cos"] == pytest.approx(np.mean([e["cos_agent_env"][-1] for e in evals]))
     assert row["abs_cos"] == pytest.approx(np.mean([e["abs_cos_agent_env"][-1] for e in evals]))
     firsts = [e["frame"][np.argmax(e["episode_return"] >= threshold)] for e in evals]

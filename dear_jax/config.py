@@ -5,6 +5,7 @@ from __future__ import annotations
 import difflib
 import pathlib
 import runpy
+import sys
 
 from ml_collections import ConfigDict
 
@@ -62,5 +63,7 @@ CONFIGS = pathlib.Path(__file__).resolve().parent.parent / "configs"
 def load_config(value: str) -> ConfigDict:
     """The config `run.py --config=VALUE` trains: a file path or a bare name in configs/, and
     after a colon the string its get_config() takes (e.g. "paper.py:walker,dear")."""
+    if str(CONFIGS.parent) not in sys.path:  # the config files import `configs.base`
+        sys.path.insert(0, str(CONFIGS.parent))
     name, *spec = value.split(":", 1)
     return runpy.run_path(str(resolve_config_path(name, CONFIGS)))["get_config"](*spec)

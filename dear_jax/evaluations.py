@@ -102,7 +102,9 @@ class Evaluations:
         if not eval_due(self.carry, self.total_frames) or stop:
             return
         background = self.threads is not None
+        t0 = time.perf_counter()
         self.finish(keep=self.max_pending - 1 if background else 0)
+        waited = time.perf_counter() - t0  # for the evaluations before this one to end
         # Which evaluator: from the frame, so that a resumed run evaluates where it would have.
         slot = frame // self.every_frames % self.evaluator.slots
         evaluator = self.evaluator.evaluator_for(slot)
@@ -123,7 +125,7 @@ class Evaluations:
             metrics = evaluator.evaluate(params, key, videos=videos, stop=abort)
             return metrics, time.perf_counter() - t0
 
-        pending = {"frame": frame, "wall_s": wall_s}
+        pending = {"frame": frame, "wall_s": wall_s, "loop_wait_s": waited}
         if not background:  # what an aborted evaluation restores (the queue is empty here)
             pending["env_state"] = self.evaluator.host_state()
             pending["loop"] = {k: lv[k] for k in ("last_eval_frame", "next_eval")}
@@ -159,6 +161,7 @@ class Evaluations:
         metrics.update(
             wall_s=pending["wall_s"],
             eval_s=eval_s,
+            loop_wait_s=pending["loop_wait_s"],
             fps=fps_per_seed * self.num_lanes,
             sec_per_1000_frames=1000.0 / fps_per_seed,
         )

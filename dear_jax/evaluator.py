@@ -342,11 +342,11 @@ def build(config, *, policy_on: str, env_on: str = "default", stream: int = 0):
     "cpu": the float32 policy on XLA:CPU. env_on: where the env's array work (uploads, frame
     stack, compositing) runs, the process's default device ("default") or XLA:CPU ("cpu", which
     sets the process's default device, with CPU physics only; the evaluation process's choice
-    with CPU physics). The env is `experiment.make_eval_env`'s (of evaluation process `stream`): CPU physics on
-    env.eval_physics_threads threads. On an H100 beside a training run, ms per evaluation step
-    of the DrQ-v2 learning check (benchmarks/evaluation.py --load): policy on the accelerator
-    with the env "default" 34.7 (1 physics thread) / 30.9 (8), "cpu" 28.9 / 24.5; policy and env
-    on XLA:CPU 42.0 / 36.4.
+    with CPU physics). The env is `experiment.make_eval_env`'s (of evaluation process `stream`):
+    CPU physics on env.eval_physics_threads threads. On an H100 beside a training run, ms per
+    evaluation step of the DrQ-v2 learning check (benchmarks/evaluation.py --load): policy on the
+    accelerator with the env "default" 34.7 (1 physics thread) / 30.9 (8), "cpu" 28.9 / 24.5;
+    policy and env on XLA:CPU 42.0 / 36.4.
     """
     # The child imports these after setting its platform.
     from dear_jax import lanes

@@ -5,6 +5,7 @@
     python -m dear_jax.report curves RUN [RUN ...] [--out results/curves.png] [--band std]
     python -m dear_jax.report claims RUN [RUN ...] [--threshold 500] [--at FRAMES] [--last 11] [--out PREFIX]
     python -m dear_jax.report grid RUN [RUN ...] [--tasks walker cup finger] [--seeds 3] [--frames 1000000]
+    python -m dear_jax.report evals RUN [RUN ...] [--out PREFIX]
 
 `params` prints the parameter count of every module per method (walker: |A| = 6), computed from
 shapes only (jax.eval_shape), so it is instant and allocates nothing.
@@ -54,6 +55,10 @@ missing; then a command per stopped run that kept a checkpoint (its resume) and 
 that no resume brings (one seed-run, a config.seed no run of the cell used); last the runs in no
 cell (sweeps included), each with the field that keeps it out. `python -m dear_jax.grid` runs
 those commands as a queue over GPUs.
+
+`evals` says whether a run's evaluations kept up with its training (`eval_rows`): where one
+evaluation (over config.eval_processes) takes longer than the training between two, the loop
+waits for it.
 
 `curves` is the paper's learning-curve figure (`dear_jax/plot.py`): one panel per task, one line
 per experiment (per setting of a sweep: the beta-sweep figure from the sweep's run; labelled by
@@ -421,6 +426,96 @@ def cosines_table(workdirs, rows: int = 20, at: int | None = None) -> tuple[list
     return found, text
 
 
+EVALS_COLUMNS = (
+    "run",
+    "method",
+    "task",
+    "lanes",
+    "eval processes",
+    "evaluation s",
+    "s between evaluations",
+    "s of training between",
+    "loop waited for evaluations",
+)
+
+
+def eval_rows(workdirs) -> list[dict]:
+    """Whether a run's evaluations kept up with its training, from its logs (the first lane's):
+    the median time an evaluation took (`eval_s`, from its start in its thread: with the wait
+    for its copy of the parameters), the median time between two evaluation starts (`wall_s`;
+    intervals of eval_every_frames only: the closing evaluation's is shorter), the time the
+    training takes for eval_every_frames at the train log's median rate, and the time the loop
+    waited for evaluations to end before starting the next (`loop_wait_s`, summed, and its share
+    of the run's wall clock; NaN for runs logged before the column). Evaluations queue
+    (dear_jax/evaluations.py): where they fall behind, the loop waits, and the time between two
+    starts outgrows the training's."""
+    rows = []
+    for workdir in map(pathlib.Path, workdirs):
+        config = _run_files(workdir)[0]
+        groups = lanes.groups(workdir)
+        first = next(iter(groups.values()))[0]
+        every = config["eval_every_frames"]
+        fps = read_csv(first / "train.csv")["fps"]  # env frames/s of all lanes together
+        fps = fps[np.isfinite(fps)]
+        train_s = every * sum(map(len, groups.values())) / np.median(fps) if fps.size else math.nan
+        evals = read_csv(first / "eval.csv")
+        later = evals["frame"] > 0  # the first evaluation runs beside the compile
+        starts, frames = evals["wall_s"][later], evals["frame"][later]
+        whole = np.diff(frames) >= 0.9 * every
+        between = np.diff(starts)[whole]
+        waits = evals.get("loop_wait_s")
+        waited = float(waits.sum()) if waits is not None else math.nan
+        wall = json.loads((workdir / "summary.json").read_text())["wall_s"]
+        rows.append(
+            {
+                "run": workdir.name,
+                "method": config["agent"]["method"],
+                "task": plot.task_name(config),
+                "lanes": sum(map(len, groups.values())),
+                "eval_processes": config.get("eval_processes", 1),  # 1 before the field
+                "eval_s": float(np.median(evals["eval_s"][later])) if later.any() else math.nan,
+                "between_s": float(np.median(between)) if between.size else math.nan,
+                "train_s": float(train_s),
+                "loop_wait_s": waited,
+                "loop_wait_share": waited / wall if wall else math.nan,
+            }
+        )
+    return rows
+
+
+def evals_table(workdirs, out: str | None = None) -> tuple[list[dict], str]:
+    """The rows of `eval_rows` and their Markdown table; with `out`, also writes out.md."""
+    rows = eval_rows(workdirs)
+    cells = [
+        [
+            r["run"],
+            r["method"],
+            r["task"],
+            r["lanes"],
+            r["eval_processes"],
+            f"{r['eval_s']:.1f}",
+            f"{r['between_s']:.1f}",
+            f"{r['train_s']:.1f}",
+            "-"
+            if math.isnan(r["loop_wait_s"])
+            else f"{r['loop_wait_s']:.0f} s ({100 * r['loop_wait_share']:.0f}%)",
+        ]
+        for r in rows
+    ]
+    text = (
+        "Evaluations against the training between them (medians; s of training: eval_every_frames "
+        "at the train log's median rate; the loop's waits for evaluations to end, in all and as a "
+        "share of the run's wall clock, '-' where not logged)\n\n"
+        + format_table(EVALS_COLUMNS, cells)
+        + "\n"
+    )
+    if out:
+        path = pathlib.Path(out).with_suffix(".md")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    return rows, text
+
+
 # What a seed-run of a grid cell may set otherwise than configs/paper.py, besides what any resume
 # may change (experiment.RESUMABLE_CHANGES): how many seeds and envs it steps, its dtype, its
 # replay's size and place. Every other field is the cell's.
@@ -695,6 +790,9 @@ def main(argv=None):
     o.add_argument("--rows", type=int, default=20, help="training-log rows to average")
     o.add_argument("--at", type=int, default=None, help="read the logs up to this frame")
     o.add_argument("--out", default=None, help="also write OUT.md")
+    e = sub.add_parser("evals", help="whether a run's evaluations kept up with its training")
+    e.add_argument("runs", nargs="+", help="run workdirs")
+    e.add_argument("--out", default=None, help="also write OUT.md")
     g = sub.add_parser("grid", help="how far the runs have taken the paper's grid")
     g.add_argument("runs", nargs="+", help="run workdirs")
     g.add_argument("--tasks", nargs="+", default=["walker", "cup", "finger"], help=TASKS_HELP)
@@ -711,6 +809,11 @@ def main(argv=None):
                 )
             )
         except (FileNotFoundError, ValueError, KeyError) as e:
+            parser.error(str(e))
+    if args.command == "evals":
+        try:
+            print(evals_table(args.runs, args.out)[1])
+        except (FileNotFoundError, ValueError) as e:
             parser.error(str(e))
     if args.command == "cosines":
         try:

@@ -61,7 +61,7 @@ def tiny_config(**overrides):
 
 # Columns that hold wall-clock measurements; every other column of a resumed run's logs must equal
 # the uninterrupted run's.
-TIMING_COLUMNS = {"fps", "wall_s", "eval_s", "sec_per_1000_frames"}
+TIMING_COLUMNS = {"fps", "wall_s", "eval_s", "loop_wait_s", "sec_per_1000_frames"}
 
 
 def whole_config():
@@ -292,6 +292,26 @@ def test_background_evaluations_queue_without_holding_up_the_loop(run, tmp_path,
     assert evaluations.MAX_PENDING_EVALS == 2
     assert held == [True] and waited == [(240, 2)]
     assert_same_run(run[-1], tmp_path, 280)
+
+
+def test_report_evals_sets_evaluations_against_the_training_between_them(run):
+    """`report evals` on the fixture's run (evaluations in the background, 2 seeds): every
+    figure recomputed from its logs; the loop's waits are logged with each evaluation."""
+    workdir = run[0]
+    (row,) = report.eval_rows([workdir])
+    evals = read_csv(workdir / "seed_0" / "eval.csv")
+    fps = read_csv(workdir / "seed_0" / "train.csv")["fps"]
+    assert list(evals["frame"]) == [0, 120, 240, 280] and (evals["loop_wait_s"] >= 0).all()
+    assert row["eval_s"] == pytest.approx(np.median(evals["eval_s"][1:]))
+    # 120 -> 240 is a whole interval; 240 -> 280 (the closing evaluation) is not
+    assert row["between_s"] == pytest.approx(evals["wall_s"][2] - evals["wall_s"][1])
+    assert row["train_s"] == pytest.approx(120 * 2 / np.median(fps[np.isfinite(fps)]))
+    wall = json.loads((workdir / "summary.json").read_text())["wall_s"]
+    assert row["loop_wait_s"] == pytest.approx(evals["loop_wait_s"].sum())
+    assert row["loop_wait_share"] == pytest.approx(evals["loop_wait_s"].sum() / wall)
+    assert (row["lanes"], row["eval_processes"], row["method"]) == (2, 1, "dear")
+    _, text = report.evals_table([workdir])
+    assert f"| {workdir.name} " in text and f"{row['train_s']:.1f}" in text
 
 
 def test_evaluations_in_two_processes_log_what_one_evaluator_logs(run, tmp_path):

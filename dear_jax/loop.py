@@ -8,7 +8,7 @@ workers -> add the new timestep to each seed's replay. The main thread waits on 
 only once per episode or log interval (a few scalars for the logs) and, while an evaluation runs
 in the background, for each update before dispatching the next; the env thread waits for the
 actions (CPU physics) or the physics state (MJX) it needs. Evaluations in the background queue
-up to `evaluations.MAX_PENDING_EVALS` deep.
+up to `evaluations.MAX_PENDING_EVALS` deep, one more per further evaluation process.
 """
 
 from __future__ import annotations

@@ -44,8 +44,9 @@ def get_config() -> ConfigDict:
     # process on a GPU (it slowed training least there), "cpu" on a CPU-only machine, "train"
     # for a run of several processes (their evaluations are programs over every process's lanes).
     c.eval_device = "auto"
-    # Evaluation processes side by side ("cpu" or "accelerator"): the k-th evaluation goes to
-    # process k mod N, each with its own stream of episodes. More than one lets the next
+    # Evaluation processes side by side ("cpu" or "accelerator"): the evaluation at frame f runs
+    # in process f // eval_every_frames mod N, each with its own stream of episodes, all on the
+    # upper half of the run's cores (dear_jax/evaluator.py). More than one lets the next
     # evaluation start while one still runs, where one outlasts the training between two (on
     # the paper's grid, finger's DrQ-v2 and TED trained that far in 6.7 s and an evaluation took
     # 9.6: the loop waited for them; benchmarks/RESULTS.md, "Evaluation").

@@ -33,7 +33,8 @@ log = logging.getLogger("dear_jax")
 # Background evaluations started and not yet logged before the loop waits for the oldest: two
 # absorb one that outlasts the training between two (on an H100 an evaluation of the DrQ-v2
 # learning check takes about as long as that training, benchmarks/RESULTS.md), and a stop still
-# waits for at most two evaluations before its checkpoint.
+# waits for at most two evaluations before its checkpoint (one more per further evaluation
+# process, config.eval_processes).
 MAX_PENDING_EVALS = 2
 
 
@@ -96,15 +97,15 @@ class Evaluations:
     def start_if_due(self, wall_s: float, stop) -> None:
         """Start the evaluation due at this frame, if any: in the background on a copy of the
         parameters while training goes on, or now. Its row is logged by `finish`, with the frame
-        and wall time of its start."""
+        and wall time at which it fell due, and the time the loop was held up before going on
+        (`loop_wait_s`: waiting for earlier evaluations to end, and in the foreground this one)."""
         self.finish()
         lv, frame = self.carry.lv, self.carry.counters["frame"]
         if not eval_due(self.carry, self.total_frames) or stop:
             return
         background = self.threads is not None
-        t0 = time.perf_counter()
+        held = time.perf_counter()
         self.finish(keep=self.max_pending - 1 if background else 0)
-        waited = time.perf_counter() - t0  # for the evaluations before this one to end
         # Which evaluator: from the frame, so that a resumed run evaluates where it would have.
         slot = frame // self.every_frames % self.evaluator.slots
         evaluator = self.evaluator.evaluator_for(slot)
@@ -125,7 +126,7 @@ class Evaluations:
             metrics = evaluator.evaluate(params, key, videos=videos, stop=abort)
             return metrics, time.perf_counter() - t0
 
-        pending = {"frame": frame, "wall_s": wall_s, "loop_wait_s": waited}
+        pending = {"frame": frame, "wall_s": wall_s}
         if not background:  # what an aborted evaluation restores (the queue is empty here)
             pending["env_state"] = self.evaluator.host_state()
             pending["loop"] = {k: lv[k] for k in ("last_eval_frame", "next_eval")}
@@ -139,6 +140,7 @@ class Evaluations:
                 future.set_result(run())
             except EvalAborted as e:
                 future.set_exception(e)
+        pending["loop_wait_s"] = time.perf_counter() - held
         self.pending.append(pending)
         self.finish(keep=None if background else 0)
 

@@ -174,6 +174,7 @@ class EvalProcess:
         )
         self._proc.start()
         child.close()
+        self.stream = stream
         self._state = None  # the eval env's host state, as of the last answer
         self._lock = threading.Lock()  # one request and its answer at a time
 
@@ -241,14 +242,21 @@ class EvalProcess:
 
 
 class EvalProcesses:
-    """config.eval_processes evaluation processes side by side: a run's index-th evaluation
-    runs in process index mod N (`evaluator_for`), so that the next can start while one still
-    runs. Process i draws its episodes from its own stream (`experiment.make_eval_env`); the host
-    state a checkpoint keeps is every process's, and one saved by fewer processes (or a single
+    """config.eval_processes evaluation processes side by side: evaluation slot `index` (the
+    loop's: frame // eval_every_frames, dear_jax/evaluations.py) runs in process index mod N
+    (`evaluator_for`), so that the next evaluation can start while one still runs. Process i
+    draws its episodes from its own stream (`experiment.make_eval_env`); the host state a
+    checkpoint keeps is every process's, and one saved by fewer processes (or a single
     evaluator) restores theirs, the others starting their streams afresh."""
 
     def __init__(self, config):
-        self.processes = [EvalProcess(config, stream=i) for i in range(config.eval_processes)]
+        self.processes = []
+        try:
+            for i in range(config.eval_processes):
+                self.processes.append(EvalProcess(config, stream=i))
+        except BaseException:
+            self.close()
+            raise
         self.slots = len(self.processes)
 
     def evaluator_for(self, index: int) -> EvalProcess:

@@ -442,29 +442,37 @@ EVALS_COLUMNS = (
 def eval_rows(workdirs) -> list[dict]:
     """Whether a run's evaluations kept up with its training, from its logs (the first lane's):
     the median time an evaluation took (`eval_s`, from its start in its thread: with the wait
-    for its copy of the parameters), the median time between two evaluation starts (`wall_s`;
-    intervals of eval_every_frames only: the closing evaluation's is shorter), the time the
-    training takes for eval_every_frames at the train log's median rate, and the time the loop
-    waited for evaluations to end before starting the next (`loop_wait_s`, summed, and its share
-    of the run's wall clock; NaN for runs logged before the column). Evaluations queue
+    for its copy of the parameters); the median time between two evaluations falling due
+    (`wall_s`; intervals of eval_every_frames only: the closing evaluation's is shorter); the
+    time the training takes for eval_every_frames at the median rate of the train-log rows
+    that hold no evaluation's start (the loop starts one after logging the row of its frame,
+    so a row holds the starts at frames from the row before it, inclusive, to its own); and the
+    time the loop was held up by evaluations before going on (`loop_wait_s`, summed over the
+    rows that log it, and its share of the run's wall clock; NaN for runs logged before the
+    column; a checkpoint's wait for the evaluations in flight is not in it). Evaluations queue
     (dear_jax/evaluations.py): where they fall behind, the loop waits, and the time between two
-    starts outgrows the training's."""
+    falling due outgrows the training's."""
     rows = []
     for workdir in map(pathlib.Path, workdirs):
         config = _run_files(workdir)[0]
         groups = lanes.groups(workdir)
         first = next(iter(groups.values()))[0]
         every = config["eval_every_frames"]
-        fps = read_csv(first / "train.csv")["fps"]  # env frames/s of all lanes together
-        fps = fps[np.isfinite(fps)]
-        train_s = every * sum(map(len, groups.values())) / np.median(fps) if fps.size else math.nan
         evals = read_csv(first / "eval.csv")
+        train = read_csv(first / "train.csv")
+        logged, fps = train["frame"], train["fps"]  # fps: env frames/s of all lanes together
+        since = np.concatenate([[0.0], logged[:-1]])
+        due = np.sort(evals["frame"])
+        after = np.searchsorted(due, since)  # the first evaluation at or after a row's start
+        holds = (after < due.size) & (due[np.minimum(after, due.size - 1)] < logged)
+        fps = fps[~holds & np.isfinite(fps)]
+        train_s = every * sum(map(len, groups.values())) / np.median(fps) if fps.size else math.nan
         later = evals["frame"] > 0  # the first evaluation runs beside the compile
         starts, frames = evals["wall_s"][later], evals["frame"][later]
         whole = np.diff(frames) >= 0.9 * every
         between = np.diff(starts)[whole]
-        waits = evals.get("loop_wait_s")
-        waited = float(waits.sum()) if waits is not None else math.nan
+        waits = evals.get("loop_wait_s", np.array([math.nan]))
+        waited = float(np.nansum(waits)) if np.isfinite(waits).any() else math.nan
         wall = json.loads((workdir / "summary.json").read_text())["wall_s"]
         rows.append(
             {

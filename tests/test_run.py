@@ -300,12 +300,20 @@ def test_report_evals_sets_evaluations_against_the_training_between_them(run):
     workdir = run[0]
     (row,) = report.eval_rows([workdir])
     evals = read_csv(workdir / "seed_0" / "eval.csv")
-    fps = read_csv(workdir / "seed_0" / "train.csv")["fps"]
+    train_log = read_csv(workdir / "seed_0" / "train.csv")
     assert list(evals["frame"]) == [0, 120, 240, 280] and (evals["loop_wait_s"] >= 0).all()
     assert row["eval_s"] == pytest.approx(np.median(evals["eval_s"][1:]))
     # 120 -> 240 is a whole interval; 240 -> 280 (the closing evaluation) is not
     assert row["between_s"] == pytest.approx(evals["wall_s"][2] - evals["wall_s"][1])
-    assert row["train_s"] == pytest.approx(120 * 2 / np.median(fps[np.isfinite(fps)]))
+    # The training's rate: of the rows in whose span no evaluation started (an evaluation at a
+    # row's own frame starts after that row is logged: it is in the next row's span).
+    clean, since = [], 0
+    for frame, fps in zip(train_log["frame"], train_log["fps"]):
+        if np.isfinite(fps) and not any(since <= e < frame for e in evals["frame"]):
+            clean.append(fps)
+        since = frame
+    assert 0 < len(clean) < np.isfinite(train_log["fps"]).sum()
+    assert row["train_s"] == pytest.approx(120 * 2 / np.median(clean))
     wall = json.loads((workdir / "summary.json").read_text())["wall_s"]
     assert row["loop_wait_s"] == pytest.approx(evals["loop_wait_s"].sum())
     assert row["loop_wait_share"] == pytest.approx(evals["loop_wait_s"].sum() / wall)
@@ -314,13 +322,21 @@ def test_report_evals_sets_evaluations_against_the_training_between_them(run):
     assert f"| {workdir.name} " in text and f"{row['train_s']:.1f}" in text
 
 
-def test_evaluations_in_two_processes_log_what_one_evaluator_logs(run, tmp_path):
+def test_evaluations_in_two_processes_log_what_one_evaluator_logs(run, tmp_path, monkeypatch):
     """eval_processes=2: the evaluations at frames 0 and 240 (and the closing one at 280) run in
     one process, the one at 120 in the other, side by side. Without distractions an
     evaluation's episodes follow from its key alone, so every eval row and every training row is
     the uninterrupted fixture run's; the checkpoint keeps both processes' eval-env states."""
+    streams, evaluate = [], evaluator.EvalProcess.evaluate
+
+    def counted(self, *args, **kwargs):
+        streams.append(self.stream)
+        return evaluate(self, *args, **kwargs)
+
+    monkeypatch.setattr(evaluator.EvalProcess, "evaluate", counted)
     config = tiny_config(total_frames=280, eval_device="cpu", eval_processes=2)
     train.train(config, tmp_path)
+    assert sorted(streams) == [0, 0, 0, 1]
     whole = run[-1]
     for seed in (0, 1):
         for kind in ("train", "eval"):
@@ -333,7 +349,29 @@ def test_evaluations_in_two_processes_log_what_one_evaluator_logs(run, tmp_path)
     saved = ckpt.read_meta(ckpt.latest_step())[2]["eval_env_rng"]
     states = evaluator.eval_states(saved)
     assert len(states) == 2 and repr(states[0]) != repr(states[1])
-    assert evaluator.eval_states(states[1]) == [states[1]]  # a single evaluator's state
+
+
+def test_evaluation_processes_restore_states_saved_by_fewer_or_more():
+    """A checkpoint's eval-env state restores into N evaluation processes whatever wrote it: a
+    single evaluator's state goes to the first process, the others keep their own streams; a
+    list of more is cut to N."""
+
+    class Process:
+        def __init__(self, name):
+            self.state = f"{name} fresh"
+
+        def set_host_state(self, state):
+            self.state = state
+
+    pool = evaluator.EvalProcesses.__new__(evaluator.EvalProcesses)
+    pool.processes, pool.slots = [Process("a"), Process("b")], 2
+    pool.set_host_state({"episode_rng": "x"})
+    assert [p.state for p in pool.processes] == [{"episode_rng": "x"}, "b fresh"]
+    pool.set_host_state({"processes": ["s0", "s1", "s2"]})
+    assert [p.state for p in pool.processes] == ["s0", "s1"]
+    assert [pool.evaluator_for(i) for i in range(3)] == [*pool.processes, pool.processes[0]]
+    assert evaluator.eval_states({"processes": ["s0"]}) == ["s0"]
+    assert evaluator.eval_states({"episode_rng": "x"}) == [{"episode_rng": "x"}]
 
 
 def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):

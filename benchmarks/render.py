@@ -25,7 +25,8 @@ with the shipped meshes (`*_vs_shipped_meshes`).
 Variants: "default" and "fast" are the two qualities (envs/render.py); the others change one
 thing of "default": an effect off, another shadow map size, or "-in-place" (each picture drawn in
 its place on a sheet-sized MuJoCo buffer, the layout before pictures were drawn at the origin and
-copied).
+copied); "-no-labels" skips the segmentation pass (`RenderSettings.labels`: labels all 0, the
+envs of methods that read no mask and composite no background).
 """
 
 from __future__ import annotations
@@ -54,6 +55,8 @@ VARIANTS = {
     "fast": RenderSettings(quality="fast"),
     "default-in-place": RenderSettings(quality="dm_control", in_place=True),
     "fast-in-place": RenderSettings(quality="fast", in_place=True),
+    "default-no-labels": RenderSettings(quality="dm_control", labels=False),
+    "fast-no-labels": RenderSettings(quality="fast", labels=False),
     "no-reflection": RenderSettings(visuals=dataclasses.replace(_DM, reflections=False)),
     "no-msaa": RenderSettings(visuals=dataclasses.replace(_DM, multisample=False)),
     "no-shadow": RenderSettings(visuals=dataclasses.replace(_DM, shadows=False)),

@@ -239,10 +239,14 @@ def make_env(
     mesh: Mesh | None = None,
     hosts: Hosts | None = None,
     physics_threads: int | None = None,
+    labels: bool | None = None,
 ) -> envs.Env:
     """The batched env of the config (`backend` overrides env.backend; seeds split over `mesh`);
     with several processes (`hosts`), of this process's lanes on its devices. physics_threads:
-    CPU MuJoCo's threads (default: env.physics_threads, or one per device where that is 0)."""
+    CPU MuJoCo's threads (default: env.physics_threads, or one per device where that is 0).
+    labels: whether the render pool draws the segmentation pass (default: where the method's
+    loss reads the agent's mask; the env draws it anyway where it composites backgrounds);
+    without it the masks are all 0."""
     e = config.env
     hosts = hosts or Hosts(mesh, lanes.num_lanes(config))
     physics_threads = physics_threads or e.physics_threads or hosts.num_devices
@@ -260,7 +264,10 @@ def make_env(
         split=split,
         mask=e.mask,
         mask_drop_prob=e.mask_drop_prob,
-        render=envs.RenderSettings(**e.render.to_dict()),
+        render=envs.RenderSettings(
+            **e.render.to_dict(),
+            labels=config.agent.method in update.MASK_METHODS if labels is None else labels,
+        ),
         seed=seed,
         action_repeat=e.action_repeat,
         episode_frames=e.episode_frames or None,
@@ -284,6 +291,7 @@ def make_eval_env(
         envs_per_seed=config.num_eval_episodes,
         split="val",
         seed=config.seed + 1 + stream * EVAL_STREAM_STRIDE,
+        labels=True if config.save_video else None,  # the videos show the true mask
         backend="cpu" if config.env.eval_backend == "cpu" else None,
         mesh=mesh,
         hosts=hosts,

@@ -26,6 +26,7 @@ from dear_jax import augment, losses, networks, wideconv
 from dear_jax.replay import Batch
 
 METHODS = ("drqv2", "dear", "sear", "ted")
+MASK_METHODS = ("dear", "sear")  # the methods whose loss reads the agent's mask
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,7 +83,7 @@ class AgentConfig:
 
     @property
     def uses_mask(self) -> bool:
-        return self.method in ("dear", "sear")
+        return self.method in MASK_METHODS
 
 
 @struct.dataclass

@@ -173,6 +173,8 @@ class Env:
         distractions.check_difficulty(distraction)
         types = distractions.parse_types(distraction_types) if distraction != "none" else ()
         with_videos = "background" in types
+        if with_videos and not render.labels:  # compositing reads the labels
+            render = dataclasses.replace(render, labels=True)
         if not with_videos:
             backgrounds = "none"
         elif background_dir:

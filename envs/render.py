@@ -105,6 +105,9 @@ class RenderSettings:
     # Drawn meshes of more faces simplified to about this many (`simplify_meshes`); 0: as
     # shipped. The model factories (the tasks' `render_model`, `render_factory`) read it.
     mesh_faces: int = 0
+    # False: no segmentation pass, labels all 0 (LABEL_BACKGROUND), for an env that needs no
+    # agent mask and composites no background (dear_jax.experiment.make_env decides, by method).
+    labels: bool = True
     # For measurements only (benchmarks/render.py), never set by configs:
     # visuals: effects other than the quality's (None = the quality's);
     # in_place: draw each sample straight into its place in a sheet-sized MuJoCo buffer (the
@@ -396,6 +399,8 @@ class TileRenderer:
                 )
                 r, c = divmod(k, self.cols)
                 self._draw(2 * c * w, r * h)
+                if not self.settings.labels:
+                    continue
                 # MuJoCo's segmentation pass draws flat colours with no effect (skybox, shadows,
                 # reflections, multisampling) whatever the scene's flags say.
                 for f in seg_flags:
@@ -412,6 +417,9 @@ class TileRenderer:
                 # GL rows run bottom-up: flip each tile.
                 tile = sheet[r * h : (r + 1) * h]
                 rgb_out[start + k] = tile[::-1, 2 * c * w : (2 * c + 1) * w]
+                if not self.settings.labels:
+                    labels_out[start + k] = LABEL_BACKGROUND
+                    continue
                 seg = tile[::-1, (2 * c + 1) * w : (2 * c + 2) * w]
                 lut = luts[k]
                 if len(lut) <= 256:  # ids fit the red byte; the others are zero

@@ -238,6 +238,30 @@ def test_tiles_of_a_sheet_are_renderer_frames(quality):
     np.testing.assert_array_equal(rgb, ref_rgb)
 
 
+def test_without_labels_the_frames_are_the_same_and_the_labels_background():
+    """labels=False skips the segmentation pass: every tile is still mujoco.Renderer's frame bit
+    for bit, and every label is LABEL_BACKGROUND (also where a sheet held labels before)."""
+    model, agent, floor, cam = task_facts("walker")
+    qpos = random_qpos(model, 6, seed=4)
+    with_labels = tile_render(model, qpos, cam, agent, floor, R.RenderSettings(tiles_per_sheet=4))
+    settings = R.RenderSettings(tiles_per_sheet=4, labels=False)
+    tr = R.TileRenderer(
+        copy.deepcopy(model),
+        camera=cam,
+        agent_geom_ids=agent,
+        floor_geom_ids=floor,
+        settings=settings,
+    )
+    try:
+        rgb = np.zeros((len(qpos), 84, 84, 3), np.uint8)
+        labels = np.full((len(qpos), 84, 84), LABEL_AGENT, np.uint8)  # a buffer's old labels
+        tr.render(qpos, rgb, labels)
+    finally:
+        tr.close()
+    np.testing.assert_array_equal(rgb, with_labels[0])
+    assert (with_labels[1] == LABEL_AGENT).any() and (labels == LABEL_BACKGROUND).all()
+
+
 def test_in_place_sheet_matches_renderer_up_to_rasterisation():
     """The measuring layout (pictures drawn in place on a sheet-sized buffer): labels exact; RGB
     off in under 1% of pixels (0.07% on Mesa llvmpipe)."""

@@ -374,6 +374,36 @@ def test_evaluation_processes_restore_states_saved_by_fewer_or_more():
     assert evaluator.eval_states({"episode_rng": "x"}) == [{"episode_rng": "x"}]
 
 
+def test_the_segmentation_pass_is_drawn_only_where_something_reads_the_labels():
+    """The render pool draws the segmentation pass where the method's loss reads the agent's
+    mask (DEAR, SEAR), where distractions composite backgrounds, and in the eval env whose
+    videos show the true mask; DrQ-v2 and TED training envs without distraction skip it, and
+    their masks are all 0. The frames are the same either way."""
+    key = jax.random.key(0)
+
+    def first_step(eval_env=False, **overrides):
+        config = tiny_config(**overrides)
+        if eval_env:
+            env = experiment.make_eval_env(config)
+        else:
+            env = experiment.make_env(config, envs_per_seed=1, split="train", seed=0)
+        try:
+            return env.render_settings.labels, env.reset(key)[1]
+        finally:
+            env.close()
+
+    dear_labels, dear = first_step(**{"agent.method": "dear"})
+    assert dear_labels and np.asarray(dear.true_mask).any()
+    assert first_step(**{"agent.method": "sear"})[0]
+    for method in ("drqv2", "ted"):
+        labels, ts = first_step(**{"agent.method": method})
+        assert not labels and not np.asarray(ts.true_mask).any()
+        np.testing.assert_array_equal(ts.frame, dear.frame)
+    assert first_step(**{"agent.method": "drqv2", "env.distraction": "easy"})[0]
+    assert first_step(eval_env=True, **{"agent.method": "drqv2"})[0]  # save_video
+    assert not first_step(eval_env=True, **{"agent.method": "drqv2", "save_video": False})[0]
+
+
 def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
     """eval_device "auto" is a process of its own when the run has one process: on the GPU
     with a GPU, else on the host's CPU, where its policy runs in float32 whatever

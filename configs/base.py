@@ -48,8 +48,8 @@ def get_config() -> ConfigDict:
     # in process f // eval_every_frames mod N, each with its own stream of episodes, all on the
     # upper half of the run's cores (dear_jax/evaluator.py). More than one lets the next
     # evaluation start while one still runs, where one outlasts the training between two (on
-    # the paper's grid, finger's DrQ-v2 and TED trained that far in 6.7 s and an evaluation took
-    # 9.6: the loop waited for them; benchmarks/RESULTS.md, "Evaluation").
+    # the paper's grid, finger's DrQ-v2 trained 10k frames in ~7 s and an evaluation took ~10:
+    # the loop waited for them; `python -m dear_jax.report evals RUN` tells; benchmarks/RESULTS.md).
     c.eval_processes = 1
     c.log_every_frames = 5_000  # per seed: train metrics to CSV / TensorBoard
     c.checkpoint_every_frames = 100_000  # per seed; 0 disables periodic checkpoints

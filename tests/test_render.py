@@ -89,7 +89,8 @@ def reference_render(model, qpos, cam, visuals=None, size=84):
     return np.stack(rgbs), np.stack(segs)
 
 
-def tile_render(model, qpos, cam, agent, floor, settings, **kwargs):
+def tile_render(model, qpos, cam, agent, floor, settings, labels_fill=0, **kwargs):
+    """TileRenderer's frames and labels; labels_fill: what the labels buffer held before."""
     tr = R.TileRenderer(
         copy.deepcopy(model),
         camera=cam,
@@ -99,7 +100,7 @@ def tile_render(model, qpos, cam, agent, floor, settings, **kwargs):
     )
     try:
         rgb = np.zeros((len(qpos), settings.height, settings.width, 3), np.uint8)
-        labels = np.zeros((len(qpos), settings.height, settings.width), np.uint8)
+        labels = np.full((len(qpos), settings.height, settings.width), labels_fill, np.uint8)
         tr.render(qpos, rgb, labels, **kwargs)
         return rgb, labels
     finally:
@@ -245,19 +246,7 @@ def test_without_labels_the_frames_are_the_same_and_the_labels_background():
     qpos = random_qpos(model, 6, seed=4)
     with_labels = tile_render(model, qpos, cam, agent, floor, R.RenderSettings(tiles_per_sheet=4))
     settings = R.RenderSettings(tiles_per_sheet=4, labels=False)
-    tr = R.TileRenderer(
-        copy.deepcopy(model),
-        camera=cam,
-        agent_geom_ids=agent,
-        floor_geom_ids=floor,
-        settings=settings,
-    )
-    try:
-        rgb = np.zeros((len(qpos), 84, 84, 3), np.uint8)
-        labels = np.full((len(qpos), 84, 84), LABEL_AGENT, np.uint8)  # a buffer's old labels
-        tr.render(qpos, rgb, labels)
-    finally:
-        tr.close()
+    rgb, labels = tile_render(model, qpos, cam, agent, floor, settings, labels_fill=LABEL_AGENT)
     np.testing.assert_array_equal(rgb, with_labels[0])
     assert (with_labels[1] == LABEL_AGENT).any() and (labels == LABEL_BACKGROUND).all()
 

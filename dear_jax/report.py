@@ -464,7 +464,7 @@ def eval_rows(workdirs) -> list[dict]:
         since = np.concatenate([[0.0], logged[:-1]])
         due = np.sort(evals["frame"])
         after = np.searchsorted(due, since)  # the first evaluation at or after a row's start
-        holds = (after < due.size) & (due[np.minimum(after, due.size - 1)] < logged)
+        holds = (after < due.size) & (np.append(due, np.inf)[after] < logged)
         fps = fps[~holds & np.isfinite(fps)]
         train_s = every * sum(map(len, groups.values())) / np.median(fps) if fps.size else math.nan
         later = evals["frame"] > 0  # the first evaluation runs beside the compile

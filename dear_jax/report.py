@@ -52,8 +52,9 @@ the methods that read beta): a run belongs to a cell when its config is the
 cell's but for its seeds, envs per seed, dtype and replay (`GRID_MAY_DIFFER`). Per cell: the
 seeds that trained --frames frames, the runs stopped short and how far, how many seeds are
 missing; then a command per stopped run that kept a checkpoint (its resume) and per missing seed
-that no resume brings (one seed-run, a config.seed no run of the cell used); last the runs in no
-cell (sweeps included), each with the field that keeps it out. `python -m dear_jax.grid` runs
+that no resume brings (one seed-run, a config.seed no run of the cell used); last the runs of its
+tasks and methods in no cell (sweeps included), each with the field that keeps it out, and how many
+runs are of other tasks or methods. `python -m dear_jax.grid` runs
 those commands as a queue over GPUs.
 
 `evals` says whether a run's evaluations kept up with its training (`eval_rows`): where one
@@ -563,7 +564,8 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
     "walker,medium-full" or "walker,beta=10": `configs/paper.py:TASK,METHOD,MORE`, for the methods
     that read its weights) of the paper's grid as far as `workdirs` trained them (see the module
     docstring): {"cells": a row per cell,
-    "outside": the runs in no cell, each with the field that keeps it out}. Two tasks of one
+    "outside": the runs of the grid's tasks and methods in no cell, each with the field that
+    keeps it out (sweeps too), "elsewhere": the runs of other tasks or methods}. Two tasks of one
     setting (e.g. "walker" and "walker,medium", paper.py's default) are refused. A cell's
     "resume" lists the stopped runs that kept a checkpoint and bring seeds it misses (furthest
     first), "next_seeds" the config.seed of each seed-run still to start: one no run of the cell
@@ -602,7 +604,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
                 "stopped": [],  # (frames reached, the seeds it brings, its resume's arguments)
                 "used": set(),
             }
-    outside = []
+    outside, elsewhere = [], []
     for workdir in dict.fromkeys(pathlib.Path(w).resolve() for w in workdirs):
         name = f"{workdir.parent.name}/{workdir.name}"
         path = workdir / "config.json"
@@ -610,13 +612,13 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
             raise FileNotFoundError(f"{path} not found: give the workdir of a run")
         config = json.loads(path.read_text())
         fields = {**defaults, **lanes.flatten(config)}
-        if set(lanes.groups(workdir)) != {""}:
-            outside.append(f"{name}: a sweep (sweep.*)")
-            continue
         same = [c for c in cells.values() if c["ref"]["env.task"] == fields["env.task"]]
         same = [c for c in same if c["method"] == fields["agent.method"]]
         if not same:
-            outside.append(f"{name}: {fields['env.task']}, {fields['agent.method']}: no such cell")
+            elsewhere.append(name)
+            continue
+        if set(lanes.groups(workdir)) != {""}:
+            outside.append(f"{name}: a sweep (sweep.*)")
             continue
         # The cell whose config it has; else it is named with its first difference from the
         # first cell of its task and method (the paper's setting where the grid has it).
@@ -673,7 +675,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
                 "total_frames": cell["ref"]["total_frames"],
             }
         )
-    return {"cells": rows, "outside": outside}
+    return {"cells": rows, "outside": outside, "elsewhere": elsewhere}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -766,6 +768,8 @@ def grid_table(
         lines += commands
     if grid["outside"]:
         lines += ["", "Runs in no cell of this grid:", *grid["outside"]]
+    if grid["elsewhere"]:
+        lines += ["", f"{len(grid['elsewhere'])} run(s) of other tasks or methods (not asked for)"]
     return "\n".join(lines)
 
 

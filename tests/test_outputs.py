@@ -781,10 +781,10 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
         "python run.py --config configs/paper.py:walker,dear --config.agent.compute_dtype=bfloat16 "
         f"--config.seed=1 --config.seeds=1 --workdir {runs[2].resolve()}" in text
     )
-    assert (
-        "Runs in no cell of this grid:" in text
-        and "c_sear: ball_in_cup-catch, sear: no such cell" in text
-    )
+    grid = report.grid_rows(runs, ["walker"], ["dear"], seeds=3)
+    assert f"{here}/c_sear" in grid["elsewhere"] and f"{here}/w_dear_nstep" in grid["outside"][-1]
+    assert not [name for name in grid["elsewhere"] if "/w_dear" in name]
+    assert f"{len(grid['elsewhere'])} run(s) of other tasks or methods (not asked for)" in text
     # A task with its difficulty is a cell of that setting: the full suite's run counts there
     # (spaces in the task are dropped), a stopped one resumes with the setting in its config, and
     # new seed-runs say the setting in their config and workdir.

@@ -437,7 +437,17 @@ EVALS_COLUMNS = (
     "s between evaluations",
     "s of training between",
     "loop waited for evaluations",
+    "rows with a checkpoint, beyond the training's pace",
 )
+
+
+def _holding(since: np.ndarray, logged: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """Which train-log rows hold something the loop did at one of `frames`: a row logged at
+    frame F, after the row at `since`, holds what happened at frames since <= f < F (the loop
+    logs a row before it evaluates or checkpoints at that row's own frame)."""
+    frames = np.sort(frames)
+    after = np.searchsorted(frames, since)  # the first of `frames` at or after a row's start
+    return (after < frames.size) & (np.append(frames, np.inf)[after] < logged)
 
 
 def eval_rows(workdirs) -> list[dict]:
@@ -452,7 +462,9 @@ def eval_rows(workdirs) -> list[dict]:
     rows that log it, and its share of the run's wall clock; NaN for runs logged before the
     column; a checkpoint's wait for the evaluations in flight is not in it). Evaluations queue
     (dear_jax/evaluations.py): where they fall behind, the loop waits, and the time between two
-    falling due outgrows the training's."""
+    falling due outgrows the training's. Last, the time the train-log rows that hold a periodic
+    checkpoint (checkpoint_every_frames; the save waits for the evaluations in flight) took
+    beyond what the training's rate gives their frames, summed, and its share of the wall clock."""
     rows = []
     for workdir in map(pathlib.Path, workdirs):
         config = _run_files(workdir)[0]
@@ -463,11 +475,15 @@ def eval_rows(workdirs) -> list[dict]:
         train = read_csv(first / "train.csv")
         logged, fps = train["frame"], train["fps"]  # fps: env frames/s of all lanes together
         since = np.concatenate([[0.0], logged[:-1]])
-        due = np.sort(evals["frame"])
-        after = np.searchsorted(due, since)  # the first evaluation at or after a row's start
-        holds = (after < due.size) & (np.append(due, np.inf)[after] < logged)
-        fps = fps[~holds & np.isfinite(fps)]
-        train_s = every * sum(map(len, groups.values())) / np.median(fps) if fps.size else math.nan
+        num_lanes = sum(map(len, groups.values()))
+        clean = fps[~_holding(since, logged, evals["frame"]) & np.isfinite(fps)]
+        rate = np.median(clean) if clean.size else math.nan  # env frames/s, all lanes
+        train_s = every * num_lanes / rate
+        ckpt_every = config["checkpoint_every_frames"]
+        saves = np.arange(ckpt_every, logged.max(initial=0) + 1, ckpt_every) if ckpt_every else []
+        held = _holding(since, logged, np.asarray(saves, float)) & np.isfinite(fps)
+        span = (logged - since)[held] * num_lanes
+        ckpt_s = float(np.sum(span / fps[held] - span / rate))
         later = evals["frame"] > 0  # the first evaluation runs beside the compile
         starts, frames = evals["wall_s"][later], evals["frame"][later]
         whole = np.diff(frames) >= 0.9 * every
@@ -485,6 +501,8 @@ def eval_rows(workdirs) -> list[dict]:
                 "eval_s": float(np.median(evals["eval_s"][later])) if later.any() else math.nan,
                 "between_s": float(np.median(between)) if between.size else math.nan,
                 "train_s": float(train_s),
+                "checkpoint_excess_s": ckpt_s,
+                "checkpoint_excess_share": ckpt_s / wall if wall else math.nan,
                 "loop_wait_s": waited,
                 "loop_wait_share": waited / wall if wall else math.nan,
             }
@@ -508,13 +526,15 @@ def evals_table(workdirs, out: str | None = None) -> tuple[list[dict], str]:
             "-"
             if math.isnan(r["loop_wait_s"])
             else f"{r['loop_wait_s']:.0f} s ({100 * r['loop_wait_share']:.0f}%)",
+            f"{r['checkpoint_excess_s']:.0f} s ({100 * r['checkpoint_excess_share']:.0f}%)",
         ]
         for r in rows
     ]
     text = (
         "Evaluations against the training between them (medians; s of training: eval_every_frames "
         "at the train log's median rate; the loop's waits for evaluations to end, in all and as a "
-        "share of the run's wall clock, '-' where not logged)\n\n"
+        "share of the run's wall clock, '-' where not logged; the same for the log rows that hold a "
+        "checkpoint, beyond what the training's rate gives their frames)\n\n"
         + format_table(EVALS_COLUMNS, cells)
         + "\n"
     )

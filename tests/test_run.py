@@ -314,6 +314,13 @@ def test_report_evals_sets_evaluations_against_the_training_between_them(run):
         since = frame
     assert 0 < len(clean) < np.isfinite(train_log["fps"]).sum()
     assert row["train_s"] == pytest.approx(120 * 2 / np.median(clean))
+    # Rows holding a checkpoint (every 120 frames: at 120 and 240): their time beyond the rate.
+    excess, since = 0.0, 0
+    for frame, fps in zip(train_log["frame"], train_log["fps"]):
+        if np.isfinite(fps) and any(since <= c < frame for c in (120, 240)):
+            excess += (frame - since) * 2 / fps - (frame - since) * 2 / np.median(clean)
+        since = frame
+    assert row["checkpoint_excess_s"] == pytest.approx(excess)
     wall = json.loads((workdir / "summary.json").read_text())["wall_s"]
     assert row["loop_wait_s"] == pytest.approx(evals["loop_wait_s"].sum())
     assert row["loop_wait_share"] == pytest.approx(evals["loop_wait_s"].sum() / wall)

@@ -59,7 +59,8 @@ those commands as a queue over GPUs.
 
 `evals` says whether a run's evaluations kept up with its training (`eval_rows`): where one
 evaluation (over config.eval_processes) takes longer than the training between two, the loop
-waits for it.
+waits for it; and what its periodic checkpoints cost (each first waits for the evaluations in
+flight).
 
 `curves` is the paper's learning-curve figure (`dear_jax/plot.py`): one panel per task, one line
 per experiment (per setting of a sweep: the beta-sweep figure from the sweep's run; labelled by

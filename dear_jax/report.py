@@ -28,7 +28,8 @@ and devices (`sources` in the CSV):
                       logged before commit f3d5730 have no such column: "-")
   final return        that evaluation's return, mean ± std over seeds (population std, ddof 0)
   mean of the last    each seed's mean return over its last --last evaluations (11 by default:
-  evaluations         900k-1M of a 1M-frame run), mean ± std over seeds; steadier than one
+  evaluations         900k-1M of a 1M-frame run), mean ± std over seeds: steadier than one
+                      evaluation, which swings far from the next
   frames to T         first evaluated frame at which a seed's return reaches --threshold (the
                       median over the seeds that reach it; "k/S" says how many did)
 It prints Markdown and, with --out PREFIX, writes PREFIX.md and PREFIX.csv. A sweep's run
@@ -497,7 +498,7 @@ def eval_rows(workdirs) -> list[dict]:
                 "run": workdir.name,
                 "method": config["agent"]["method"],
                 "task": plot.task_name(config),
-                "lanes": sum(map(len, groups.values())),
+                "lanes": num_lanes,
                 "eval_processes": config.get("eval_processes", 1),  # 1 before the field
                 "eval_s": float(np.median(evals["eval_s"][later])) if later.any() else math.nan,
                 "between_s": float(np.median(between)) if between.size else math.nan,
@@ -533,7 +534,7 @@ def evals_table(workdirs, out: str | None = None) -> tuple[list[dict], str]:
     ]
     text = (
         "Evaluations against the training between them (medians; s of training: eval_every_frames "
-        "at the train log's median rate; the loop's waits for evaluations to end, in all and as a "
+        "at the median rate of the train-log rows that hold no evaluation's start; the loop's waits for evaluations to end, in all and as a "
         "share of the run's wall clock, '-' where not logged; the same for the log rows that hold a "
         "checkpoint, beyond what the training's rate gives their frames)\n\n"
         + format_table(EVALS_COLUMNS, cells)

@@ -48,9 +48,10 @@ def get_config() -> ConfigDict:
     # in process f // eval_every_frames mod N, each with its own stream of episodes, all on the
     # upper half of the run's cores (dear_jax/evaluator.py). More than one lets the next
     # evaluation start while one still runs, where one outlasts the training between two (on
-    # the paper's grid, finger's DrQ-v2 trained 10k frames in ~7 s and an evaluation took ~10:
-    # the loop waited for them; `python -m dear_jax.report evals RUN` tells; benchmarks/RESULTS.md).
-    c.eval_processes = 1
+    # the paper's grid an evaluation takes ~10 s, and one seed trains 10k frames in 6.4-8 s: with
+    # one process, finger's DEAR waited 21% of its run for them; `python -m dear_jax.report evals
+    # RUN` tells; benchmarks/RESULTS.md). 0: two where they run on the accelerator, else one.
+    c.eval_processes = 0
     c.log_every_frames = 5_000  # per seed: train metrics to CSV / TensorBoard
     c.checkpoint_every_frames = 100_000  # per seed; 0 disables periodic checkpoints
     c.keep_checkpoints = 3

@@ -242,17 +242,17 @@ class EvalProcess:
 
 
 class EvalProcesses:
-    """config.eval_processes evaluation processes side by side: evaluation slot `index` (the
+    """`count` evaluation processes side by side: evaluation slot `index` (the
     loop's: frame // eval_every_frames, dear_jax/evaluations.py) runs in process index mod N
     (`evaluator_for`), so that the next evaluation can start while one still runs. Process i
     draws its episodes from its own stream (`experiment.make_eval_env`); the host state a
     checkpoint keeps is every process's, and one saved by fewer processes (or a single
     evaluator) restores theirs, the others starting their streams afresh."""
 
-    def __init__(self, config):
+    def __init__(self, config, count: int):
         self.processes = []
         try:
-            for i in range(config.eval_processes):
+            for i in range(count):
                 self.processes.append(EvalProcess(config, stream=i))
         except BaseException:
             self.close()

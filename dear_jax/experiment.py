@@ -72,6 +72,10 @@ EVAL_STREAM_STRIDE = 1_000_037
 
 EVAL_DEVICES = ("auto", "cpu", "accelerator", "train")
 OWN_PROCESS = ("cpu", "accelerator")  # eval_device values that evaluate in a child process
+# Evaluation processes where config.eval_processes is 0 and they run on the accelerator: with
+# one, a lone seed's loop on the paper's grid waited up to 21% of its run for evaluations
+# (benchmarks/RESULTS.md, "Evaluation"); on the host's CPU a second would take the training's cores.
+AUTO_EVAL_PROCESSES = 2
 
 
 def _get(config: ConfigDict, dotted: str):
@@ -101,8 +105,11 @@ def validate(config: ConfigDict) -> None:
     for key, valid in choices.items():
         if _get(config, key) not in valid:
             raise ValueError(f"unknown {key} {_get(config, key)!r}; valid: {', '.join(valid)}")
-    if not (isinstance(config.eval_processes, int) and config.eval_processes >= 1):
-        raise ValueError(f"eval_processes must be an int >= 1, got {config.eval_processes!r}")
+    if not (isinstance(config.eval_processes, int) and config.eval_processes >= 0):
+        raise ValueError(
+            f"eval_processes must be an int >= 1, or 0 (two on the accelerator, else one); got "
+            f"{config.eval_processes!r}"
+        )
     try:
         distractions.parse_types(config.env.distraction_types)
     except ValueError as e:
@@ -223,10 +230,19 @@ def eval_device(config: ConfigDict, hosts: Hosts) -> str:
         raise ValueError(
             f"eval_processes={config.eval_processes} evaluates in processes of their own, and "
             f"eval_device={config.eval_device!r} evaluates in the training's (here); set "
-            f"eval_processes=1, or eval_device to one of {', '.join(OWN_PROCESS)}"
+            f"eval_processes to 0 or 1, or eval_device to one of {', '.join(OWN_PROCESS)}"
             + (" (a run of several processes evaluates in them)" if hosts.multi else "")
         )
     return choice
+
+
+def eval_processes(config: ConfigDict, where: str) -> int:
+    """How many evaluation processes run side by side for the resolved eval_device `where`
+    (`eval_device`'s): config.eval_processes, its 0 resolved to AUTO_EVAL_PROCESSES where
+    they run on the accelerator, else 1 (on the host's CPU, or in the training's process)."""
+    if config.eval_processes:
+        return config.eval_processes
+    return AUTO_EVAL_PROCESSES if where == "accelerator" else 1
 
 
 def make_env(

@@ -469,7 +469,7 @@ def eval_rows(workdirs) -> list[dict]:
     beyond what the training's rate gives their frames, summed, and its share of the wall clock."""
     rows = []
     for workdir in map(pathlib.Path, workdirs):
-        config = _run_files(workdir)[0]
+        config, summary = _run_files(workdir)
         groups = lanes.groups(workdir)
         first = next(iter(groups.values()))[0]
         every = config["eval_every_frames"]
@@ -492,14 +492,15 @@ def eval_rows(workdirs) -> list[dict]:
         between = np.diff(starts)[whole]
         waits = evals.get("loop_wait_s", np.array([math.nan]))
         waited = float(np.nansum(waits)) if np.isfinite(waits).any() else math.nan
-        wall = json.loads((workdir / "summary.json").read_text())["wall_s"]
+        wall = summary["wall_s"]
         rows.append(
             {
                 "run": workdir.name,
                 "method": config["agent"]["method"],
                 "task": plot.task_name(config),
                 "lanes": num_lanes,
-                "eval_processes": config.get("eval_processes", 1),  # 1 before the field
+                # the summary's count: the config's 0 is resolved there (1 before the field)
+                "eval_processes": summary.get("eval_processes", config.get("eval_processes", 1)),
                 "eval_s": float(np.median(evals["eval_s"][later])) if later.any() else math.nan,
                 "between_s": float(np.median(between)) if between.size else math.nan,
                 "train_s": float(train_s),

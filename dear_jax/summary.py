@@ -40,10 +40,11 @@ def write_summary(
     devices: int = 1,
     stopped: str | None = None,
     evaluated_on: str,
+    eval_processes: int = 1,
 ) -> dict:
     """Summary per seed from the eval logs, saved as summary.md / summary.json and printed
     unless the run was `stopped` (by that signal's name) before its end. `evaluated_on`: the
-    resolved eval_device."""
+    resolved eval_device; `eval_processes`: how many evaluated side by side."""
     wall = counters["wall_s"]
     runs = lanes.lanes(config)
     fps = counters["frame"] * len(runs) / max(wall, 1e-9)
@@ -100,6 +101,7 @@ def write_summary(
         "render": config.env.render.to_dict(),
         "render_quality": config.env.render.quality,
         "eval_device": evaluated_on,
+        "eval_processes": eval_processes,
         "distraction": config.env.distraction,
         "distraction_types": list(spec.distraction_types),
         "backgrounds": spec.backgrounds,
@@ -117,6 +119,7 @@ def write_summary(
         if config.agent.kernels and summary["conv_stack"] == "pallas"
         else ""
     )
+    evaluators = f", {eval_processes} processes" if eval_processes > 1 else ""
     on = summary["device"] if devices == 1 else f"{devices} x {summary['device']}"
     if config.devices_per_seed > 1:
         on += f", {config.devices_per_seed} per {unit}"
@@ -125,7 +128,7 @@ def write_summary(
         f"{until}{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, "
         f"{wall:.0f} s of training ({fps:.0f} frames/s in all) on {on} "
         f"({spec.backend} physics, {summary['conv_stack']} conv stacks{kernels}, evaluations on "
-        f"{summary['eval_device']}); {_distraction_line(spec)}; render "
+        f"{summary['eval_device']}{evaluators}); {_distraction_line(spec)}; render "
         f"settings {summary['render']}; commit {summary['provenance']['commit']}, jax "
         f"{summary['provenance']['jax']}\n\n{table}\n"
     )

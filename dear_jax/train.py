@@ -30,6 +30,7 @@ from dear_jax.experiment import (
     OWN_PROCESS,
     agent_config,
     eval_device,
+    eval_processes,
     fingerprint,
     make_env,
     make_eval_env,
@@ -82,8 +83,15 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
         if store is not None:
             stack.callback(store.close)
         where = eval_device(config, hosts)
-        log.info("evaluations: eval_device=%r (config: %r)", where, config.eval_device)
-        evaluator = _evaluator(config, where, spec, mesh, hosts)
+        processes = eval_processes(config, where)
+        log.info(
+            "evaluations: eval_device=%r (config: %r), %d process(es) (config: %d)",
+            where,
+            config.eval_device,
+            processes,
+            config.eval_processes,
+        )
+        evaluator = _evaluator(config, where, processes, spec, mesh, hosts)
         stack.callback(evaluator.close)
         _log_split(mesh, hosts, lanes.num_lanes(config))
         loop = Loop(config, spec, ckpt, store, env, evaluator, mesh, hosts)
@@ -109,6 +117,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 devices=1 if mesh is None else mesh.size,
                 stopped=stop.name if stop else None,
                 evaluated_on=where,
+                eval_processes=processes,
             )
         except Exception as e:  # a stopped run still exits as stopped (and resumable)
             if not stop:
@@ -161,11 +170,11 @@ def _check_fits(config: ConfigDict, spec, mesh) -> None:
     replay.check_fits(lanes_per_device, config.replay.capacity, spec.frame_shape, spec.action_dim)
 
 
-def _evaluator(config: ConfigDict, where: str, spec, mesh, hosts: Hosts):
-    """The evaluator `where` (the resolved eval_device) says: a process of its own, started now
-    (it builds while this process compiles), or the eval env here."""
+def _evaluator(config: ConfigDict, where: str, processes: int, spec, mesh, hosts: Hosts):
+    """The evaluator `where` (the resolved eval_device) says: `processes` processes of their
+    own, started now (they build while this process compiles), or the eval env here."""
     if where in OWN_PROCESS:
-        return EvalProcess(config) if config.eval_processes == 1 else EvalProcesses(config)
+        return EvalProcess(config) if processes == 1 else EvalProcesses(config, processes)
     eval_env = make_eval_env(config, mesh=mesh, hosts=hosts)
     acfg = agent_config(config, spec.action_dim)
     return LocalEvaluator(eval_env, cached_programs(acfg, config, mesh).evaluate_step, hosts)

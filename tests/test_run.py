@@ -354,6 +354,8 @@ def test_evaluations_in_two_processes_log_what_one_evaluator_logs(run, tmp_path,
             for column in set(logs[0]) - TIMING_COLUMNS:
                 np.testing.assert_array_equal(logs[0][column], logs[1][column], err_msg=column)
     assert list(read_csv(tmp_path / "seed_0" / "eval.csv")["frame"]) == [0, 120, 240, 280]
+    assert report.eval_rows([tmp_path])[0]["eval_processes"] == 2  # from the summary
+    assert "evaluations on cpu, 2 processes" in (tmp_path / "summary.md").read_text()
     ckpt = Checkpointer(tmp_path / "checkpoints", fingerprint={})
     saved = ckpt.read_meta(ckpt.latest_step())[2]["eval_env_rng"]
     states = evaluator.eval_states(saved)
@@ -434,15 +436,21 @@ def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
             experiment.eval_device(config, two)
     config.eval_device = "auto"
     assert experiment.eval_device(config, two) == "train"
-    # Evaluation processes side by side are processes of their own.
+    # Evaluation processes side by side are processes of their own; by default (0) two on the
+    # accelerator, one on the host's CPU or in the training's process.
+    assert config.eval_processes == 0
+    counts = {w: experiment.eval_processes(config, w) for w in ("accelerator", "cpu", "train")}
+    assert counts == {"accelerator": 2, "cpu": 1, "train": 1}
     config.eval_processes = 2
     with pytest.raises(ValueError, match="eval_processes=2 evaluates in processes of their own"):
         experiment.eval_device(config, two)
     assert experiment.eval_device(config, hosts) == "cpu"
-    config.eval_processes = 0
-    with pytest.raises(ValueError, match="eval_processes must be an int >= 1, got 0"):
+    assert experiment.eval_processes(config, "cpu") == 2
+    config.eval_processes = -1
+    with pytest.raises(ValueError, match="eval_processes must be an int >= 1, or 0 .*got -1"):
         experiment.validate(config)
     config.eval_processes = 1
+    assert experiment.eval_processes(config, "accelerator") == 1
     config.eval_device = "train"
     acfg = experiment.agent_config(config, action_dim=6)
     programs = build_programs(acfg, experiment.hparams(config), config)

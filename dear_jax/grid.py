@@ -3,7 +3,7 @@
     python -m dear_jax.grid [RUN ...] [--root runs] [--gpus 0,1,2,3] [--per-gpu 1]
         [--tasks walker cup finger] [--methods dear sear ted drqv2] [--seeds 3]
         [--frames 1000000] [--seeds-per-run 1] [--set FIELD=VALUE ...]
-        [--time-limit 3h [--start-margin 60]] [--dry-run]
+        [--time-limit 3h [--start-margin 60|auto]] [--dry-run]
 
 The runs named (workdirs of earlier runs, e.g. `results/*/*/`) and every run under --root count
 towards the grid (`report.grid_rows`: a run belongs to a cell of `configs/paper.py:TASK,METHOD`
@@ -20,7 +20,10 @@ every GPU visible) runs --per-gpu jobs at a time, each pinned (taskset) to its e
 this process's cores, with its share of the GPU's memory when several share it; when a job ends
 the next starts. A job's console goes to --root as NAME.out. At --time-limit (90m, 3h, 2h30m or
 seconds; no job starts in its last --start-margin, a minute by default: give a job's length where
-a stopped job cannot resume), or on SIGTERM, SIGINT (Ctrl-C) or SIGHUP, every running job gets
+a stopped job cannot resume; `auto`: a job starts only where a minute plus 1.1x its length fit,
+its length by the finished runs of its cell with as many lanes (a job without: a minute), and
+where the next job does not fit, a later one that does goes first), or on SIGTERM, SIGINT
+(Ctrl-C) or SIGHUP, every running job gets
 SIGTERM, saves a checkpoint and its summary, and exits; a second signal stops them at once, and
 one still running 10 minutes after the first gets SIGKILL. The same command later resumes them.
 Without GPUs the jobs run on the CPU, --per-gpu at a time. At the end: a line
@@ -37,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 import pathlib
 import re
@@ -54,6 +58,7 @@ REPO = pathlib.Path(__file__).resolve().parents[1]  # run.py and configs/ are he
 SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 STOPPED = (143, 130, -signal.SIGTERM, -signal.SIGINT)  # how a run ends when asked to stop
 START_MARGIN_S = 60.0  # no job starts this close to the time limit
+FIT_FACTOR = 1.1  # --start-margin auto: a job's length by earlier runs, times this, must fit
 KILL_AFTER_S = 600.0  # a run still going this long after its SIGTERM gets SIGKILL
 EX_TEMPFAIL = 75  # the time limit left jobs unfinished: run the same command again
 
@@ -125,13 +130,13 @@ def slots(gpus: list[str], per_gpu: int) -> list[Slot]:
     ]
 
 
-def parse_duration(text: str) -> float:
-    """Seconds of "5400", "90m", "3h", "2h30m" or "45s"."""
+def parse_duration(text: str, what: str = "time limit") -> float:
+    """Seconds of "5400", "90m", "3h", "2h30m" or "45s" (`what`: the setting, for the error)."""
     if re.fullmatch(r"\d+(\.\d+)?", text):
         return float(text)
     parts = re.fullmatch(r"(?:(\d+)h)?(?:(\d+)m)?(?:(\d+)s)?", text)
     if not text or parts is None:
-        raise ValueError(f"time limit {text!r}: give seconds, or e.g. 90m, 3h, 2h30m")
+        raise ValueError(f"{what} {text!r}: give seconds, or e.g. 90m, 3h, 2h30m")
     h, m, s = (int(p or 0) for p in parts.groups())
     return 3600.0 * h + 60.0 * m + s
 
@@ -172,15 +177,17 @@ class Queue:
     """Runs `jobs` (`report.Job`), one per free slot, each as `command(job)` (an argv; pinned to
     its slot's cores with taskset where it exists) in `cwd`, its console in log_dir/NAME.out,
     until all ended, the time limit passed or a signal came (then the running ones get SIGTERM
-    and are waited for)."""
+    and are waited for). Within `start_margin` of the time limit no job starts; with `fit`, a
+    job with `seconds` starts only where start_margin + FIT_FACTOR x seconds are left, and the
+    first queued job that fits goes first."""
 
     def __init__(
         self, jobs, places, command, log_dir, cwd=REPO, time_limit=None, poll=1.0,
-        start_margin=START_MARGIN_S, kill_after=KILL_AFTER_S,
+        start_margin=START_MARGIN_S, kill_after=KILL_AFTER_S, fit=False,
     ):  # fmt: skip
         self.jobs, self.places, self.command = list(jobs), list(places), command
         self.log_dir, self.cwd, self.time_limit, self.poll = log_dir, cwd, time_limit, poll
-        self.start_margin, self.kill_after = start_margin, kill_after
+        self.start_margin, self.kill_after, self.fit = start_margin, kill_after, fit
         self.stopping = ""  # why the queue stops early: "" while it goes on
         self._signals = 0  # signals received, each forwarded to the runs
 
@@ -214,18 +221,27 @@ class Queue:
         previous = {sig: signal.signal(sig, self._on_signal) for sig in SIGNALS}
         forwarded, stopped_at = 0, None
 
-        def starts_allowed() -> bool:
-            if self.time_limit is None:
-                return not self.stopping
-            left = self.time_limit - (time.monotonic() - start)
-            if left <= 0:
-                self.stopping = self.stopping or "the time limit"
-            return not self.stopping and left >= self.start_margin
+        def next_job() -> int | None:
+            """The place in `queued` of the job to start now, if any (None once stopping)."""
+            left = math.inf
+            if self.time_limit is not None:
+                left = self.time_limit - (time.monotonic() - start)
+                if left <= 0:
+                    self.stopping = self.stopping or "the time limit"
+            for k, (_, job) in enumerate([] if self.stopping else queued):
+                need = self.start_margin
+                if self.fit and job.seconds is not None:
+                    need += FIT_FACTOR * job.seconds
+                if left >= need:
+                    return k
+                if not self.fit:
+                    break
+            return None
 
         try:
-            while running or (queued and starts_allowed()):
-                while queued and free and starts_allowed():
-                    (i, job), slot = queued.pop(0), free.pop(0)
+            while running or (queued and next_job() is not None):
+                while queued and free and (k := next_job()) is not None:
+                    (i, job), slot = queued.pop(k), free.pop(0)
                     rows[i].update(where=str(slot))
                     try:
                         running[self._start(job, slot)] = (i, slot, time.monotonic())
@@ -236,7 +252,7 @@ class Queue:
                         continue
                     rows[i]["state"] = "running"
                     echo(f"{_stamp(start)} {job.name} started on {slot}; {len(queued)} queued")
-                starts_allowed()  # the time limit may have passed
+                next_job()  # the time limit may have passed
                 if self.stopping and (forwarded < max(1, self._signals)):
                     echo(f"{_stamp(start)} stopping on {self.stopping}: SIGTERM to the runs")
                     for process in running:
@@ -298,7 +314,9 @@ def main(argv=None) -> list[dict] | None:
     parser.add_argument("--set", action="append", default=[], help="FIELD=VALUE for new runs")
     parser.add_argument("--time-limit", default=None, help="e.g. 90m, 3h: then SIGTERM the runs")
     parser.add_argument(
-        "--start-margin", default="60", help="no job starts this close to the time limit"
+        "--start-margin",
+        default="60",
+        help="no job starts this close to the time limit; auto: where its length fits",
     )
     parser.add_argument("--dry-run", action="store_true", help="print the queue, run nothing")
     args = parser.parse_args(argv)
@@ -307,7 +325,8 @@ def main(argv=None) -> list[dict] | None:
     root = pathlib.Path(args.root).resolve()
     try:
         limit = None if args.time_limit is None else parse_duration(args.time_limit)
-        margin = parse_duration(args.start_margin)
+        fit = args.start_margin == "auto"
+        margin = START_MARGIN_S if fit else parse_duration(args.start_margin, "--start-margin")
         extra = overrides(args.set)
         gpus = visible_gpus() if args.gpus is None else [g for g in args.gpus.split(",") if g]
         places = slots(gpus, args.per_gpu)
@@ -322,7 +341,9 @@ def main(argv=None) -> list[dict] | None:
     except ValueError as e:
         parser.error(str(e))
     print(f"{len(jobs)} runs to complete the grid, {len(places)} at a time:")
-    print("\n".join(f"  {job.name}: python run.py {shlex.join(job.args)}" for job in jobs))
+    for job in jobs:
+        length = "" if job.seconds is None else f" (~{job.seconds / 60:.0f} min by earlier runs)"
+        print(f"  {job.name}{length}: python run.py {shlex.join(job.args)}")
     if args.dry_run or not jobs:
         return None
     queue = Queue(
@@ -332,6 +353,7 @@ def main(argv=None) -> list[dict] | None:
         root,
         time_limit=limit,
         start_margin=margin,
+        fit=fit,
     )
     rows = queue.run()
     columns = ["job", "where", "state", "rc", "seconds"]

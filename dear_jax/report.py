@@ -626,6 +626,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
                 "short": [],
                 "stopped": [],  # (frames reached, the seeds it brings, its resume's arguments)
                 "used": set(),
+                "paces": [],  # (lanes, s of wall clock per frame) of the runs that reached `frames`
             }
     outside, elsewhere = [], []
     for workdir in dict.fromkeys(pathlib.Path(w).resolve() for w in workdirs):
@@ -652,13 +653,12 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
         seed = config.get("seed", 0)
         cell["used"].add(seed)
         summary_path = workdir / "summary.json"
-        reached = (
-            json.loads(summary_path.read_text()).get("frames_per_seed")
-            if summary_path.is_file()
-            else None
-        )
+        summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+        reached = summary.get("frames_per_seed")
         if reached is not None and reached >= frames:
             cell["done"].append(name)
+            if summary.get("wall_s"):
+                cell["paces"].append((config["seeds"], summary["wall_s"] / reached))
             # A seed is (config.seed, lane seed): one trained to the end twice counts once.
             cell["seeds"].update((seed, s) for s in range(config["seeds"]))
             continue
@@ -696,6 +696,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
                 "missing": missing,
                 "next_seeds": [next(free) for _ in range(new)],
                 "total_frames": cell["ref"]["total_frames"],
+                "paces": cell["paces"],
             }
         )
     return {"cells": rows, "outside": outside, "elsewhere": elsewhere}
@@ -703,10 +704,12 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
 
 @dataclasses.dataclass(frozen=True)
 class Job:
-    """A seed-run of the grid: its workdir's name and `run.py`'s arguments."""
+    """A seed-run of the grid: its workdir's name, `run.py`'s arguments and, for a new seed-run,
+    the seconds it should take (`grid_jobs`; None: no run of its cell and lanes to go by)."""
 
     name: str
     args: tuple[str, ...]
+    seconds: float | None = None
 
 
 def grid_jobs(
@@ -720,7 +723,9 @@ def grid_jobs(
     `seeds_per_run` of a cell's missing seeds side by side (lanes of one process; the last of a
     cell the rest), from a config.seed no run of the cell used. `overrides`: more
     `--config.FIELD=VALUE` arguments for the new seed-runs. Job names are unique (suffixes _1,
-    _2, ... where resumed workdirs share a name)."""
+    _2, ... where resumed workdirs share a name). A new seed-run's `seconds`: `frames` at the
+    median wall clock per frame of the cell's runs of as many lanes that reached the grid's
+    frames (their training; start-up and the closing evaluation not in it)."""
     if seeds_per_run < 1:
         raise ValueError(f"seeds per run must be at least 1, got {seeds_per_run}")
     cells = grid["cells"]
@@ -751,7 +756,10 @@ def grid_jobs(
                 name = f"{r['name']}_s{n}"
                 seed = (f"--config.seed={n}", f"--config.seeds={count}")
                 workdir = ("--workdir", f"{root}/{name}")
-                jobs.append(Job(name, (*spec(r), *seed, *length(r), *overrides, *workdir)))
+                paces = [pace for width, pace in r["paces"] if width == count]
+                seconds = float(np.median(paces)) * frames if paces else None
+                args = (*spec(r), *seed, *length(r), *overrides, *workdir)
+                jobs.append(Job(name, args, seconds))
     names = [job.name for job in jobs]  # resumed workdirs of one name in several folders
     return [
         dataclasses.replace(job, name=f"{job.name}_{names[:i].count(job.name) + 1}")

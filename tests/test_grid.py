@@ -233,6 +233,50 @@ def test_the_time_limit_stops_the_runs_with_sigterm_and_starts_no_more(tmp_path)
     assert [r["state"] for r in margin.run(echo=lambda line: None)] == ["not started"]
 
 
+def test_a_jobs_length_comes_from_its_cells_finished_runs_of_as_many_lanes(tmp_path):
+    """A new seed-run's seconds: the grid's frames at the median wall clock per frame of its
+    cell's runs that reached them with as many lanes; none without such runs."""
+    runs = []
+    for i, (frames, wall, seeds) in enumerate(
+        [(1_000_000, 900.0, 1), (1_000_000, 1200.0, 1), (1_000_000, 600.0, 1),
+         (400_000, 100.0, 1), (1_000_000, 3000.0, 3)]
+    ):  # fmt: skip
+        run = paper_run(tmp_path / f"f_ted_{i}", "finger,ted", i, frames, seeds)
+        (run / "summary.json").write_text(json.dumps({"frames_per_seed": frames, "wall_s": wall}))
+        runs.append(run)
+    cells = report.grid_rows(runs, ["finger"], ["ted", "drqv2"], seeds=9)
+    jobs = report.grid_jobs(cells, 500_000)
+    ted = [job.seconds for job in jobs if job.name.startswith("finger_ted")]
+    assert ted == [pytest.approx(450.0)] * 3  # 900 s per 1M frames, at 500k frames
+    assert {job.seconds for job in jobs if job.name.startswith("finger_drqv2")} == {None}
+    three = report.grid_jobs(cells, 1_000_000, seeds_per_run=3)
+    assert [job.seconds for job in three if "ted" in job.name] == [pytest.approx(3000.0)]
+
+
+def test_auto_start_margin_starts_the_jobs_that_fit_before_the_limit(tmp_path):
+    """With `fit`, a job starts only where the margin and 1.1x its seconds are left: a long job
+    waits while a shorter one behind it starts, a job of unknown length needs the margin only;
+    without `fit` the queue keeps its order and stops at the first job within the margin."""
+    names = ["long", "short", "unknown"]
+    lengths = {"long": 100.0, "short": 10.0, "unknown": None}
+    queue, out = _queue(tmp_path, names, grid.slots([], per_gpu=1), seconds=0, time_limit=30)
+    queue.jobs = [report.Job(n, (), lengths[n]) for n in names]
+    queue.start_margin, queue.fit = 5.0, True
+    rows = queue.run(echo=lambda line: None)
+    assert [(r["job"], r["state"]) for r in rows] == [
+        ("long", "not started"),
+        ("short", "finished"),
+        ("unknown", "finished"),
+    ]
+    assert (
+        _records(out, ["short"])["short"]["start"] < _records(out, ["unknown"])["unknown"]["start"]
+    )
+    assert grid.exit_code(rows, queue.stopping) == grid.EX_TEMPFAIL
+    queue.fit = False
+    queue.start_margin = 40.0
+    assert [r["state"] for r in queue.run(echo=lambda line: None)] == ["not started"] * 3
+
+
 def test_a_sigterm_to_the_queue_reaches_its_runs(tmp_path):
     names = ["a", "b"]
     queue, out = _queue(tmp_path, names, grid.slots([], per_gpu=1), seconds=-1)

@@ -50,7 +50,7 @@ def get_config() -> ConfigDict:
     # evaluation start while one still runs, where one outlasts the training between two (on
     # the paper's grid an evaluation takes ~10 s, and one seed trains 10k frames in 6.4-8 s: with
     # one process, finger's DEAR waited 21% of its run for them; `python -m dear_jax.report evals
-    # RUN` tells; benchmarks/RESULTS.md). 0: two where they run on the accelerator, else one.
+    # RUN` tells; benchmarks/RESULTS.md). 0: two on a GPU machine, one on a CPU-only one.
     c.eval_processes = 0
     c.log_every_frames = 5_000  # per seed: train metrics to CSV / TensorBoard
     c.checkpoint_every_frames = 100_000  # per seed; 0 disables periodic checkpoints

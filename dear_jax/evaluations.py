@@ -1,8 +1,8 @@
 """The training loop's evaluations: when one is due, starting it (in a background thread while
 training goes on, or at once), and logging each one's row when it has ended, in order.
 
-Background evaluations run one at a time per evaluator (config.eval_processes of them side by
-side: the one of index frame // eval_every_frames mod N), in order, and queue: the loop waits
+Background evaluations run one at a time per evaluator (the run's evaluation processes side by
+side, N = `experiment.eval_processes`: the one of index frame // eval_every_frames mod N), in order, and queue: the loop waits
 only when MAX_PENDING_EVALS + N - 1 are already started and not logged, so one evaluation that
 outlasts the training between two of them does not stall the loop. Each still evaluates the
 parameters of its own frame, on its evaluator's next episodes, as it would unqueued. Evaluations
@@ -34,7 +34,7 @@ log = logging.getLogger("dear_jax")
 # absorb one that outlasts the training between two (on an H100 an evaluation of the DrQ-v2
 # learning check takes about as long as that training, benchmarks/RESULTS.md), and a stop still
 # waits for at most two evaluations before its checkpoint (one more per further evaluation
-# process, config.eval_processes).
+# process, `experiment.eval_processes`).
 MAX_PENDING_EVALS = 2
 
 

@@ -16,8 +16,9 @@ The loop evaluates through one of two evaluators with the same methods (`config.
 Measured on an H100 (benchmarks/RESULTS.md, "Evaluation"): evaluating at
 twice the paper's rate, the DrQ-v2 learning check's loop trained at 786 frames/s with
 "accelerator" and 703 with "cpu" (1,135 without evaluating). At the paper's rate, a 500k-frame
-DrQ-v2 run took 1.19x the time of its training alone with "accelerator" and 1.22x with "cpu"
-(two runs on two machines: "DrQ-v2 to 500k frames", both sections).
+DrQ-v2 run took 1.22x the time of its training alone ("A whole run against its training alone";
+its "auto" evaluations ran the policy on the host's CPU: until 2026-11-29 the resolved
+eval_device did not reach the evaluation process).
 
 With training at ~1,585 frames/s, a 500k-frame DrQ-v2 run's evaluations (21.5 s each) outlasted
 the training between two of them, and the run took 1.27x the time of its training alone
@@ -49,6 +50,7 @@ import numpy as np
 
 from dear_jax.video import side_by_side, write_video
 
+POLICY_PLACES = ("cpu", "accelerator")  # where an evaluation process runs its policy
 # The parameters an evaluation reads (the critic's and the TED classifier's are not sent).
 POLICY_PARAMS = ("encoder", "actor", "mask_decoder")
 _START_TIMEOUT_S = 600.0  # the child imports, builds its env and render workers
@@ -151,26 +153,31 @@ class LocalEvaluator:
 
 class EvalProcess:
     """Evaluations in a child process (one process runs one at a time), its policy on the host's
-    CPU in float32 or, with `config.eval_device="accelerator"`, on the accelerator.
+    CPU in float32 (`policy_on` "cpu") or on the accelerator ("accelerator": the training's
+    policy program, its dtype): the run's resolved eval_device (`experiment.eval_device`).
 
     The child builds the config's eval env and the policy, then serves requests until
     this side closes the pipe (or exits, even by SIGKILL). It ignores SIGINT and SIGTERM: the
     training process handles those, and lets the evaluations in flight or queued end before it
     checkpoints.
     An evaluation here always runs to its end (`stop` is not read). Calls from several threads
-    take turns. `stream`: which of config.eval_processes this is (`EvalProcesses`): its eval
-    env's seed."""
+    take turns. `stream`: which of the run's evaluation processes this is (`EvalProcesses`): its
+    eval env's seed."""
 
     slots = 1
 
-    def __init__(self, config, stream: int = 0):
+    def __init__(self, config, stream: int = 0, policy_on: str = "cpu"):
+        if policy_on not in POLICY_PLACES:
+            raise ValueError(f"policy_on={policy_on!r}: valid: {', '.join(POLICY_PLACES)}")
         # Never fork a process that holds CUDA: the process's fork server (as the render
         # workers', envs/render_pool.py) holds none and forks it with jax and the envs imported.
         ctx = multiprocessing.get_context("forkserver")
         ctx.set_forkserver_preload(["dear_jax.evaluator"])
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
-            target=_serve, args=(child, pickle.dumps(config), stream), name=f"eval{stream}"
+            target=_serve,
+            args=(child, pickle.dumps(config), stream, policy_on),
+            name=f"eval{stream}",
         )
         self._proc.start()
         child.close()
@@ -249,11 +256,11 @@ class EvalProcesses:
     checkpoint keeps is every process's, and one saved by fewer processes (or a single
     evaluator) restores theirs, the others starting their streams afresh."""
 
-    def __init__(self, config, count: int):
+    def __init__(self, config, count: int, policy_on: str = "cpu"):
         self.processes = []
         try:
             for i in range(count):
-                self.processes.append(EvalProcess(config, stream=i))
+                self.processes.append(EvalProcess(config, stream=i, policy_on=policy_on))
         except BaseException:
             self.close()
             raise
@@ -280,13 +287,13 @@ class EvalProcesses:
         self.close()
 
 
-def _serve(conn, config_bytes: bytes, stream: int = 0) -> None:
+def _serve(conn, config_bytes: bytes, stream: int, policy_on: str) -> None:
     """The child: build the eval env and the policy (on the host's CPU, or on the accelerator),
     then answer requests."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     config = pickle.loads(config_bytes)
-    on_accelerator = config.eval_device == "accelerator"
+    on_accelerator = policy_on == "accelerator"
     if on_accelerator:  # beside the training's preallocated pool: only what it uses
         os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
     else:
@@ -299,7 +306,7 @@ def _serve(conn, config_bytes: bytes, stream: int = 0) -> None:
     try:
         env, step, place = build(
             config,
-            policy_on="accelerator" if on_accelerator else "cpu",
+            policy_on=policy_on,
             env_on="cpu" if config.env.eval_backend == "cpu" else "default",
             stream=stream,
         )

@@ -67,14 +67,15 @@ def fingerprint(config: ConfigDict) -> dict:
 
 # Offset of process p's env seeds (and episode-start keys): p * HOST_SEED_STRIDE.
 HOST_SEED_STRIDE = 1_000_033
-# Offset of evaluation process i's eval-env seed (config.eval_processes): i * EVAL_STREAM_STRIDE.
+# Offset of evaluation process i's eval-env seed (`eval_processes`): i * EVAL_STREAM_STRIDE.
 EVAL_STREAM_STRIDE = 1_000_037
 
 EVAL_DEVICES = ("auto", "cpu", "accelerator", "train")
 OWN_PROCESS = ("cpu", "accelerator")  # eval_device values that evaluate in a child process
-# Evaluation processes where config.eval_processes is 0 and they run on the accelerator: with
-# one, a lone seed's loop on the paper's grid waited up to 21% of its run for evaluations
-# (benchmarks/RESULTS.md, "Evaluation"); on the host's CPU a second would take the training's cores.
+# Evaluation processes where config.eval_processes is 0 and they run in processes of their own
+# beside a training on a GPU: with one, a lone seed's loop on the paper's grid waited up to 21%
+# of its run for evaluations (benchmarks/RESULTS.md, "Evaluation"). On a CPU-only machine a
+# second would take the training's cores.
 AUTO_EVAL_PROCESSES = 2
 
 
@@ -107,7 +108,7 @@ def validate(config: ConfigDict) -> None:
             raise ValueError(f"unknown {key} {_get(config, key)!r}; valid: {', '.join(valid)}")
     if not (isinstance(config.eval_processes, int) and config.eval_processes >= 0):
         raise ValueError(
-            f"eval_processes must be an int >= 1, or 0 (two on the accelerator, else one); got "
+            f"eval_processes must be an int >= 1, or 0 (two on a GPU machine, else one); got "
             f"{config.eval_processes!r}"
         )
     try:
@@ -238,11 +239,13 @@ def eval_device(config: ConfigDict, hosts: Hosts) -> str:
 
 def eval_processes(config: ConfigDict, where: str) -> int:
     """How many evaluation processes run side by side for the resolved eval_device `where`
-    (`eval_device`'s): config.eval_processes, its 0 resolved to AUTO_EVAL_PROCESSES where
-    they run on the accelerator, else 1 (on the host's CPU, or in the training's process)."""
+    (`eval_device`'s): config.eval_processes, its 0 resolved to AUTO_EVAL_PROCESSES where they
+    run in processes of their own on a GPU machine, else 1 (a CPU-only machine, or evaluations
+    in the training's processes)."""
     if config.eval_processes:
         return config.eval_processes
-    return AUTO_EVAL_PROCESSES if where == "accelerator" else 1
+    beside_gpu = where in OWN_PROCESS and jax.default_backend() == "gpu"
+    return AUTO_EVAL_PROCESSES if beside_gpu else 1
 
 
 def make_env(
@@ -297,7 +300,7 @@ def make_eval_env(
     config: ConfigDict, *, mesh: Mesh | None = None, hosts: Hosts | None = None, stream: int = 0
 ) -> envs.Env:
     """The evaluation episodes' env: num_eval_episodes envs per seed of the validation split,
-    its own seed (evaluation process `stream`'s own, of config.eval_processes), env.eval_backend's
+    its own seed (evaluation process `stream`'s own, of `eval_processes`), env.eval_backend's
     physics; CPU physics on env.eval_physics_threads threads (0: as many as this process may
     use cores, up to 8)."""
     usable = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else range(os.cpu_count())

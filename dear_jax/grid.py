@@ -3,7 +3,7 @@
     python -m dear_jax.grid [RUN ...] [--root runs] [--gpus 0,1,2,3] [--per-gpu 1]
         [--tasks walker cup finger] [--methods dear sear ted drqv2] [--seeds 3]
         [--frames 1000000] [--seeds-per-run 1] [--set FIELD=VALUE ...]
-        [--time-limit 3h [--start-margin 60|auto]] [--dry-run]
+        [--time-limit 3h [--start-margin 60|auto[:MARGIN]]] [--dry-run]
 
 The runs named (workdirs of earlier runs, e.g. `results/*/*/`) and every run under --root count
 towards the grid (`report.grid_rows`: a run belongs to a cell of `configs/paper.py:TASK,METHOD`
@@ -21,10 +21,11 @@ this process's cores, with its share of the GPU's memory when several share it; 
 the next starts. A job's console goes to --root as NAME.out. At --time-limit (90m, 3h, 2h30m or
 seconds; no job starts in its last --start-margin, a minute by default: give a job's length where
 a stopped job cannot resume; `auto`: a job starts only where a minute plus 1.1x its length fit,
-its length by the finished runs of its cell with as many lanes (a job without: a minute), and
-where the next job does not fit, a later one that does goes first), or on SIGTERM, SIGINT
-(Ctrl-C) or SIGHUP, every running job gets
-SIGTERM, saves a checkpoint and its summary, and exits; a second signal stops them at once, and
+its length at the training pace of its cell's finished runs of as many lanes (`report.
+training_pace`; a job without one needs MARGIN of `auto:MARGIN`, a minute by default), and
+where the next job does not fit, a later one that does goes first), or on
+SIGTERM, SIGINT (Ctrl-C) or SIGHUP, every running job gets SIGTERM, saves a checkpoint and
+its summary, and exits; a second signal stops them at once, and
 one still running 10 minutes after the first gets SIGKILL. The same command later resumes them.
 Without GPUs the jobs run on the CPU, --per-gpu at a time. At the end: a line
 per job (finished, stopped, failed, killed, not started) and the grid as `report grid` prints it.
@@ -178,8 +179,8 @@ class Queue:
     its slot's cores with taskset where it exists) in `cwd`, its console in log_dir/NAME.out,
     until all ended, the time limit passed or a signal came (then the running ones get SIGTERM
     and are waited for). Within `start_margin` of the time limit no job starts; with `fit`, a
-    job with `seconds` starts only where start_margin + FIT_FACTOR x seconds are left, and the
-    first queued job that fits goes first."""
+    job with `seconds` starts only where START_MARGIN_S + FIT_FACTOR x seconds are left (one
+    without, start_margin), and the first queued job that fits goes first."""
 
     def __init__(
         self, jobs, places, command, log_dir, cwd=REPO, time_limit=None, poll=1.0,
@@ -231,7 +232,7 @@ class Queue:
             for k, (_, job) in enumerate([] if self.stopping else queued):
                 need = self.start_margin
                 if self.fit and job.seconds is not None:
-                    need += FIT_FACTOR * job.seconds
+                    need = START_MARGIN_S + FIT_FACTOR * job.seconds
                 if left >= need:
                     return k
                 if not self.fit:
@@ -276,6 +277,9 @@ class Queue:
                     rows[i].update(state=state, rc=rc, seconds=seconds)
                     echo(f"{_stamp(start)} {self.jobs[i].name} {state} (rc {rc}, {seconds:,} s)")
                     free.append(slot)
+            if queued and not self.stopping:
+                names = ", ".join(job.name for _, job in queued)
+                echo(f"{_stamp(start)} not started, too long for the time left: {names}")
         finally:  # an error here leaves no run behind
             for process in running:
                 process.send_signal(signal.SIGTERM)
@@ -316,7 +320,7 @@ def main(argv=None) -> list[dict] | None:
     parser.add_argument(
         "--start-margin",
         default="60",
-        help="no job starts this close to the time limit; auto: where its length fits",
+        help="no job starts this close to the time limit; auto[:MARGIN]: where its length fits",
     )
     parser.add_argument("--dry-run", action="store_true", help="print the queue, run nothing")
     args = parser.parse_args(argv)
@@ -325,8 +329,12 @@ def main(argv=None) -> list[dict] | None:
     root = pathlib.Path(args.root).resolve()
     try:
         limit = None if args.time_limit is None else parse_duration(args.time_limit)
-        fit = args.start_margin == "auto"
-        margin = START_MARGIN_S if fit else parse_duration(args.start_margin, "--start-margin")
+        head, _, fallback = args.start_margin.partition(":")
+        fit = head == "auto"
+        margin = parse_duration(
+            (fallback or str(START_MARGIN_S)) if fit else args.start_margin,
+            "--start-margin (or auto, auto:MARGIN)",
+        )
         extra = overrides(args.set)
         gpus = visible_gpus() if args.gpus is None else [g for g in args.gpus.split(",") if g]
         places = slots(gpus, args.per_gpu)
@@ -342,7 +350,7 @@ def main(argv=None) -> list[dict] | None:
         parser.error(str(e))
     print(f"{len(jobs)} runs to complete the grid, {len(places)} at a time:")
     for job in jobs:
-        length = "" if job.seconds is None else f" (~{job.seconds / 60:.0f} min by earlier runs)"
+        length = "" if job.seconds is None else f" (~{job.seconds / 60:.0f} min of training)"
         print(f"  {job.name}{length}: python run.py {shlex.join(job.args)}")
     if args.dry_run or not jobs:
         return None

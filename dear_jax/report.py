@@ -59,7 +59,7 @@ runs are of other tasks or methods. `python -m dear_jax.grid` runs
 those commands as a queue over GPUs.
 
 `evals` says whether a run's evaluations kept up with its training (`eval_rows`): where one
-evaluation (over config.eval_processes) takes longer than the training between two, the loop
+evaluation (over the run's evaluation processes) takes longer than the training between two, the loop
 waits for it; and what its periodic checkpoints cost (each first waits for the evaluations in
 flight).
 
@@ -570,6 +570,26 @@ def grid_run_fields() -> tuple[str, ...]:
     return (*GRID_MAY_DIFFER, *(f for f in RESUMABLE_CHANGES if f != "total_frames"))
 
 
+def training_pace(workdir: pathlib.Path, config: dict, summary: dict) -> float | None:
+    """A finished run's seconds of wall clock per frame per seed at its training's own pace and
+    with its periodic checkpoints (`eval_rows`: train_s over eval_every_frames, the rows that
+    hold an evaluation's start left out, plus the checkpoints' excess per frame), so without
+    the waits for evaluations that outlast the training between them (one evaluation process
+    of the paper's grid's runs); without readable logs, its summary's wall clock per frame;
+    else None."""
+    try:
+        row = eval_rows([workdir])[0]
+        pace = row["train_s"] / config["eval_every_frames"]
+        pace += row["checkpoint_excess_s"] / summary["frames_per_seed"]
+    except (OSError, ValueError, KeyError, IndexError, StopIteration, ZeroDivisionError):
+        pace = math.nan
+    if math.isfinite(pace):
+        return pace
+    if summary.get("wall_s") and summary.get("frames_per_seed"):
+        return summary["wall_s"] / summary["frames_per_seed"]
+    return None
+
+
 def _first_difference(fields: dict, ref: dict) -> str | None:
     """The first field (sorted) in which a run's flattened config differs from a cell's."""
     from dear_jax.experiment import RESUMABLE_CHANGES
@@ -626,7 +646,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
                 "short": [],
                 "stopped": [],  # (frames reached, the seeds it brings, its resume's arguments)
                 "used": set(),
-                "paces": [],  # (lanes, s of wall clock per frame) of the runs that reached `frames`
+                "paces": [],  # (lanes, `training_pace`) of the runs that reached `frames`
             }
     outside, elsewhere = [], []
     for workdir in dict.fromkeys(pathlib.Path(w).resolve() for w in workdirs):
@@ -657,8 +677,9 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
         reached = summary.get("frames_per_seed")
         if reached is not None and reached >= frames:
             cell["done"].append(name)
-            if summary.get("wall_s"):
-                cell["paces"].append((config["seeds"], summary["wall_s"] / reached))
+            pace = training_pace(workdir, config, summary)
+            if pace is not None:
+                cell["paces"].append((config["seeds"], pace))
             # A seed is (config.seed, lane seed): one trained to the end twice counts once.
             cell["seeds"].update((seed, s) for s in range(config["seeds"]))
             continue
@@ -724,8 +745,8 @@ def grid_jobs(
     cell the rest), from a config.seed no run of the cell used. `overrides`: more
     `--config.FIELD=VALUE` arguments for the new seed-runs. Job names are unique (suffixes _1,
     _2, ... where resumed workdirs share a name). A new seed-run's `seconds`: `frames` at the
-    median wall clock per frame of the cell's runs of as many lanes that reached the grid's
-    frames (their training; start-up and the closing evaluation not in it)."""
+    median `training_pace` of the cell's runs of as many lanes that reached the grid's frames
+    (whatever their devices; start-up and the closing evaluation not in it)."""
     if seeds_per_run < 1:
         raise ValueError(f"seeds per run must be at least 1, got {seeds_per_run}")
     cells = grid["cells"]

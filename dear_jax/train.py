@@ -174,7 +174,9 @@ def _evaluator(config: ConfigDict, where: str, processes: int, spec, mesh, hosts
     """The evaluator `where` (the resolved eval_device) says: `processes` processes of their
     own, started now (they build while this process compiles), or the eval env here."""
     if where in OWN_PROCESS:
-        return EvalProcess(config) if processes == 1 else EvalProcesses(config, processes)
+        if processes == 1:
+            return EvalProcess(config, policy_on=where)
+        return EvalProcesses(config, processes, policy_on=where)
     eval_env = make_eval_env(config, mesh=mesh, hosts=hosts)
     acfg = agent_config(config, spec.action_dim)
     return LocalEvaluator(eval_env, cached_programs(acfg, config, mesh).evaluate_step, hosts)

@@ -69,16 +69,17 @@ def test_the_eval_process_evaluates_as_this_process_does(tmp_path):
 
 
 def test_on_the_accelerator_the_eval_process_runs_the_trainings_own_program():
-    """eval_device="accelerator": the child evaluates with the training's program (bf16 here,
-    on this machine's only device, the CPU), so its returns are this process's with that
-    program, and differ from the float32 host program's that "cpu" runs."""
-    config = tiny_config(**{"agent.compute_dtype": "bfloat16", "eval_device": "accelerator"})
+    """policy_on="accelerator" (the resolved eval_device): the child evaluates with the
+    training's program (bf16 here, on this machine's only device, the CPU), so its returns are
+    this process's with that program, and differ from the float32 host program's that "cpu"
+    runs."""
+    config = tiny_config(**{"agent.compute_dtype": "bfloat16"})
     params, acfg = _agent_params(config)
     hosts = Hosts(None, lanes.num_lanes(config))
     programs = build_programs(acfg, experiment.hparams(config), config)
     key = jax.random.key(7)
     want = {}
-    with EvalProcess(config) as remote:
+    with EvalProcess(config, policy_on="accelerator") as remote:
         start = remote.host_state()
         got = remote.evaluate(params, key)
     env = experiment.make_env(config, envs_per_seed=config.num_eval_episodes, split="val", seed=1)

@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import sys
 import threading
 import time
 
 import pytest
-from test_outputs import paper_run
+from test_outputs import REPO, paper_run
 
 from dear_jax import grid, report
 
@@ -234,8 +235,10 @@ def test_the_time_limit_stops_the_runs_with_sigterm_and_starts_no_more(tmp_path)
 
 
 def test_a_jobs_length_comes_from_its_cells_finished_runs_of_as_many_lanes(tmp_path):
-    """A new seed-run's seconds: the grid's frames at the median wall clock per frame of its
-    cell's runs that reached them with as many lanes; none without such runs."""
+    """A new seed-run's seconds: the grid's frames at the median pace of its cell's runs that
+    reached them with as many lanes (without logs, their wall clock per frame); none without
+    such runs. With logs, the pace is the training's own, `report evals`' training time
+    between evaluations: a shipped 1M finger run's."""
     runs = []
     for i, (frames, wall, seeds) in enumerate(
         [(1_000_000, 900.0, 1), (1_000_000, 1200.0, 1), (1_000_000, 600.0, 1),
@@ -251,30 +254,44 @@ def test_a_jobs_length_comes_from_its_cells_finished_runs_of_as_many_lanes(tmp_p
     assert {job.seconds for job in jobs if job.name.startswith("finger_drqv2")} == {None}
     three = report.grid_jobs(cells, 1_000_000, seeds_per_run=3)
     assert [job.seconds for job in three if "ted" in job.name] == [pytest.approx(3000.0)]
+    shipped = REPO / "results" / "finger_paper_1m" / "finger_drqv2_s1"
+    logged = tmp_path / "logged" / shipped.name
+    shutil.copytree(shipped, logged)
+    (row,) = report.eval_rows([logged])
+    assert 6.0 < row["train_s"] < 8.0  # s per 10k frames; the run's wall clock gives 9.9
+    (job,) = report.grid_jobs(report.grid_rows([logged], ["finger"], ["drqv2"], 2), 1_000_000)
+    # its training's pace and its periodic checkpoints (108 s), not its waits for evaluations
+    assert row["checkpoint_excess_s"] > 100
+    assert job.seconds == pytest.approx(row["train_s"] * 100 + row["checkpoint_excess_s"])
 
 
 def test_auto_start_margin_starts_the_jobs_that_fit_before_the_limit(tmp_path):
-    """With `fit`, a job starts only where the margin and 1.1x its seconds are left: a long job
-    waits while a shorter one behind it starts, a job of unknown length needs the margin only;
-    without `fit` the queue keeps its order and stops at the first job within the margin."""
+    """With `fit`, a job of known length starts only where a minute and 1.1x its seconds are
+    left: a long job waits while a shorter one behind it starts, and is named at the end; a job
+    of unknown length needs the start margin. Without `fit` the seconds count for nothing: the
+    queue keeps its order."""
     names = ["long", "short", "unknown"]
-    lengths = {"long": 100.0, "short": 10.0, "unknown": None}
-    queue, out = _queue(tmp_path, names, grid.slots([], per_gpu=1), seconds=0, time_limit=30)
+    lengths = {"long": 100.0, "short": 10.0, "unknown": None}  # need 170, 71 and 5 s
+    queue, out = _queue(tmp_path, names, grid.slots([], per_gpu=1), seconds=0, time_limit=100)
     queue.jobs = [report.Job(n, (), lengths[n]) for n in names]
     queue.start_margin, queue.fit = 5.0, True
-    rows = queue.run(echo=lambda line: None)
+    said = []
+    rows = queue.run(echo=said.append)
     assert [(r["job"], r["state"]) for r in rows] == [
         ("long", "not started"),
         ("short", "finished"),
         ("unknown", "finished"),
     ]
-    assert (
-        _records(out, ["short"])["short"]["start"] < _records(out, ["unknown"])["unknown"]["start"]
-    )
+    started = _records(out, ["short", "unknown"])
+    assert started["short"]["start"] < started["unknown"]["start"]
+    assert said[-1].endswith("not started, too long for the time left: long")
     assert grid.exit_code(rows, queue.stopping) == grid.EX_TEMPFAIL
     queue.fit = False
-    queue.start_margin = 40.0
-    assert [r["state"] for r in queue.run(echo=lambda line: None)] == ["not started"] * 3
+    (out / "short.json").unlink()
+    rows = queue.run(echo=lambda line: None)
+    assert [r["state"] for r in rows] == ["finished"] * 3
+    started = _records(out, names)
+    assert started["long"]["start"] < started["short"]["start"] < started["unknown"]["start"]
 
 
 def test_a_sigterm_to_the_queue_reaches_its_runs(tmp_path):

@@ -362,6 +362,25 @@ def test_evaluations_in_two_processes_log_what_one_evaluator_logs(run, tmp_path,
     assert len(states) == 2 and repr(states[0]) != repr(states[1])
 
 
+def test_the_evaluation_processes_run_their_policy_where_the_resolved_eval_device_says(
+    monkeypatch,
+):
+    """eval_device "auto" resolved to "accelerator" reaches the evaluation processes (their
+    policy on the accelerator, not the config's unresolved "auto"), one or several."""
+    made = []
+    monkeypatch.setattr(train, "EvalProcess", lambda config, **kw: made.append((1, kw)))
+    monkeypatch.setattr(
+        train, "EvalProcesses", lambda config, count, **kw: made.append((count, kw))
+    )
+    config = tiny_config()
+    assert config.eval_device == "auto"
+    for count in (1, 2):
+        train._evaluator(config, "accelerator", count, None, None, Hosts(None, config.seeds))
+    assert made == [(1, {"policy_on": "accelerator"}), (2, {"policy_on": "accelerator"})]
+    with pytest.raises(ValueError, match="policy_on='auto': valid: cpu, accelerator"):
+        evaluator.EvalProcess(config, policy_on="auto")
+
+
 def test_evaluation_processes_restore_states_saved_by_fewer_or_more():
     """A checkpoint's eval-env state restores into N evaluation processes whatever wrote it: a
     single evaluator's state goes to the first process, the others keep their own streams; a
@@ -436,11 +455,15 @@ def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
             experiment.eval_device(config, two)
     config.eval_device = "auto"
     assert experiment.eval_device(config, two) == "train"
-    # Evaluation processes side by side are processes of their own; by default (0) two on the
-    # accelerator, one on the host's CPU or in the training's process.
+    # Evaluation processes side by side are processes of their own; by default (0) two beside
+    # a training on a GPU, else one.
     assert config.eval_processes == 0
-    counts = {w: experiment.eval_processes(config, w) for w in ("accelerator", "cpu", "train")}
-    assert counts == {"accelerator": 2, "cpu": 1, "train": 1}
+    places = ("accelerator", "cpu", "train")
+    assert {w: experiment.eval_processes(config, w) for w in places} == dict.fromkeys(places, 1)
+    with monkeypatch.context() as m:
+        m.setattr(jax, "default_backend", lambda: "gpu")
+        counts = {w: experiment.eval_processes(config, w) for w in places}
+    assert counts == {"accelerator": 2, "cpu": 2, "train": 1}
     config.eval_processes = 2
     with pytest.raises(ValueError, match="eval_processes=2 evaluates in processes of their own"):
         experiment.eval_device(config, two)

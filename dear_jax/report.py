@@ -571,12 +571,10 @@ def grid_run_fields() -> tuple[str, ...]:
 
 
 def training_pace(workdir: pathlib.Path, config: dict, summary: dict) -> float | None:
-    """A finished run's seconds of wall clock per frame per seed at its training's own pace and
-    with its periodic checkpoints (`eval_rows`: train_s over eval_every_frames, the rows that
-    hold an evaluation's start left out, plus the checkpoints' excess per frame), so without
-    the waits for evaluations that outlast the training between them (one evaluation process
-    of the paper's grid's runs); without readable logs, its summary's wall clock per frame;
-    else None."""
+    """A finished run's wall-clock seconds per frame per seed: its training's own pace plus its
+    periodic checkpoints (`eval_rows`: train_s / eval_every_frames + checkpoint_excess_s /
+    frames), leaving out its waits for evaluations that outlast the training between two;
+    without readable logs, its summary's wall clock per frame; else None."""
     try:
         row = eval_rows([workdir])[0]
         pace = row["train_s"] / config["eval_every_frames"]

@@ -237,8 +237,8 @@ def test_the_time_limit_stops_the_runs_with_sigterm_and_starts_no_more(tmp_path)
 def test_a_jobs_length_comes_from_its_cells_finished_runs_of_as_many_lanes(tmp_path):
     """A new seed-run's seconds: the grid's frames at the median pace of its cell's runs that
     reached them with as many lanes (without logs, their wall clock per frame); none without
-    such runs. With logs, the pace is the training's own, `report evals`' training time
-    between evaluations: a shipped 1M finger run's."""
+    such runs. With logs, the pace is the training's own (`report evals`' training time
+    between evaluations) and its periodic checkpoints': a shipped 1M finger run's."""
     runs = []
     for i, (frames, wall, seeds) in enumerate(
         [(1_000_000, 900.0, 1), (1_000_000, 1200.0, 1), (1_000_000, 600.0, 1),

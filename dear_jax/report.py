@@ -570,21 +570,22 @@ def grid_run_fields() -> tuple[str, ...]:
     return (*GRID_MAY_DIFFER, *(f for f in RESUMABLE_CHANGES if f != "total_frames"))
 
 
-def training_pace(workdir: pathlib.Path, config: dict, summary: dict) -> float | None:
-    """A finished run's wall-clock seconds per frame per seed: its training's own pace plus its
-    periodic checkpoints (`eval_rows`: train_s / eval_every_frames + checkpoint_excess_s /
-    frames), leaving out its waits for evaluations that outlast the training between two;
-    without readable logs, its summary's wall clock per frame; else None."""
+def training_pace(workdir: pathlib.Path, config: dict, summary: dict) -> tuple[float, float] | None:
+    """A finished run's wall-clock seconds per frame per seed, as (its training's own pace, its
+    periodic checkpoints' share): `eval_rows`' train_s / eval_every_frames and
+    checkpoint_excess_s / frames, leaving out its waits for evaluations that outlast the
+    training between two; without readable logs, (its summary's wall clock per frame, 0); else
+    None."""
     try:
         row = eval_rows([workdir])[0]
         pace = row["train_s"] / config["eval_every_frames"]
-        pace += row["checkpoint_excess_s"] / summary["frames_per_seed"]
+        checkpoints = row["checkpoint_excess_s"] / summary["frames_per_seed"]
     except (OSError, ValueError, KeyError, IndexError, StopIteration, ZeroDivisionError):
-        pace = math.nan
-    if math.isfinite(pace):
-        return pace
+        pace = checkpoints = math.nan
+    if math.isfinite(pace) and math.isfinite(checkpoints):
+        return pace, checkpoints
     if summary.get("wall_s") and summary.get("frames_per_seed"):
-        return summary["wall_s"] / summary["frames_per_seed"]
+        return summary["wall_s"] / summary["frames_per_seed"], 0.0
     return None
 
 
@@ -644,7 +645,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
                 "short": [],
                 "stopped": [],  # (frames reached, the seeds it brings, its resume's arguments)
                 "used": set(),
-                "paces": [],  # (lanes, `training_pace`) of the runs that reached `frames`
+                "paces": [],  # (lanes, *`training_pace`) of the runs that reached `frames`
             }
     outside, elsewhere = [], []
     for workdir in dict.fromkeys(pathlib.Path(w).resolve() for w in workdirs):
@@ -677,7 +678,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
             cell["done"].append(name)
             pace = training_pace(workdir, config, summary)
             if pace is not None:
-                cell["paces"].append((config["seeds"], pace))
+                cell["paces"].append((config["seeds"], *pace))
             # A seed is (config.seed, lane seed): one trained to the end twice counts once.
             cell["seeds"].update((seed, s) for s in range(config["seeds"]))
             continue
@@ -744,7 +745,8 @@ def grid_jobs(
     `--config.FIELD=VALUE` arguments for the new seed-runs. Job names are unique (suffixes _1,
     _2, ... where resumed workdirs share a name). A new seed-run's `seconds`: `frames` at the
     median `training_pace` of the cell's runs of as many lanes that reached the grid's frames
-    (whatever their devices; start-up and the closing evaluation not in it)."""
+    (whatever their devices; start-up and the closing evaluation not in it), their periodic
+    checkpoints' share left out where `overrides` set checkpoint_every_frames=0."""
     if seeds_per_run < 1:
         raise ValueError(f"seeds per run must be at least 1, got {seeds_per_run}")
     cells = grid["cells"]
@@ -762,6 +764,11 @@ def grid_jobs(
             for j in range(-(-new // seeds_per_run))
         ]
 
+    # Whether the new seed-runs save periodic checkpoints (the last override of the field wins)
+    every = [
+        o.partition("=")[2] for o in overrides if o.startswith("--config.checkpoint_every_frames=")
+    ]
+    saves = not every or every[-1] not in ("0", "0.0")
     jobs = [
         Job(pathlib.Path(args[-1]).name, (*spec(r), *length(r), *args))
         for r in cells
@@ -775,7 +782,11 @@ def grid_jobs(
                 name = f"{r['name']}_s{n}"
                 seed = (f"--config.seed={n}", f"--config.seeds={count}")
                 workdir = ("--workdir", f"{root}/{name}")
-                paces = [pace for width, pace in r["paces"] if width == count]
+                paces = [
+                    pace + (checkpoints if saves else 0.0)
+                    for width, pace, checkpoints in r["paces"]
+                    if width == count
+                ]
                 seconds = float(np.median(paces)) * frames if paces else None
                 args = (*spec(r), *seed, *length(r), *overrides, *workdir)
                 jobs.append(Job(name, args, seconds))

@@ -238,7 +238,8 @@ def test_a_jobs_length_comes_from_its_cells_finished_runs_of_as_many_lanes(tmp_p
     """A new seed-run's seconds: the grid's frames at the median pace of its cell's runs that
     reached them with as many lanes (without logs, their wall clock per frame); none without
     such runs. With logs, the pace is the training's own (`report evals`' training time
-    between evaluations) and its periodic checkpoints': a shipped 1M finger run's."""
+    between evaluations) and its periodic checkpoints' (not for a seed-run that saves none): a
+    shipped 1M finger run's."""
     runs = []
     for i, (frames, wall, seeds) in enumerate(
         [(1_000_000, 900.0, 1), (1_000_000, 1200.0, 1), (1_000_000, 600.0, 1),
@@ -262,6 +263,13 @@ def test_a_jobs_length_comes_from_its_cells_finished_runs_of_as_many_lanes(tmp_p
     (job,) = report.grid_jobs(report.grid_rows([logged], ["finger"], ["drqv2"], 2), 1_000_000)
     # its training's pace and its periodic checkpoints (108 s), not its waits for evaluations
     assert row["checkpoint_excess_s"] > 100
+    assert job.seconds == pytest.approx(row["train_s"] * 100 + row["checkpoint_excess_s"])
+    # A seed-run that saves no periodic checkpoints takes its training's pace alone.
+    cells = report.grid_rows([logged], ["finger"], ["drqv2"], 2)
+    off = ("--config.checkpoint_every_frames=100000", "--config.checkpoint_every_frames=0")
+    (job,) = report.grid_jobs(cells, 1_000_000, overrides=off)
+    assert job.seconds == pytest.approx(row["train_s"] * 100)
+    (job,) = report.grid_jobs(cells, 1_000_000, overrides=off[::-1])
     assert job.seconds == pytest.approx(row["train_s"] * 100 + row["checkpoint_excess_s"])
 
 

@@ -21,8 +21,10 @@ this process's cores, with its share of the GPU's memory when several share it; 
 the next starts. A job's console goes to --root as NAME.out. At --time-limit (90m, 3h, 2h30m or
 seconds; no job starts in its last --start-margin, a minute by default: give a job's length where
 a stopped job cannot resume; `auto`: a job starts only where a minute plus 1.1x its length fit,
-its length at the training pace of its cell's finished runs of as many lanes (`report.
-training_pace`; a job without one needs MARGIN of `auto:MARGIN`, a minute by default), and
+its length at the training pace of its cell's finished runs of as many lanes, else of its task
+and method's in other settings (`report.grid_jobs`; their periodic checkpoints' share too unless
+--set checkpoint_every_frames=0; a job without one needs MARGIN of `auto:MARGIN`, a minute by
+default), and
 where the next job does not fit, a later one that does goes first), or on
 SIGTERM, SIGINT (Ctrl-C) or SIGHUP, every running job gets SIGTERM, saves a checkpoint and
 its summary, and exits; a second signal stops them at once, and

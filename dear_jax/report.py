@@ -648,6 +648,9 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
                 "paces": [],  # (lanes, *`training_pace`) of the runs that reached `frames`
             }
     outside, elsewhere = [], []
+    # (env.task, method) -> (lanes, *`training_pace`) of its runs in any setting that reached
+    # `frames`: the length of a cell's seed-runs where the cell has no such run of its own
+    related: dict[tuple[str, str], list] = {}
     for workdir in dict.fromkeys(pathlib.Path(w).resolve() for w in workdirs):
         name = f"{workdir.parent.name}/{workdir.name}"
         path = workdir / "config.json"
@@ -666,17 +669,22 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
         # The cell whose config it has; else it is named with its first difference from the
         # first cell of its task and method (the paper's setting where the grid has it).
         cell = next((c for c in same if _first_difference(fields, c["ref"]) is None), None)
+        summary_path = workdir / "summary.json"
+        summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+        reached = summary.get("frames_per_seed")
+        pace = None
+        if reached is not None and reached >= frames:
+            pace = training_pace(workdir, config, summary)
+            if pace is not None:
+                key = (fields["env.task"], fields["agent.method"])
+                related.setdefault(key, []).append((config["seeds"], *pace))
         if cell is None:
             outside.append(f"{name}: {_first_difference(fields, same[0]['ref'])}")
             continue
         seed = config.get("seed", 0)
         cell["used"].add(seed)
-        summary_path = workdir / "summary.json"
-        summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
-        reached = summary.get("frames_per_seed")
         if reached is not None and reached >= frames:
             cell["done"].append(name)
-            pace = training_pace(workdir, config, summary)
             if pace is not None:
                 cell["paces"].append((config["seeds"], *pace))
             # A seed is (config.seed, lane seed): one trained to the end twice counts once.
@@ -717,6 +725,8 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
                 "next_seeds": [next(free) for _ in range(new)],
                 "total_frames": cell["ref"]["total_frames"],
                 "paces": cell["paces"],
+                # without its own: those of its task and method in other settings
+                "related_paces": related.get((cell["ref"]["env.task"], cell["method"]), []),
             }
         )
     return {"cells": rows, "outside": outside, "elsewhere": elsewhere}
@@ -746,7 +756,9 @@ def grid_jobs(
     _2, ... where resumed workdirs share a name). A new seed-run's `seconds`: `frames` at the
     median `training_pace` of the cell's runs of as many lanes that reached the grid's frames
     (whatever their devices; start-up and the closing evaluation not in it), their periodic
-    checkpoints' share left out where `overrides` set checkpoint_every_frames=0."""
+    checkpoints' share left out where `overrides` set checkpoint_every_frames=0; a cell without
+    such runs goes by those of its task and method in other settings (e.g. the paper's setting
+    for the full suite's cell: distractions and weights change little of the work)."""
     if seeds_per_run < 1:
         raise ValueError(f"seeds per run must be at least 1, got {seeds_per_run}")
     cells = grid["cells"]
@@ -769,6 +781,11 @@ def grid_jobs(
         o.partition("=")[2] for o in overrides if o.startswith("--config.checkpoint_every_frames=")
     ]
     saves = not every or every[-1] not in ("0", "0.0")
+
+    def length_of(paces, lanes: int) -> float | None:  # a seed-run's seconds by these paces
+        paces = [p + (c if saves else 0.0) for width, p, c in paces if width == lanes]
+        return float(np.median(paces)) * frames if paces else None
+
     jobs = [
         Job(pathlib.Path(args[-1]).name, (*spec(r), *length(r), *args))
         for r in cells
@@ -782,12 +799,7 @@ def grid_jobs(
                 name = f"{r['name']}_s{n}"
                 seed = (f"--config.seed={n}", f"--config.seeds={count}")
                 workdir = ("--workdir", f"{root}/{name}")
-                paces = [
-                    pace + (checkpoints if saves else 0.0)
-                    for width, pace, checkpoints in r["paces"]
-                    if width == count
-                ]
-                seconds = float(np.median(paces)) * frames if paces else None
+                seconds = length_of(r["paces"], count) or length_of(r["related_paces"], count)
                 args = (*spec(r), *seed, *length(r), *overrides, *workdir)
                 jobs.append(Job(name, args, seconds))
     names = [job.name for job in jobs]  # resumed workdirs of one name in several folders

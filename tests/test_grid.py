@@ -236,10 +236,10 @@ def test_the_time_limit_stops_the_runs_with_sigterm_and_starts_no_more(tmp_path)
 
 def test_a_jobs_length_comes_from_its_cells_finished_runs_of_as_many_lanes(tmp_path):
     """A new seed-run's seconds: the grid's frames at the median pace of its cell's runs that
-    reached them with as many lanes (without logs, their wall clock per frame); none without
-    such runs. With logs, the pace is the training's own (`report evals`' training time
-    between evaluations) and its periodic checkpoints' (not for a seed-run that saves none): a
-    shipped 1M finger run's."""
+    reached them with as many lanes (without logs, their wall clock per frame), else of its
+    task and method's in other settings; none without such runs. With logs, the pace is the
+    training's own (`report evals`' training time between evaluations) and its periodic
+    checkpoints' (not for a seed-run that saves none): a shipped 1M finger run's."""
     runs = []
     for i, (frames, wall, seeds) in enumerate(
         [(1_000_000, 900.0, 1), (1_000_000, 1200.0, 1), (1_000_000, 600.0, 1),
@@ -255,6 +255,16 @@ def test_a_jobs_length_comes_from_its_cells_finished_runs_of_as_many_lanes(tmp_p
     assert {job.seconds for job in jobs if job.name.startswith("finger_drqv2")} == {None}
     three = report.grid_jobs(cells, 1_000_000, seeds_per_run=3)
     assert [job.seconds for job in three if "ted" in job.name] == [pytest.approx(3000.0)]
+    # A cell without such runs goes by its task and method's runs in other settings (here the
+    # paper's, for the full suite's cell), until it has its own.
+    (job,) = report.grid_jobs(report.grid_rows(runs, ["finger,medium-full"], ["ted"], 1), 500_000)
+    assert job.seconds == pytest.approx(450.0)
+    full = paper_run(tmp_path / "f_ted_full", "finger,ted,medium-full", 0, 1_000_000)
+    (full / "summary.json").write_text(json.dumps({"frames_per_seed": 1_000_000, "wall_s": 2e3}))
+    (job,) = report.grid_jobs(
+        report.grid_rows([*runs, full], ["finger,medium-full"], ["ted"], 2), 5e5
+    )
+    assert job.seconds == pytest.approx(1000.0)
     shipped = REPO / "results" / "finger_paper_1m" / "finger_drqv2_s1"
     logged = tmp_path / "logged" / shipped.name
     shutil.copytree(shipped, logged)

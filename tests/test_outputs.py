@@ -750,6 +750,7 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
         "next_seeds": [2],  # s1's resume brings the other; 0, 1 and 4 are taken
         "total_frames": 1_000_000,
         "paces": [],  # its finished runs' summaries hold no wall clock
+        "related_paces": [],  # nor those of its task and method in other settings
     }
     assert (cell["cup", "sear"]["seeds_done"], cell["cup", "sear"]["next_seeds"]) == (2, [1])
     assert cell["walker", "sear"]["missing"] == 3 and cell["walker", "sear"]["next_seeds"] == [

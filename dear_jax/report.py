@@ -574,8 +574,8 @@ def training_pace(workdir: pathlib.Path, config: dict, summary: dict) -> tuple[f
     """A finished run's wall-clock seconds per frame per seed, as (its training's own pace, its
     periodic checkpoints' share): `eval_rows`' train_s / eval_every_frames and
     checkpoint_excess_s / frames, leaving out its waits for evaluations that outlast the
-    training between two; without readable logs, (its summary's wall clock per frame, 0); else
-    None."""
+    training between two; without readable logs, (its summary's wall clock per frame, its
+    checkpoints inside it, 0); else None."""
     try:
         row = eval_rows([workdir])[0]
         pace = row["train_s"] / config["eval_every_frames"]
@@ -648,8 +648,8 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
                 "paces": [],  # (lanes, *`training_pace`) of the runs that reached `frames`
             }
     outside, elsewhere = [], []
-    # (env.task, method) -> (lanes, *`training_pace`) of its runs in any setting that reached
-    # `frames`: the length of a cell's seed-runs where the cell has no such run of its own
+    # (env.task, method) -> (lanes, *`training_pace`) of its runs in any setting (sweeps aside)
+    # that reached `frames`: the length of a cell's seed-runs where the cell has none of its own
     related: dict[tuple[str, str], list] = {}
     for workdir in dict.fromkeys(pathlib.Path(w).resolve() for w in workdirs):
         name = f"{workdir.parent.name}/{workdir.name}"
@@ -732,10 +732,19 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
     return {"cells": rows, "outside": outside, "elsewhere": elsewhere}
 
 
+def _is_zero(text: str) -> bool:
+    """Whether a command-line integer (as Python reads one: 0, 00, 0_0, 0x0) is zero."""
+    try:
+        return int(text.strip(), 0) == 0
+    except ValueError:
+        return False
+
+
 @dataclasses.dataclass(frozen=True)
 class Job:
     """A seed-run of the grid: its workdir's name, `run.py`'s arguments and, for a new seed-run,
-    the seconds it should take (`grid_jobs`; None: no run of its cell and lanes to go by)."""
+    the seconds it should take (`grid_jobs`; None: no finished run of its lanes, of its cell or
+    of its task and method, to go by)."""
 
     name: str
     args: tuple[str, ...]
@@ -757,8 +766,8 @@ def grid_jobs(
     median `training_pace` of the cell's runs of as many lanes that reached the grid's frames
     (whatever their devices; start-up and the closing evaluation not in it), their periodic
     checkpoints' share left out where `overrides` set checkpoint_every_frames=0; a cell without
-    such runs goes by those of its task and method in other settings (e.g. the paper's setting
-    for the full suite's cell: distractions and weights change little of the work)."""
+    such runs goes by those of its task and method in other settings, whatever differs (meant for
+    the full suite's cell and the weight ablations', whose work is the paper setting's)."""
     if seeds_per_run < 1:
         raise ValueError(f"seeds per run must be at least 1, got {seeds_per_run}")
     cells = grid["cells"]
@@ -780,7 +789,7 @@ def grid_jobs(
     every = [
         o.partition("=")[2] for o in overrides if o.startswith("--config.checkpoint_every_frames=")
     ]
-    saves = not every or every[-1] not in ("0", "0.0")
+    saves = not every or not _is_zero(every[-1])
 
     def length_of(paces, lanes: int) -> float | None:  # a seed-run's seconds by these paces
         paces = [p + (c if saves else 0.0) for width, p, c in paces if width == lanes]
@@ -799,7 +808,9 @@ def grid_jobs(
                 name = f"{r['name']}_s{n}"
                 seed = (f"--config.seed={n}", f"--config.seeds={count}")
                 workdir = ("--workdir", f"{root}/{name}")
-                seconds = length_of(r["paces"], count) or length_of(r["related_paces"], count)
+                seconds = length_of(r["paces"], count)
+                if seconds is None:
+                    seconds = length_of(r["related_paces"], count)
                 args = (*spec(r), *seed, *length(r), *overrides, *workdir)
                 jobs.append(Job(name, args, seconds))
     names = [job.name for job in jobs]  # resumed workdirs of one name in several folders

@@ -281,6 +281,8 @@ def test_a_jobs_length_comes_from_its_cells_finished_runs_of_as_many_lanes(tmp_p
     assert job.seconds == pytest.approx(row["train_s"] * 100)
     (job,) = report.grid_jobs(cells, 1_000_000, overrides=off[::-1])
     assert job.seconds == pytest.approx(row["train_s"] * 100 + row["checkpoint_excess_s"])
+    (job,) = report.grid_jobs(cells, 1_000_000, overrides=("--config.checkpoint_every_frames=00",))
+    assert job.seconds == pytest.approx(row["train_s"] * 100)
 
 
 def test_auto_start_margin_starts_the_jobs_that_fit_before_the_limit(tmp_path):

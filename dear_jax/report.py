@@ -574,8 +574,8 @@ def training_pace(workdir: pathlib.Path, config: dict, summary: dict) -> tuple[f
     """A finished run's wall-clock seconds per frame per seed, as (its training's own pace, its
     periodic checkpoints' share): `eval_rows`' train_s / eval_every_frames and
     checkpoint_excess_s / frames, leaving out its waits for evaluations that outlast the
-    training between two; without readable logs, (its summary's wall clock per frame, its
-    checkpoints inside it, 0); else None."""
+    training between two; without readable logs, (its summary's wall clock per frame, 0), the
+    checkpoints inside the first; else None."""
     try:
         row = eval_rows([workdir])[0]
         pace = row["train_s"] / config["eval_every_frames"]

@@ -262,7 +262,7 @@ def test_a_jobs_length_comes_from_its_cells_finished_runs_of_as_many_lanes(tmp_p
     full = paper_run(tmp_path / "f_ted_full", "finger,ted,medium-full", 0, 1_000_000)
     (full / "summary.json").write_text(json.dumps({"frames_per_seed": 1_000_000, "wall_s": 2e3}))
     (job,) = report.grid_jobs(
-        report.grid_rows([*runs, full], ["finger,medium-full"], ["ted"], 2), 5e5
+        report.grid_rows([*runs, full], ["finger,medium-full"], ["ted"], 2), 500_000
     )
     assert job.seconds == pytest.approx(1000.0)
     shipped = REPO / "results" / "finger_paper_1m" / "finger_drqv2_s1"

@@ -324,7 +324,11 @@ def main(argv=None) -> list[dict] | None:
         default="60",
         help="no job starts this close to the time limit; auto[:MARGIN]: where its length fits",
     )
-    parser.add_argument("--dry-run", action="store_true", help="print the queue, run nothing")
+    parser.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="print the queue (lengths where known, and their sum), run nothing",
+    )
     args = parser.parse_args(argv)
     if str(REPO) not in sys.path:  # configs/, as run.py finds it
         sys.path.insert(0, str(REPO))
@@ -354,6 +358,11 @@ def main(argv=None) -> list[dict] | None:
     for job in jobs:
         length = "" if job.seconds is None else f" (~{job.seconds / 60:.0f} min of training)"
         print(f"  {job.name}{length}: python run.py {shlex.join(job.args)}")
+    known = [job.seconds for job in jobs if job.seconds is not None]
+    if known:
+        some = f"{len(known)} of the {len(jobs)} runs (no length known for the rest)"
+        runs = f"{len(jobs)} runs" if len(known) == len(jobs) else some
+        print(f"~{sum(known) / 3600:.1f} h of training in all, {runs}")
     if args.dry_run or not jobs:
         return None
     queue = Queue(

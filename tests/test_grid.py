@@ -348,9 +348,11 @@ def test_bad_settings_are_refused_by_name(tmp_path, capsys):
 
 
 def test_a_dry_run_prints_the_queue_of_the_runs_under_root(tmp_path, capsys):
-    """The runs under --root count: a finished one is skipped, a stopped one resumed."""
+    """The runs under --root count: a finished one is skipped, a stopped one resumed. A new
+    seed-run's length comes from the finished one; the total counts the runs of known length."""
     root = tmp_path / "runs"
-    paper_run(root / "walker_dear_s0", "walker,dear", 0, 1_000_000)
+    done = paper_run(root / "walker_dear_s0", "walker,dear", 0, 1_000_000)
+    (done / "summary.json").write_text(json.dumps({"frames_per_seed": 1_000_000, "wall_s": 1.2e3}))
     stopped = paper_run(root / "walker_dear_s1", "walker,dear", 1, 10_000)
     (stopped / "checkpoints").mkdir()
     grid.main(
@@ -362,3 +364,5 @@ def test_a_dry_run_prints_the_queue_of_the_runs_under_root(tmp_path, capsys):
     resume = "  walker_dear_s1: python run.py --config configs/paper.py:walker,dear"
     assert lines[1].startswith(resume) and lines[1].endswith(f"--workdir {stopped.resolve()}")
     assert lines[2].endswith(f"--workdir {root.resolve()}/walker_dear_s2")  # the third seed
+    assert lines[2].startswith("  walker_dear_s2 (~20 min of training): python run.py")
+    assert lines[3] == "~0.3 h of training in all, 1 of the 2 runs (no length known for the rest)"

@@ -2,9 +2,10 @@
 training goes on, or at once), and logging each one's row when it has ended, in order.
 
 Background evaluations run one at a time per evaluator (the run's evaluation processes side by
-side, N = `experiment.eval_processes`: the one of index frame // eval_every_frames mod N), in order, and queue: the loop waits
-only when MAX_PENDING_EVALS + N - 1 are already started and not logged, so one evaluation that
-outlasts the training between two of them does not stall the loop. Each still evaluates the
+side, N = `experiment.eval_processes`: the one of index frame // eval_every_frames mod N), in
+order, and queue: the loop waits only when MAX_PENDING_EVALS + N - 1 are already started and
+not logged, so one evaluation that outlasts the training between two of them does not stall the
+loop. Each still evaluates the
 parameters of its own frame, on its evaluator's next episodes, as it would unqueued. Evaluations
 draw from their own stream of keys (one per frame), so how often a run evaluates never changes
 its training.

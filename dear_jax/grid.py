@@ -24,11 +24,10 @@ a stopped job cannot resume; `auto`: a job starts only where a minute plus 1.1x 
 its length at the training pace of its cell's finished runs of as many lanes, else of its task
 and method's in other settings (`report.grid_jobs`; their periodic checkpoints' share too unless
 --set checkpoint_every_frames=0; a job without one needs MARGIN of `auto:MARGIN`, a minute by
-default), and
-where the next job does not fit, a later one that does goes first), or on
-SIGTERM, SIGINT (Ctrl-C) or SIGHUP, every running job gets SIGTERM, saves a checkpoint and
-its summary, and exits; a second signal stops them at once, and
-one still running 10 minutes after the first gets SIGKILL. The same command later resumes them.
+default), and where the next job does not fit, a later one that does goes first), or on SIGTERM,
+SIGINT (Ctrl-C) or SIGHUP, every running job gets SIGTERM, saves a checkpoint and its summary,
+and exits; a second signal stops them at once, and one still running 10 minutes after the first
+gets SIGKILL. The same command later resumes them.
 Without GPUs the jobs run on the CPU, --per-gpu at a time. At the end: a line
 per job (finished, stopped, failed, killed, not started) and the grid as `report grid` prints it.
 Exit status: 0 when every job finished, 1 when one failed, 75 when the time limit left some

@@ -52,24 +52,48 @@ def _dense(features: int, name: str | None = None, dtype=jnp.float32, products=N
 
 
 def mixed_dot_general(dtype):
-    """lax.dot_general on operands rounded to `dtype`, accumulated and returned in float32: the
-    actor's and the critic's forward products in the bf16 path. Their activations, LayerNorm,
-    biases and outputs stay float32, and so do their gradients' products (float32 cotangents,
-    which GPUs compute in TF32, as every float32 product: 10 mantissa bits; bf16 has 7). On an
-    H100 this took the 5-seed DEAR update from 2.96 to 2.91 ms per seed, on one machine; DrQ-v2's
-    (plain encoder, 39200-wide trunk) measured 1.93 against 2.14 on other machines
-    (benchmarks/RESULTS.md)."""
+    """A Linear layer's lax.dot_general on operands rounded to `dtype`, accumulated and returned
+    in float32: the actor's and the critic's products in the bf16 path. Their activations,
+    LayerNorm, biases and outputs stay float32; the gradient's two products also read `dtype`
+    operands (the float32 cotangent rounded) into float32 results (`_mixed_dot`). On an H100
+    the forward products in bf16 took the 5-seed DEAR update from 2.96 to 2.91 ms per seed, on
+    one machine; DrQ-v2's (plain encoder, 39200-wide trunk) measured 1.93 against 2.14 on other
+    machines (benchmarks/RESULTS.md)."""
 
     def dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None):
         del precision, preferred_element_type  # float32 accumulation and result
-        return jax.lax.dot_general(
-            lhs.astype(dtype),
-            rhs.astype(dtype),
-            dimension_numbers,
-            preferred_element_type=jnp.float32,
-        )
+        (contract, batch) = dimension_numbers
+        if tuple(map(tuple, contract)) != ((lhs.ndim - 1,), (0,)) or rhs.ndim != 2 or batch[0]:
+            raise ValueError(f"a Linear layer's product, not {dimension_numbers}")
+        return _mixed_dot(lhs, rhs, jnp.dtype(dtype))
 
     return dot_general
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
+def _mixed_dot(x: jax.Array, w: jax.Array, dtype) -> jax.Array:
+    """x [..., K] @ w [K, N] on operands rounded to `dtype`, in float32. Its gradient's products
+    read `dtype` operands too: by JAX's own rule they would read the float32 cotangent, which
+    makes XLA promote the other operand and run both in float32 (TF32 on GPUs)."""
+    return jnp.matmul(x.astype(dtype), w.astype(dtype), preferred_element_type=jnp.float32)
+
+
+def _mixed_dot_fwd(x, w, dtype):
+    return _mixed_dot(x, w, dtype), (x, w)
+
+
+def _mixed_dot_bwd(dtype, residuals, g):
+    x, w = residuals
+    x16, w16, g16 = x.astype(dtype), w.astype(dtype), g.astype(dtype)
+    dx = jnp.matmul(g16, w16.T, preferred_element_type=jnp.float32)
+    rows = tuple(range(x.ndim - 1))  # every axis but the features: summed over for dw
+    dw = jax.lax.dot_general(
+        x16, g16, ((rows, rows), ((), ())), preferred_element_type=jnp.float32
+    )
+    return dx.astype(x.dtype), dw.astype(w.dtype)
+
+
+_mixed_dot.defvjp(_mixed_dot_fwd, _mixed_dot_bwd)
 
 
 def tensor_core_channels(dtype) -> int:

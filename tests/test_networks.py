@@ -1,5 +1,6 @@
 """Architecture: parameter counts of the reference, output shapes, DrQ-v2 initialisation."""
 
+import functools
 import re
 
 import flax.linen as nn
@@ -90,10 +91,21 @@ def test_decoder_and_actor_values():
     np.testing.assert_array_equal(phases[1, 5, 7, 2 * 3 + 0 * 3 + 1], out[1, 11, 14, 1])
 
 
+def _dots(jaxpr) -> list:
+    """Every dot_general of a jaxpr, its sub-jaxprs' too (custom_vjp calls, pjit)."""
+    found = []
+    for e in jaxpr.eqns:
+        if e.primitive.name == "dot_general":
+            found.append(e)
+        for sub in jax.extend.core.jaxprs_in_params(e.params):
+            found += _dots(sub)
+    return found
+
+
 def test_bf16_products_keep_the_parameters_and_float32_values():
     """Actor and critic with bf16 products (the bf16 path's): the same parameters, float32
-    outputs near the float32 networks', every forward product reading bf16 operands into
-    float32 (their gradients' products stay float32)."""
+    outputs and gradients near the float32 networks', and every product, forward and of the
+    gradient, reading bf16 operands into float32."""
     z = _normal(0, (4, 64))
     a = jnp.asarray(np.random.default_rng(1).uniform(-1, 1, (4, 6)), jnp.float32)
     for make, args in (
@@ -110,21 +122,46 @@ def test_bf16_products_keep_the_parameters_and_float32_values():
             assert y.dtype == jnp.float32
             np.testing.assert_allclose(y, x, rtol=3e-2, atol=3e-3)
             assert not np.array_equal(y, x)  # rounded operands: not the float32 function
-        dots = [
-            e
-            for e in jax.make_jaxpr(mixed.apply)(params, *args).jaxpr.eqns
-            if e.primitive.name == "dot_general"
-        ]
+
+        def loss(module, p, z):
+            out = module.apply(p, z, *args[1:])
+            return sum(jnp.sum(jnp.sin(o)) for o in jax.tree.leaves(out))
+
+        dots = _dots(jax.make_jaxpr(functools.partial(loss, mixed))(params, z).jaxpr)
         assert len(dots) == (4 if len(args) == 1 else 7)  # trunk, then 3 layers (per head)
-        for e in dots:
+        grad = jax.grad(functools.partial(loss, mixed), argnums=(0, 1))
+        grad_dots = _dots(jax.make_jaxpr(grad)(params, z).jaxpr)
+        assert len(grad_dots) == 3 * len(dots)  # forward, then the input's and the weight's
+        for e in dots + grad_dots:
             assert [v.aval.dtype for v in e.invars] == [jnp.bfloat16] * 2
             assert e.outvars[0].aval.dtype == jnp.float32
-    # the bf16 encoder's and decoder's own Linear layers stay bf16 products with bf16 results
-    # (an earlier version of the products' dtype made them float32: 3% slower on an H100)
+        # the gradients: float32, near those of JAX's own rule for the same rounded forward
+        # products (float32 cotangents), yet not the same numbers
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(networks, "_mixed_dot", _jax_rule_dot)
+            want = jax.grad(functools.partial(loss, mixed), argnums=(0, 1))(params, z)
+        got = grad(params, z)
+        for x, y in zip(jax.tree.leaves(want), jax.tree.leaves(got), strict=True):
+            assert y.dtype == jnp.float32 and y.shape == x.shape
+            np.testing.assert_allclose(y, x, atol=2e-2 * float(jnp.max(jnp.abs(x))))
+        assert not all(
+            np.array_equal(x, y) for x, y in zip(jax.tree.leaves(want), jax.tree.leaves(got))
+        )
+
+
+def _jax_rule_dot(x, w, dtype):
+    """`networks._mixed_dot`'s function, differentiated by JAX's rule (float32 cotangents)."""
+    return jnp.matmul(x.astype(dtype), w.astype(dtype), preferred_element_type=jnp.float32)
+
+
+def test_bf16_products_of_encoder_and_decoder_stay_bf16():
+    """The bf16 encoder's and decoder's own Linear layers stay bf16 products with bf16 results
+    (an earlier version of the products' dtype made them float32: 3% slower on an H100)."""
+    z = _normal(0, (1, 64))
     obs = jnp.zeros((1, 84, 84, 9), jnp.uint8)
     for module, x in (
         (networks.PoolEncoder(64, jnp.bfloat16), obs),
-        (networks.PoolDecoder(3, jnp.bfloat16), z[:1]),
+        (networks.PoolDecoder(3, jnp.bfloat16), z),
     ):
         p = jax.eval_shape(module.init, jax.random.key(0), x)  # the program, not its numbers
         eqns = jax.make_jaxpr(module.apply)(p, x).jaxpr.eqns

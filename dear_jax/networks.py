@@ -87,9 +87,7 @@ def _mixed_dot_bwd(dtype, residuals, g):
     x16, w16, g16 = x.astype(dtype), w.astype(dtype), g.astype(dtype)
     dx = jnp.matmul(g16, w16.T, preferred_element_type=jnp.float32)
     rows = tuple(range(x.ndim - 1))  # every axis but the features: summed over for dw
-    dw = jax.lax.dot_general(
-        x16, g16, ((rows, rows), ((), ())), preferred_element_type=jnp.float32
-    )
+    dw = jax.lax.dot_general(x16, g16, ((rows, rows), ((), ())), preferred_element_type=jnp.float32)
     return dx.astype(x.dtype), dw.astype(w.dtype)
 
 

@@ -123,8 +123,8 @@ def test_bf16_products_keep_the_parameters_and_float32_values():
             np.testing.assert_allclose(y, x, rtol=3e-2, atol=3e-3)
             assert not np.array_equal(y, x)  # rounded operands: not the float32 function
 
-        def loss(module, p, z):
-            out = module.apply(p, z, *args[1:])
+        def loss(module, p, z, rest=args[1:]):
+            out = module.apply(p, z, *rest)
             return sum(jnp.sum(jnp.sin(o)) for o in jax.tree.leaves(out))
 
         dots = _dots(jax.make_jaxpr(functools.partial(loss, mixed))(params, z).jaxpr)

@@ -45,8 +45,9 @@ class AgentConfig:
     obs_shape: tuple[int, int, int] = (84, 84, 9)
     frame_stack: int = 3
     augment_pad: int = 4
-    # "bfloat16": encoder and decoders compute in bf16; the actor's and critic's forward products
-    # read bf16 operands (float32 results). Parameters, optimiser and losses stay float32.
+    # "bfloat16": encoder and decoders compute in bf16; the actor's and critic's products, and
+    # their gradients', read bf16 operands (float32 results). Parameters, optimiser and losses
+    # stay float32.
     compute_dtype: str = "float32"
     shift_impl: str = "gather"  # how the random shift is computed (augment.SHIFT_IMPLS)
     filter_gradient: str = "cudnn"  # convolutions' filter gradients (networks.FILTER_GRADIENTS)

@@ -58,7 +58,8 @@ def mixed_dot_general(dtype):
     operands (the float32 cotangent rounded) into float32 results (`_mixed_dot`). On an H100
     the forward products in bf16 took the 5-seed DEAR update from 2.96 to 2.91 ms per seed, on
     one machine; DrQ-v2's (plain encoder, 39200-wide trunk) measured 1.93 against 2.14 on other
-    machines (benchmarks/RESULTS.md)."""
+    machines; the gradient's in bf16 then took DEAR from 2.43 to 2.38 on an H200
+    (benchmarks/RESULTS.md)."""
 
     def dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None):
         del precision, preferred_element_type  # float32 accumulation and result

@@ -448,38 +448,19 @@ def render_model_fn(task_name: str, mesh_faces: int = 0) -> mujoco.MjModel:
 TASKS: dict[str, DmcTask] = {
     t.name: t
     for t in [
-        DmcTask(
-            name="walker-walk",
-            xml_file="walker.xml",
-            time_limit=25.0,
-            control_timestep=0.025,
-            make_reward=_walker_reward(1.0),
-            init_episode=_init_walker,
-            agent_bodies=("torso",),
-            floor_geoms=("floor",),
-            floor_alpha=1.0,
-        ),
-        DmcTask(
-            name="walker-stand",
-            xml_file="walker.xml",
-            time_limit=25.0,
-            control_timestep=0.025,
-            make_reward=_walker_reward(0.0),
-            init_episode=_init_walker,
-            agent_bodies=("torso",),
-            floor_geoms=("floor",),
-            floor_alpha=1.0,
-        ),
-        DmcTask(
-            name="walker-run",
-            xml_file="walker.xml",
-            time_limit=25.0,
-            control_timestep=0.025,
-            make_reward=_walker_reward(8.0),
-            init_episode=_init_walker,
-            agent_bodies=("torso",),
-            floor_geoms=("floor",),
-            floor_alpha=1.0,
+        *(
+            DmcTask(
+                name=f"walker-{gait}",
+                xml_file="walker.xml",
+                time_limit=25.0,
+                control_timestep=0.025,
+                make_reward=_walker_reward(speed),
+                init_episode=_init_walker,
+                agent_bodies=("torso",),
+                floor_geoms=("floor",),
+                floor_alpha=1.0,
+            )
+            for gait, speed in (("walk", 1.0), ("stand", 0.0), ("run", 8.0))
         ),
         DmcTask(
             name="ball_in_cup-catch",

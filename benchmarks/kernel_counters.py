@@ -10,7 +10,8 @@ The measured update's kernels, in launch order, are written with their sections'
 default ncu's speed of light, memory workload, occupancy and launch statistics) to the JSON, and
 ncu's whole CSV beside it (FILE.csv). The table printed shows per kernel: duration, the
 throughput of DRAM, L2, L1 and the SMs as percents of their peaks, achieved occupancy and
-registers per thread: whether a kernel is bound by memory, by a cache or by latency.
+registers per thread: whether a kernel is bound by memory, by a cache or by latency. (ncu
+flushes the caches before each replay, so durations are a little above those in an update.)
 
 The update is the bf16 one, seeds on the hybrid axis, with the Pallas conv stacks (the settings of
 `benchmarks.update`'s figures); XLA's command buffers are off in the profiled process so that
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import glob
 import os
 import pathlib
 import shutil
@@ -107,6 +109,17 @@ def table(kernels: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def find_ncu(name: str) -> str | None:
+    """`name` on PATH, else the newest ncu of CUDA's or Nsight Compute's usual install folders."""
+    found = shutil.which(name)
+    if found or os.sep in name:
+        return found
+    places = sorted(glob.glob("/usr/local/cuda*/bin/ncu")) + sorted(
+        glob.glob("/opt/nvidia/nsight-compute/*/ncu")
+    )
+    return places[-1] if places else None
+
+
 def run_target(args) -> None:
     """Inside ncu: a warm-up update and a measured one."""
     import jax
@@ -142,7 +155,7 @@ def main():
     args = parser.parse_args()
     if args.target:
         return run_target(args)
-    ncu = shutil.which(args.ncu) or shutil.which(args.ncu, path="/usr/local/cuda/bin")
+    ncu = find_ncu(args.ncu)
     if ncu is None:
         parser.error(
             f"Nsight Compute ({args.ncu!r}) is not on PATH: run this on a GPU machine with ncu"

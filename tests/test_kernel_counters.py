@@ -63,3 +63,44 @@ def test_table_gives_durations_in_microseconds_and_dashes_for_missing_metrics():
     cells = [c.strip() for c in rows[2].strip("|").split("|")]
     assert cells[:7] == ["0", "_conv_kernel", "(307, 1, 1)", "171.0", "-", "61.2", "-"]
     assert cells[-1] == "128.0"
+
+
+def test_main_runs_ncu_and_writes_the_measured_update(tmp_path, monkeypatch, capsys):
+    """The whole command against a stand-in ncu that prints the sample: the target it is handed
+    is this script's own, without command buffers; the CSV is kept beside the JSON, the JSON
+    holds the last update."""
+    import json
+    import sys
+
+    from benchmarks import kernel_counters
+
+    fake = tmp_path / "ncu"
+    sample = tmp_path / "sample.csv"
+    sample.write_text(_sample())
+    argv_log = tmp_path / "argv.json"
+    fake.write_text(
+        f"#!{sys.executable}\nimport json, os, sys\n"
+        f"json.dump([os.environ['XLA_FLAGS'], *sys.argv[1:]], open({str(argv_log)!r}, 'w'))\n"
+        f"print(open({str(sample)!r}).read())\n"
+    )
+    fake.chmod(0o755)
+    out = tmp_path / "counters.json"
+    monkeypatch.setattr(
+        sys, "argv", ["kernel_counters.py", "--ncu", str(fake), "--seeds", "2", "--out", str(out)]
+    )
+    kernel_counters.main()
+    xla_flags, *argv = json.loads(argv_log.read_text())
+    assert "--xla_gpu_enable_command_buffer=" in xla_flags.split()  # each kernel on its own
+    assert argv[:4] == [
+        "--clock-control",
+        "none",
+        "--kernel-name",
+        "regex:_conv_kernel|_wgrad_kernel",
+    ]
+    target = argv[argv.index(sys.executable) :]
+    assert target[1:4] == ["-m", "benchmarks.kernel_counters", "--target"]
+    assert target[target.index("--seeds") + 1] == "2"
+    result = json.loads(out.read_text())
+    assert [k["id"] for k in result["kernels"]] == [3, 4]
+    assert out.with_suffix(".csv").read_text().strip() == _sample().strip()
+    assert "| 1 | _wgrad_kernel |" in capsys.readouterr().out

@@ -382,7 +382,7 @@ def _gather(x_ref, idx, mask=None):
 
 
 def _accept_dotted_cache_modifiers() -> None:
-    """JAX's Triton lowering (0.10, 0.11) accepts only ".ca" and ".cg" but then looks them up in
+    """JAX's Triton lowering (seen in jax 0.10) accepts only ".ca" and ".cg" but looks them up in
     a table keyed "ca", "cg" (a KeyError): the table learns the dotted names too."""
     from jax._src.pallas.triton import lowering
 

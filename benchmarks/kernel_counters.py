@@ -7,11 +7,12 @@ Runs itself under `ncu` (`--clock-control none`: the GPU's clocks as found), whi
 kernel whose name matches --match (default: the conv stacks' `_conv_kernel` and `_wgrad_kernel`)
 in two updates, a warm-up one and a measured one, replaying each kernel once per counter pass.
 The measured update's kernels, in launch order, are written with their sections' metrics (by
-default ncu's speed of light, memory workload, occupancy and launch statistics) to the JSON, and
-ncu's whole CSV beside it (FILE.csv). The table printed shows per kernel: duration, the
-throughput of DRAM, L2, L1 and the SMs as percents of their peaks, achieved occupancy and
-registers per thread: whether a kernel is bound by memory, by a cache or by latency. (ncu
-flushes the caches before each replay, so durations are a little above those in an update.)
+default ncu's speed of light, memory and compute workloads, warp stall reasons, occupancy and
+launch statistics) to the JSON, and ncu's whole CSV beside it (FILE.csv). The table printed
+shows per kernel: duration, the throughput of DRAM, L2, L1 and the SMs as percents of their
+peaks, achieved occupancy and registers per thread: whether a kernel is bound by memory, by a
+cache or by latency. (ncu flushes the caches before each replay, so durations are a little
+above those in an update.)
 
 The update is the bf16 one, seeds on the hybrid axis, with the Pallas conv stacks (the settings of
 `benchmarks.update`'s figures); XLA's command buffers are off in the profiled process so that
@@ -31,7 +32,14 @@ import sys
 
 from dear_jax.update import METHODS
 
-SECTIONS = ("SpeedOfLight", "MemoryWorkloadAnalysis", "Occupancy", "LaunchStats")
+SECTIONS = (
+    "SpeedOfLight",
+    "MemoryWorkloadAnalysis",
+    "ComputeWorkloadAnalysis",
+    "WarpStateStats",
+    "Occupancy",
+    "LaunchStats",
+)
 MATCH = "_conv_kernel|_wgrad_kernel"
 # The columns of the printed table: (header, section, metric name as ncu prints it)
 COLUMNS = (

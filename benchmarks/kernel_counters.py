@@ -128,6 +128,21 @@ def find_ncu(name: str) -> str | None:
     return places[-1] if places else None
 
 
+def run_ncu(command: list[str], env: dict) -> tuple[str, int]:
+    """Runs ncu, passing its own messages ("==PROF== Profiling ...", one per kernel; warnings;
+    errors) and the target's output to stderr as they come: -> (the CSV, the exit status)."""
+    with subprocess.Popen(
+        command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    ) as process:
+        csv_lines = []
+        for line in process.stdout:
+            if line.startswith('"'):
+                csv_lines.append(line)
+            else:
+                print(line, end="", file=sys.stderr, flush=True)
+    return "".join(csv_lines), process.returncode
+
+
 def run_target(args) -> None:
     """Inside ncu: a warm-up update and a measured one."""
     import jax
@@ -177,15 +192,18 @@ def main():
     env = dict(
         os.environ,
         XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + " --xla_gpu_enable_command_buffer=").strip(),
+        # ncu saves and restores the device memory around each replayed pass: with JAX's
+        # preallocated pool (most of the GPU) every pass would copy it all.
+        XLA_PYTHON_CLIENT_PREALLOCATE="false",
     )
-    done = subprocess.run(command, env=env, capture_output=True, text=True)
+    csv_text, returncode = run_ncu(command, env)
     if args.out:
         csv_path = pathlib.Path(args.out).with_suffix(".csv")
         csv_path.parent.mkdir(parents=True, exist_ok=True)
-        csv_path.write_text(done.stdout)
-    if done.returncode:
-        sys.exit(f"ncu exited with {done.returncode}:\n{done.stderr[-4000:]}")
-    kernels = measured_update(parse_details_csv(done.stdout))
+        csv_path.write_text(csv_text)
+    if returncode:
+        sys.exit(f"ncu exited with {returncode}")
+    kernels = measured_update(parse_details_csv(csv_text))
     print(f"{args.method}, {args.seeds} seed(s), batch {args.batch}: {len(kernels)} kernels")
     print(table(kernels))
     from benchmarks.common import save_json

@@ -67,8 +67,9 @@ def test_table_gives_durations_in_microseconds_and_dashes_for_missing_metrics():
 
 def test_main_runs_ncu_and_writes_the_measured_update(tmp_path, monkeypatch, capsys):
     """The whole command against a stand-in ncu that prints the sample: the target it is handed
-    is this script's own, without command buffers; the CSV is kept beside the JSON, the JSON
-    holds the last update."""
+    is this script's own, without command buffers or a preallocated pool; ncu's messages and the
+    program's output pass to stderr, the CSV is kept beside the JSON, the JSON holds the last
+    update."""
     import json
     import sys
 
@@ -80,7 +81,8 @@ def test_main_runs_ncu_and_writes_the_measured_update(tmp_path, monkeypatch, cap
     argv_log = tmp_path / "argv.json"
     fake.write_text(
         f"#!{sys.executable}\nimport json, os, sys\n"
-        f"json.dump([os.environ['XLA_FLAGS'], *sys.argv[1:]], open({str(argv_log)!r}, 'w'))\n"
+        "env = [os.environ['XLA_FLAGS'], os.environ['XLA_PYTHON_CLIENT_PREALLOCATE']]\n"
+        f"json.dump([*env, *sys.argv[1:]], open({str(argv_log)!r}, 'w'))\n"
         f"print(open({str(sample)!r}).read())\n"
     )
     fake.chmod(0o755)
@@ -89,8 +91,9 @@ def test_main_runs_ncu_and_writes_the_measured_update(tmp_path, monkeypatch, cap
         sys, "argv", ["kernel_counters.py", "--ncu", str(fake), "--seeds", "2", "--out", str(out)]
     )
     kernel_counters.main()
-    xla_flags, *argv = json.loads(argv_log.read_text())
+    xla_flags, preallocate, *argv = json.loads(argv_log.read_text())
     assert "--xla_gpu_enable_command_buffer=" in xla_flags.split()  # each kernel on its own
+    assert preallocate == "false"
     assert argv[:4] == [
         "--clock-control",
         "none",
@@ -102,5 +105,11 @@ def test_main_runs_ncu_and_writes_the_measured_update(tmp_path, monkeypatch, cap
     assert target[target.index("--seeds") + 1] == "2"
     result = json.loads(out.read_text())
     assert [k["id"] for k in result["kernels"]] == [3, 4]
-    assert out.with_suffix(".csv").read_text().strip() == _sample().strip()
-    assert "| 1 | _wgrad_kernel |" in capsys.readouterr().out
+    csv_lines = [line for line in _sample().splitlines() if line.startswith('"')]
+    assert out.with_suffix(".csv").read_text().splitlines() == csv_lines
+    printed = capsys.readouterr()
+    assert "| 1 | _wgrad_kernel |" in printed.out
+    assert printed.err.splitlines()[:2] == [
+        "==PROF== Connected to process 7",
+        "some output of the program",
+    ]

@@ -71,6 +71,7 @@ def test_main_runs_ncu_and_writes_the_measured_update(tmp_path, monkeypatch, cap
     program's output pass to stderr, the CSV is kept beside the JSON, the JSON holds the last
     update."""
     import json
+    import pathlib
     import sys
 
     from benchmarks import kernel_counters
@@ -81,7 +82,8 @@ def test_main_runs_ncu_and_writes_the_measured_update(tmp_path, monkeypatch, cap
     argv_log = tmp_path / "argv.json"
     fake.write_text(
         f"#!{sys.executable}\nimport json, os, sys\n"
-        "env = [os.environ['XLA_FLAGS'], os.environ['XLA_PYTHON_CLIENT_PREALLOCATE']]\n"
+        "env = [os.environ[k] for k in ('XLA_FLAGS', 'XLA_PYTHON_CLIENT_PREALLOCATE',"
+        "                               'JAX_COMPILATION_CACHE_DIR')]\n"
         f"json.dump([*env, *sys.argv[1:]], open({str(argv_log)!r}, 'w'))\n"
         f"print(open({str(sample)!r}).read())\n"
     )
@@ -90,26 +92,40 @@ def test_main_runs_ncu_and_writes_the_measured_update(tmp_path, monkeypatch, cap
     monkeypatch.setattr(
         sys, "argv", ["kernel_counters.py", "--ncu", str(fake), "--seeds", "2", "--out", str(out)]
     )
+    warm_ups = []
+    monkeypatch.setattr(
+        kernel_counters.subprocess, "check_call", lambda cmd, env: warm_ups.append((cmd, env))
+    )
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
     kernel_counters.main()
-    xla_flags, preallocate, *argv = json.loads(argv_log.read_text())
+    xla_flags, preallocate, cache, *argv = json.loads(argv_log.read_text())
     assert "--xla_gpu_enable_command_buffer=" in xla_flags.split()  # each kernel on its own
     assert preallocate == "false"
-    assert argv[:4] == [
+    assert argv[:6] == [
         "--clock-control",
         "none",
+        "--target-processes",
+        "application-only",
         "--kernel-name",
         "regex:_conv_kernel|_wgrad_kernel",
     ]
     target = argv[argv.index(sys.executable) :]
     assert target[1:4] == ["-m", "benchmarks.kernel_counters", "--target"]
     assert target[target.index("--seeds") + 1] == "2"
+    # the same target ran first outside ncu, every program into a fresh persistent cache
+    [(warm_up, env)] = warm_ups
+    assert warm_up == target and env["XLA_FLAGS"] == xla_flags
+    assert env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == "0"
+    assert env["JAX_COMPILATION_CACHE_DIR"] == cache and cache
+    assert not pathlib.Path(cache).exists()  # the temporary one, removed
     result = json.loads(out.read_text())
     assert [k["id"] for k in result["kernels"]] == [3, 4]
     csv_lines = [line for line in _sample().splitlines() if line.startswith('"')]
     assert out.with_suffix(".csv").read_text().splitlines() == csv_lines
     printed = capsys.readouterr()
     assert "| 1 | _wgrad_kernel |" in printed.out
-    assert printed.err.splitlines()[:2] == [
+    assert printed.err.splitlines()[:3] == [
+        "compiling outside ncu",
         "==PROF== Connected to process 7",
         "some output of the program",
     ]

@@ -93,10 +93,6 @@ STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of 
 # its pipeline's stages.
 TAP_LOOP = True
 CONV_STAGES = 3
-# The taps' gathered loads (of convolutions and filter gradients) with the ".ca" cache modifier:
-# Triton's pipelined loops copy 16-byte vectors with cp.async.cg, which bypasses L1, unless ".ca"
-# is asked for; a tap's rows overlap its neighbours' (9 taps read each input row ~9 times).
-TAP_CACHE = False
 # The float32 dots' precision on GPUs: None lets them run in TF32, as XLA's float32 convolutions
 # do there by default; jax.lax.Precision.HIGHEST makes them IEEE float32 (the GPU tests).
 PRECISION: jax.lax.Precision | None = None
@@ -115,13 +111,12 @@ TUNABLE = (
     "STAGES",
     "TAP_LOOP",
     "CONV_STAGES",
-    "TAP_CACHE",
 )
 
 
 # Constants that must be powers of two (Triton's block shapes, warps) or at least 1; switches 0/1.
 _POWERS_OF_TWO = ("BLOCK", "NUM_WARPS", "WGRAD_BLOCK", "WGRAD_STEPS", "WGRAD_WARPS")
-_SWITCHES = ("WGRAD_G_FIRST", "TAP_LOOP", "TAP_CACHE")
+_SWITCHES = ("WGRAD_G_FIRST", "TAP_LOOP")
 
 
 def parse_constants(setting: str | dict) -> dict[str, int]:
@@ -298,7 +293,7 @@ class _Pass:
             i, j = (jax.lax.div(t, k), jax.lax.rem(t, k)) if _traced(t) else divmod(t, k)
             idx = base + i * self.size_in + j
             if not self.pad:
-                return _gather(x_ref, idx[:, None] * c + lanes).astype(dtype)
+                return x_ref[idx[:, None] * c + lanes].astype(dtype)
             ok = keep
             # (the checks that can fail for this tap: the output spans [0, size) and
             # size - 1 + k - 1 - 2 * pad = size_in - 1; a traced tap checks all four)
@@ -312,7 +307,7 @@ class _Pass:
                 ok &= x + j - self.pad <= last
             idx = jnp.where(ok, idx, 0)[:, None] * c + lanes
             mask = jnp.broadcast_to(ok[:, None], idx.shape)
-            return _gather(x_ref, idx, mask).astype(dtype)
+            return plt.load(x_ref.at[idx], mask=mask, other=0).astype(dtype)
 
         return load
 
@@ -351,7 +346,7 @@ class _Pixels:
 
         def load(i):
             idx = base[:, None] + i * self.side * self.channels + lanes[None, :]
-            return _gather(x_ref, idx, mask).astype(dtype)
+            return plt.load(x_ref.at[idx], mask=mask, other=0).astype(dtype)
 
         return load
 
@@ -367,30 +362,9 @@ class _Pixels:
         def load(i):
             row = jnp.clip(self.stride * y + i + dy - self.shift, 0, last)
             idx = ((image * self.side + row)[:, None] * self.side + col) * self.channels
-            return _gather(x_ref, idx + channel[None, :], mask).astype(dtype)
+            return plt.load(x_ref.at[idx + channel[None, :]], mask=mask, other=0).astype(dtype)
 
         return load
-
-
-def _gather(x_ref, idx, mask=None):
-    """x_ref's elements at `idx` (zeros where `mask` is False), the ".ca" modifier with TAP_CACHE."""
-    if TAP_CACHE:
-        _accept_dotted_cache_modifiers()
-        other = None if mask is None else 0
-        return plt.load(x_ref.at[idx], mask=mask, other=other, cache_modifier=".ca")
-    return x_ref[idx] if mask is None else plt.load(x_ref.at[idx], mask=mask, other=0)
-
-
-def _accept_dotted_cache_modifiers() -> None:
-    """JAX's Triton lowering (seen in jax 0.10) accepts only ".ca" and ".cg" but looks them up in
-    a table keyed "ca", "cg" (a KeyError): the table learns the dotted names too."""
-    from jax._src.pallas.triton import lowering
-
-    table = getattr(lowering, "_STR_TO_CACHE_MODIFIER", None)
-    if table is not None:
-        for name in ("ca", "cg"):
-            if name in table:
-                table.setdefault("." + name, table[name])
 
 
 def _crop_offsets(crop_ref, image, keep):

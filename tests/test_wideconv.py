@@ -127,15 +127,12 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     [
         ("decoder", {"TAP_LOOP": False}),
         ("encoder_shifted", {"TAP_LOOP": False, "WGRAD_G_FIRST": True}),
-        ("decoder", {"TAP_CACHE": True}),
-        ("encoder_shifted", {"TAP_CACHE": True}),
     ],
 )
 def test_kernel_settings_compute_the_same(monkeypatch, name, settings):
     """The kernels' settings change how, not what: a convolution's taps as a loop (traced tap
     indices, every padding check at run time) or unrolled (the checks a tap needs, fixed);
-    filter gradients as x^T g or g^T x; the taps' loads cached in L1 or not. The same values
-    and gradients as the defaults."""
+    filter gradients as x^T g or g^T x. The same values and gradients as the defaults."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
     monkeypatch.setattr(wideconv, "PRECISION", jax.lax.Precision.HIGHEST)
     x, layers, _, stack, argnums = _case(name)
@@ -590,54 +587,3 @@ def test_auto_stack_is_pallas_on_gpus_only(monkeypatch):
     assert networks.stack_for("auto") == "pallas"
     with networks.conv_settings(stack="auto"):
         assert networks._CONV.get().stack == "pallas"
-
-
-def _triton_kernels(lowered) -> list[str]:
-    """The Triton IR (text) of each Pallas kernel in a function lowered for CUDA."""
-    from jax._src.lib.mlir import ir
-    from jax._src.lib.triton import dialect
-
-    found = []
-
-    def walk(op):
-        for region in op.regions:
-            for block in region.blocks:
-                for inner in block.operations:
-                    if inner.operation.name == "stablehlo.custom_call":
-                        attrs = inner.operation.attributes
-                        if "mhlo.backend_config" in [attrs[i].name for i in range(len(attrs))]:
-                            found.append(bytes(attrs["mhlo.backend_config"]["ir"].value_bytes))
-                    walk(inner.operation)
-
-    walk(lowered.compiler_ir("stablehlo").operation)
-    with ir.Context() as ctx:
-        dialect.register_dialect(ctx)
-        return [str(ir.Module.parse(code)) for code in found]
-
-
-def test_tap_cache_asks_for_l1_on_the_taps_loads_only(monkeypatch):
-    """With TAP_CACHE the gathered tap loads of a layer's three kernels (forward, input
-    gradient, filter gradient) carry the ".ca" modifier, its other loads not; without it none."""
-    monkeypatch.setattr(wideconv, "INTERPRET", False)
-    x = jax.ShapeDtypeStruct((8, 35, 35, 32), jnp.bfloat16)
-    w = jax.ShapeDtypeStruct((3, 3, 32, 32), jnp.float32)
-    b = jax.ShapeDtypeStruct((32,), jnp.float32)
-
-    def loss(x, ws):
-        y = wideconv.conv_stack(x, ws, (1,), True, jnp.bfloat16)
-        return jnp.sum(y.astype(jnp.float32))
-
-    counts = {}
-    for cache in (False, True):
-        monkeypatch.setattr(wideconv, "TAP_CACHE", cache)
-        lowered = (
-            jax.jit(jax.grad(loss, (0, 1))).trace(x, ((w, b),)).lower(lowering_platforms=("cuda",))
-        )
-        kernels = _triton_kernels(lowered)
-        assert len(kernels) == 3
-        counts[cache] = [(k.count("cacheModifier = ca"), k.count("tt.load")) for k in kernels]
-    assert all(ca == 0 for ca, _ in counts[False])
-    # the taps' loads: one in each tap loop, nine in a filter gradient's step; the output
-    # gradient's rows that a filter gradient also loads stay uncached
-    assert sorted(ca for ca, _ in counts[True]) == [1, 1, 9]
-    assert all(ca < loads for ca, loads in counts[True])

@@ -83,6 +83,10 @@ def get_config() -> ConfigDict:
     # Threads of the evaluation env's CPU physics; 0: one per core the evaluating process may
     # use, up to 8 (the evaluation process has half the machine's cores).
     c.env.eval_physics_threads = 0
+    # Python's thread switch interval (ms) while the loop runs; 0: Python's own (5 ms). The env's
+    # threads take the GIL back several times per env and step and may each time wait this long
+    # for the loop's thread to let go (benchmarks/gil.py measures it).
+    c.env.switch_interval_ms = 0.0
     c.env.distraction = "none"  # "none" | "easy" | "medium" | "hard" (Distracting Control Suite)
     # Which distractions, comma-separated: any of background, color, camera, or "all" (the full
     # suite). The paper's setting (configs/paper.py) is "background".

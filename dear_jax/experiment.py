@@ -41,6 +41,7 @@ RESUMABLE_CHANGES = (
     "env.eval_backend",
     "env.physics_threads",
     "env.eval_physics_threads",
+    "env.switch_interval_ms",
     "eval_in_background",
     "eval_device",
     "eval_processes",
@@ -144,6 +145,7 @@ def validate(config: ConfigDict) -> None:
     for key, auto in [
         ("env.physics_threads", "one per device"),
         ("env.eval_physics_threads", "one per core, up to 8"),
+        ("env.switch_interval_ms", "Python's own"),
     ]:
         if _get(config, key) < 0:
             raise ValueError(f"{key} must be >= 0 (0: {auto}), got {_get(config, key)}")

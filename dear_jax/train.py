@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import pathlib
+import sys
 
 from ml_collections import ConfigDict
 
@@ -60,6 +61,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
     workdir.mkdir(parents=True, exist_ok=True)
     with contextlib.ExitStack() as stack:
         stack.enter_context(WorkdirLock(workdir, hosts.index))
+        stack.enter_context(switch_interval(config.env.switch_interval_ms))
         stop = stack.enter_context(StopRequest())
         open_checkpoints = lambda: _checkpointer(config, workdir, stack)  # noqa: E731
         ckpt = None
@@ -130,6 +132,18 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
             stop.signum,
         )
     return summary
+
+
+@contextlib.contextmanager
+def switch_interval(ms: float):
+    """Python's thread switch interval set to `ms` (0: left as it is) inside, restored after."""
+    before = sys.getswitchinterval()
+    if ms:
+        sys.setswitchinterval(ms / 1e3)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(before)
 
 
 def _checkpointer(config, workdir: pathlib.Path, stack: contextlib.ExitStack) -> Checkpointer:

@@ -14,6 +14,7 @@ One MJX compile (~40 s on a CPU): keep this file to one compiled step function.
 """
 
 import dataclasses
+import sys
 import threading
 
 import mujoco
@@ -231,3 +232,26 @@ def test_mujoco_warnings_go_to_the_log_not_a_file(tmp_path, monkeypatch, caplog)
     mujoco.mj_step(model, data)
     assert "Nan, Inf or huge value in QPOS" in caplog.text
     assert not list(tmp_path.iterdir())
+
+
+def test_the_gil_benchmark_steps_at_the_interval_while_the_load_runs():
+    """benchmarks/gil.py: the physics steps on a thread of its own at the interval asked for,
+    while the calling thread runs its load until the last step; the interval comes back."""
+    from benchmarks import gil
+
+    class Physics:
+        def __init__(self):
+            self.seen = []
+
+        def step(self, state, action):
+            self.seen.append((sys.getswitchinterval(), threading.current_thread().name))
+            return state + action, None
+
+    before = sys.getswitchinterval()
+    for load in (None, gil._python, gil._dispatch):
+        phys = Physics()
+        ms = gil.step_ms(phys, 0, [1, 2], 5, load, 2e-4)
+        assert len(phys.seen) == 5 and ms >= 0
+        assert all(interval == pytest.approx(2e-4) for interval, _ in phys.seen)
+        assert threading.current_thread().name not in {name for _, name in phys.seen}
+        assert sys.getswitchinterval() == before

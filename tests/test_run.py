@@ -19,7 +19,17 @@ import numpy as np
 import pytest
 
 from configs import smoke
-from dear_jax import evaluations, evaluator, experiment, lanes, replay_disk, report, train, update
+from dear_jax import (
+    evaluations,
+    evaluator,
+    experiment,
+    lanes,
+    loop,
+    replay_disk,
+    report,
+    train,
+    update,
+)
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.config import resolve_config_path
 from dear_jax.devices import Hosts
@@ -697,6 +707,25 @@ def test_bad_values_fail_with_valid_choices(tmp_path):
         train.train(tiny_config(**{"env.eval_physics_threads": -1}), tmp_path)
     with pytest.raises(ValueError, match=r"env.physics_threads must be >= 0 \(0: one per device"):
         train.train(tiny_config(**{"env.physics_threads": -2}), tmp_path)
+    with pytest.raises(ValueError, match=r"env.switch_interval_ms must be >= 0 \(0: Python's own"):
+        train.train(tiny_config(**{"env.switch_interval_ms": -1.0}), tmp_path)
+
+
+def test_the_loop_runs_at_the_configured_switch_interval(run, tmp_path, monkeypatch):
+    """env.switch_interval_ms is Python's thread switch interval while the loop steps; the
+    caller's comes back after the run (0: the caller's all along)."""
+    seen = []
+    step = loop.Loop.step
+    monkeypatch.setattr(
+        loop.Loop, "step", lambda self, p: (seen.append(sys.getswitchinterval()), step(self, p))
+    )
+    before = sys.getswitchinterval()
+    for ms, inside in ((0.25, 0.25e-3), (0.0, before)):
+        seen.clear()
+        config = tiny_config(total_frames=40, **{"env.switch_interval_ms": ms})
+        train.train(config, tmp_path / str(ms))
+        assert seen and all(s == pytest.approx(inside) for s in seen)
+        assert sys.getswitchinterval() == before
 
 
 def test_envs_step_their_physics_on_the_configured_threads():

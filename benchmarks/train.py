@@ -10,6 +10,11 @@
    the host, render (RGB + labels), upload + compositing/masks/stack, the E/update_every updates
    per seed, and acting + replay insertion ("other").
 Prints tables and writes JSON to benchmarks/results/train_<device>.json (or --out).
+
+`--vary KEY V1 V2 ...` (repeatable) measures the throughput of every combination of the values
+in one process, in turn `--rounds` times (an A/B on the same machine state; programs compile
+once where only env fields vary), e.g. `--vary env.physics_threads 1 4 --vary
+env.switch_interval_ms 0 0.1`.
 The PyTorch pipeline of the reference's shape: `python -m benchmarks.torch_reference pipeline`.
 """
 
@@ -17,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import itertools
 import logging
 import pathlib
 import tempfile
@@ -76,6 +82,16 @@ def set_field(config, item: str) -> None:
         node[name] = value in ("True", "true")
     else:
         node[name] = type(old)(value)
+
+
+def variants(vary: list[list[str]]) -> list[list[str]]:
+    """[[KEY, V1, V2, ...], ...] -> every combination as `--set` items, the last key fastest."""
+    axes = []
+    for key, *values in vary:
+        if not values:
+            raise ValueError(f"--vary takes a KEY and its values, got only {key!r}")
+        axes.append([f"{key}={v}" for v in values])
+    return [list(c) for c in itertools.product(*axes)]
 
 
 def throughput(config, warmup_frames) -> dict:
@@ -212,6 +228,15 @@ def main():
     add_run_arguments(p)
     p.add_argument("--reps", type=int, default=10)
     p.add_argument("--skip", nargs="*", default=[], choices=["throughput", "split"])
+    p.add_argument(
+        "--vary",
+        action="append",
+        nargs="+",
+        default=[],
+        metavar="KEY V1",
+        help="a field and its values: the throughput of each combination (repeatable)",
+    )
+    p.add_argument("--rounds", type=int, default=1, help="with --vary: combinations in turn")
     p.add_argument("--out", default=None)
     args = p.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
@@ -251,7 +276,25 @@ def main():
         )
         print(format_table(["stage", "ms", "share"], rows))
         save()
-    if "throughput" not in args.skip:
+    if args.vary:
+        result["variants"] = []
+        rows = []
+        combinations = variants(args.vary)
+        checked = bench_config(args)  # an unknown key or a mistyped value: refused before any run
+        for item in dict.fromkeys(itertools.chain(*combinations)):
+            set_field(checked, item)
+        for round_ in range(args.rounds):
+            for config_set in combinations:
+                varied = bench_config(args)
+                for item in config_set:
+                    set_field(varied, item)
+                tp = throughput(varied, args.warmup_frames)
+                result["variants"].append(dict(set=config_set, round=round_, **tp))
+                rows.append([" ".join(config_set), round_, f"{tp['aggregate_fps']:.0f}"])
+                save()
+        print(f"\nEnd to end ({device.device_kind}), env frames/s in all:")
+        print(format_table(["setting", "round", "frames/s"], rows))
+    elif "throughput" not in args.skip:
         tp = throughput(config, args.warmup_frames)
         result["throughput"] = tp
         print(

@@ -770,6 +770,26 @@ def test_benchmarks_set_any_config_field_typed_and_by_known_name():
         set_field(config, "agent.batch_size=big")
 
 
+def test_benchmarks_vary_fields_over_every_combination():
+    """`--vary KEY V1 V2` of benchmarks/train.py: every combination, the last key fastest."""
+    from benchmarks.train import variants
+
+    assert variants(
+        [["env.physics_threads", "1", "4"], ["env.switch_interval_ms", "0", "0.1"]]
+    ) == [
+        ["env.physics_threads=1", "env.switch_interval_ms=0"],
+        ["env.physics_threads=1", "env.switch_interval_ms=0.1"],
+        ["env.physics_threads=4", "env.switch_interval_ms=0"],
+        ["env.physics_threads=4", "env.switch_interval_ms=0.1"],
+    ]
+    assert variants([["agent.kernels", "", "BLOCK=64,NUM_WARPS=4"]]) == [
+        ["agent.kernels="],
+        ["agent.kernels=BLOCK=64,NUM_WARPS=4"],
+    ]
+    with pytest.raises(ValueError, match="--vary takes a KEY and its values"):
+        variants([["env.physics_threads"]])
+
+
 @pytest.mark.parametrize(
     "overrides, message",
     [

@@ -35,17 +35,6 @@ from envs.render import RenderSettings  # noqa: E402
 from envs.render_pool import RenderPool  # noqa: E402
 
 
-def _initial_states(task, model, n, seed=0):
-    rng = np.random.RandomState(seed)
-    data = mujoco.MjData(model)
-    qpos, qvel = [], []
-    for _ in range(n):
-        dmc.episode_start(task, model, data, rng)
-        qpos.append(data.qpos.copy())
-        qvel.append(data.qvel.copy())
-    return np.array(qpos), np.array(qvel)
-
-
 def _task(name):
     return kitchen.TASKS[name] if name in kitchen.TASKS else dmc.TASKS[name]
 
@@ -67,7 +56,7 @@ def bench_physics(task, backend, seeds, num_envs, solver, steps, threads=1):
         threads=threads,
     )
     shape = (seeds, num_envs)
-    qpos, qvel = _initial_states(task, model, seeds * num_envs)
+    qpos, qvel = dmc.episode_starts(task, model, seeds * num_envs)
     state = phys.init(qpos.reshape(shape + (-1,)), qvel.reshape(shape + (-1,)))
     rng = np.random.default_rng(0)
     actions = [jnp.asarray(rng.uniform(-1, 1, shape + (model.nu,)), jnp.float32) for _ in range(8)]

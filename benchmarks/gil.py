@@ -25,7 +25,8 @@ import numpy as np
 
 import envs
 from benchmarks.common import save_json
-from benchmarks.envs import _action_repeat, _initial_states, _task
+from benchmarks.envs import _action_repeat, _task
+from envs import dmc
 from envs.physics import CpuPhysics
 
 
@@ -92,7 +93,7 @@ def main(argv=None):
     task = _task(args.task)
     model = task.physics_model()
     shape = (args.seeds, args.envs)
-    qpos, qvel = _initial_states(task, model, args.seeds * args.envs)
+    qpos, qvel = dmc.episode_starts(task, model, args.seeds * args.envs)
     rng = np.random.default_rng(0)
     actions = [rng.uniform(-1, 1, shape + (model.nu,)) for _ in range(4)]
     rows = []

@@ -257,6 +257,17 @@ def episode_start(task: DmcTask, model, data, rng: np.random.RandomState) -> Non
     mujoco.mj_forward(model, data)
 
 
+def episode_starts(task: DmcTask, model, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """`n` episode starts drawn in turn from one RandomState(seed): qpos [n, nq], qvel [n, nv]."""
+    rng, data = np.random.RandomState(seed), mujoco.MjData(model)
+    qpos, qvel = [], []
+    for _ in range(n):
+        episode_start(task, model, data, rng)
+        qpos.append(data.qpos.copy())
+        qvel.append(data.qvel.copy())
+    return np.array(qpos), np.array(qvel)
+
+
 # --------------------------------------------------------------------------------------------
 # Rewards: `make_reward(model)` resolves names to indices once and returns `view -> scalar`.
 

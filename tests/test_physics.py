@@ -27,17 +27,6 @@ from envs.physics import CpuPhysics, MjxPhysics, SolverSettings, make_physics
 T, NUM_ENVS = 25, 4
 
 
-def _starts(task, model, n, seed=0):
-    rng = np.random.RandomState(seed)
-    data = mujoco.MjData(model)
-    qpos, qvel = [], []
-    for _ in range(n):
-        dmc.episode_start(task, model, data, rng)
-        qpos.append(data.qpos.copy())
-        qvel.append(data.qvel.copy())
-    return np.array(qpos)[None], np.array(qvel)[None]  # [1, n, nq], [1, n, nv]
-
-
 def _actions(nu):
     t = np.arange(T)[:, None, None, None] * 0.05
     phase = np.arange(NUM_ENVS)[None, None, :, None]
@@ -51,7 +40,7 @@ def walker_rollouts():
     model = task.physics_model()
     reward = task.make_reward(model)
     kwargs = dict(n_sub_steps=task.n_sub_steps(model), action_repeat=2)
-    qpos, qvel = _starts(task, model, NUM_ENVS)
+    qpos, qvel = (x[None] for x in dmc.episode_starts(task, model, NUM_ENVS))  # [1, n, ...]
     actions = _actions(model.nu)
     out = {}
     for name, phys in [

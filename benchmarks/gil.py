@@ -8,8 +8,10 @@ while its own thread dispatches updates. Each env's step takes and releases the 
 (loading its state, MuJoCo's calls, the controller, the reward's views); a thread that wants the
 GIL back waits until the holder lets go, by default up to Python's 5 ms switch interval. This
 times one agent step of S x E envs there, median of `--steps`, while the calling thread is idle,
-runs Python ("python"), or dispatches small jitted calls 8 at a time ("dispatch", as the loop
-dispatches its updates), at each switch interval of `--intervals` (ms). Writes JSON (--out).
+runs Python ("python"), dispatches small jitted calls 8 at a time ("dispatch"), or dispatches
+one seed's learner update 8 at a time as the loop does between two env steps ("update", of
+`--update-method`; for GPU machines: on a CPU the updates themselves take the cores), at each
+switch interval of `--intervals` (ms). Writes JSON (--out).
 """
 
 from __future__ import annotations
@@ -46,7 +48,33 @@ def _dispatch(stop: threading.Event) -> None:
         x.block_until_ready()
 
 
-LOADS = {"idle": None, "python": _python, "dispatch": _dispatch}
+def _update(method: str = "drqv2", batch: int = 512):
+    """A load that dispatches one seed's learner update (bf16, the default conv stacks) 8 at a
+    time, as the loop does between two env steps; compiled here, before any timing."""
+    from benchmarks.update import update_setup
+
+    step, states, batches, hp = update_setup(
+        method, 1, batch, "bfloat16", "hybrid", conv_stack="auto"
+    )
+    held = {"states": states, "round": 0}
+
+    def dispatch_8():
+        keys = jax.random.split(jax.random.key(held["round"]), 8)
+        held["round"] += 1
+        for k in keys:
+            held["states"], metrics = step(held["states"], batches, k[None], hp)
+        jax.block_until_ready(metrics)
+
+    dispatch_8()
+
+    def load(stop: threading.Event) -> None:
+        while not stop.is_set():
+            dispatch_8()
+
+    return load
+
+
+LOADS = {"idle": None, "python": _python, "dispatch": _dispatch, "update": _update}
 
 
 def step_ms(phys: CpuPhysics, state, actions, steps: int, load, interval_s: float) -> float:
@@ -84,7 +112,10 @@ def main(argv=None):
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--envs", type=int, default=16)
     p.add_argument("--threads", type=int, nargs="+", default=[1], help="CPU MuJoCo's threads")
-    p.add_argument("--loads", nargs="+", default=list(LOADS), choices=list(LOADS))
+    p.add_argument(
+        "--loads", nargs="+", default=["idle", "python", "dispatch"], choices=list(LOADS)
+    )
+    p.add_argument("--update-method", default="drqv2", help="the update the load 'update' runs")
     p.add_argument("--intervals", type=float, nargs="+", default=[5.0, 1.0, 0.1], help="ms")
     p.add_argument("--steps", type=int, default=6)
     p.add_argument("--out", default="")
@@ -112,8 +143,9 @@ def main(argv=None):
             state = phys.init(qpos.reshape(shape + (-1,)), qvel.reshape(shape + (-1,)))
             phys.step(state, actions[0])  # compiles the reward
             for load in args.loads:
+                work = _update(args.update_method) if load == "update" else LOADS[load]
                 for interval in args.intervals:
-                    ms = step_ms(phys, state, actions, args.steps, LOADS[load], interval / 1e3)
+                    ms = step_ms(phys, state, actions, args.steps, work, interval / 1e3)
                     rows.append(
                         dict(threads=threads, load=load, interval_ms=interval, ms_per_step=ms)
                     )

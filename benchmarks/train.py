@@ -241,6 +241,9 @@ def main():
     args = p.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     config = bench_config(args)
+    combinations = variants(args.vary)
+    for item in dict.fromkeys(itertools.chain(*combinations)):  # refused before any stage runs
+        set_field(bench_config(args), item)
     device = jax.devices()[0]
     result = dict(
         device=device.device_kind,
@@ -279,10 +282,6 @@ def main():
     if args.vary:
         result["variants"] = []
         rows = []
-        combinations = variants(args.vary)
-        checked = bench_config(args)  # an unknown key or a mistyped value: refused before any run
-        for item in dict.fromkeys(itertools.chain(*combinations)):
-            set_field(checked, item)
         for round_ in range(args.rounds):
             for config_set in combinations:
                 varied = bench_config(args)

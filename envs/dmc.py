@@ -57,17 +57,28 @@ class PhysicsView:
     sensordata: jnp.ndarray  # [nsensordata]
 
 
+def _view_fields(data: mujoco.MjData) -> dict[str, np.ndarray]:
+    """The fields a reward reads, as arrays onto `data` (not copies)."""
+    return dict(
+        qpos=data.qpos,
+        qvel=data.qvel,
+        ctrl=data.ctrl,
+        xpos=data.xpos,
+        xmat=data.xmat.reshape(-1, 3, 3),
+        site_xpos=data.site_xpos,
+        sensordata=data.sensordata,
+    )
+
+
 def view_from_mjdata(data: mujoco.MjData) -> PhysicsView:
     """Host copy of the fields a reward reads (numpy leaves)."""
-    return PhysicsView(
-        qpos=data.qpos.copy(),
-        qvel=data.qvel.copy(),
-        ctrl=data.ctrl.copy(),
-        xpos=data.xpos.copy(),
-        xmat=data.xmat.reshape(-1, 3, 3).copy(),
-        site_xpos=data.site_xpos.copy(),
-        sensordata=data.sensordata.copy(),
-    )
+    return PhysicsView(**{k: v.copy() for k, v in _view_fields(data).items()})
+
+
+def write_view(out: PhysicsView, index, data: mujoco.MjData) -> None:
+    """view_from_mjdata(data) written into the batched host view `out` at `index`."""
+    for k, v in _view_fields(data).items():
+        getattr(out, k)[index] = v
 
 
 # --------------------------------------------------------------------------------------------

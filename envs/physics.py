@@ -61,7 +61,7 @@ if _import_noise.getvalue().strip():
         "mujoco.mjx import: %s", _import_noise.getvalue().strip(), extra={"console": False}
     )
 
-from envs.dmc import PhysicsView, view_from_mjdata  # noqa: E402
+from envs.dmc import PhysicsView, view_from_mjdata, write_view  # noqa: E402
 
 BACKENDS = ("mjx", "cpu", "auto")
 
@@ -280,6 +280,7 @@ class CpuPhysics:
         )
         self._reward = jax.jit(_vmap2(jax.vmap(reward_fn)))
         self._cpu = jax.local_devices(backend="cpu")[0]
+        self._view = view_from_mjdata(self._datas[0])  # the shapes of one env's view
 
     @staticmethod
     def _load(d: mujoco.MjData, state: CpuState, idx) -> mujoco.MjData:
@@ -311,50 +312,46 @@ class CpuPhysics:
                 mujoco.mj_step(m, d, self.n_sub_steps - 1)
         mujoco.mj_step1(m, d)
 
-    def _step_envs(self, d, state, new, action, envs) -> list:
+    def _step_envs(self, d, state, new, views, action, envs) -> None:
         """Step the envs [(s, e), ...] one agent step on in `d`, writing their new state into
-        `new`; returns their `action_repeat` reward views each."""
-        views = []
+        `new` and their reward views after each of the `action_repeat` control steps into
+        `views` ([S, E, R] leaves)."""
         for s, e in envs:
             self._load(d, state, (s, e))
             # step1 refreshes the position/velocity stage for the loaded state: dm_control's
             # data sits right after its previous control step's mj_step1.
             mujoco.mj_step1(self.mj_model, d)
             d.ctrl[:] = action[s, e]
-            env_views = []
-            for _ in range(self.action_repeat):
+            for r in range(self.action_repeat):
                 if self.control is not None:
                     d.ctrl[:] = self.control(d.qpos, action[s, e], np)
                 self._control_step(d)
-                env_views.append(view_from_mjdata(d))
-            views.append(env_views)
+                write_view(views, (s, e, r), d)
             for k in new:
                 new[k][s, e] = getattr(d, k)
-        return views
 
     def step(self, state: CpuState, action) -> tuple[CpuState, np.ndarray]:
         action = np.asarray(action, np.float64)
         num_s, num_e = state.qpos.shape[:2]
         new = {k: np.copy(v) for k, v in dataclasses.asdict(state).items()}
+        shape = (num_s, num_e, self.action_repeat)
+        views = jax.tree.map(lambda x: np.empty(shape + x.shape, x.dtype), self._view)
         envs = list(np.ndindex(num_s, num_e))
         if self._pool is None:
-            views = self._step_envs(self._datas[0], state, new, action, envs)
-        else:  # contiguous blocks of envs, one per thread, so the views stay in env order
+            self._step_envs(self._datas[0], state, new, views, action, envs)
+        else:  # contiguous blocks of envs, one per thread
             blocks = np.array_split(envs, self.threads)
             parts = [
-                self._pool.submit(self._step_envs, d, state, new, action, block)
+                self._pool.submit(self._step_envs, d, state, new, views, action, block)
                 for d, block in zip(self._datas, blocks, strict=True)
             ]
             # Every block ends before any error is raised: no thread still steps its MjData
             # when the next step hands it new work.
             concurrent.futures.wait(parts)
-            views = [v for part in parts for v in part.result()]
-        stacked = jax.tree.map(
-            lambda *xs: np.stack(xs).reshape((num_s, num_e, self.action_repeat) + xs[0].shape),
-            *[v for env_views in views for v in env_views],
-        )
+            for part in parts:
+                part.result()
         with jax.default_device(self._cpu):
-            per_frame = np.asarray(self._reward(stacked), np.float32)  # [S,E,R]
+            per_frame = np.asarray(self._reward(views), np.float32)  # [S,E,R]
         return CpuState(**new), per_frame.sum(-1, dtype=np.float32)
 
     def where(self, reset: np.ndarray, new: CpuState, old: CpuState) -> CpuState:

@@ -221,7 +221,9 @@ def main():
     print(table(kernels))
     from benchmarks.common import save_json
 
-    save_json({"ncu_command": command[1:], "kernels": kernels}, args.out)
+    # ncu's arguments as anyone reruns them (the interpreter by name, not by its path here)
+    recorded = command[1:-len(target)] + ["python", *target[1:]]
+    save_json({"ncu_command": recorded, "kernels": kernels}, args.out)
 
 
 if __name__ == "__main__":

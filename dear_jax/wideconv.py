@@ -45,6 +45,11 @@ per tap and block of rows (3.56 ms; commit f4ae598); a kernel row's taps as one 
 one product of K = 3 * C, padded to 128 lanes (slower in every setting; commit f1ae683); and
 padded layers reading a zero-padded copy of their input as VALID layers, without load masks
 (the copies cost more than the masks, on an H100 and on an H200; commit f5ff609).
+Filter gradients' products as g^T x (`WGRAD_G_FIRST`) then took DEAR from 3.23-3.25 to
+3.10-3.12 ms for one seed and 2.37-2.38 to 2.28-2.29 per seed for five on an H200; with them 4
+warps, 4 stages or 128-row steps were slower, 32-row steps no faster (benchmarks/RESULTS.md).
+Nsight Compute finds the 9-tap filter gradients limited by their registers (232-252 a thread: 2
+warps' programs, 6% occupancy) and L1 traffic (80% of its peak), not by memory.
 
 `conv_stack(x, layers, pads)` is the function of
 `for (k, b), p in zip(layers, pads): x = relu(VALID conv of x zero-padded by p with k, + b)`,
@@ -86,8 +91,9 @@ WGRAD_STEPS = 32  # steps of one program of a filter gradient (at most; see belo
 WGRAD_MIN_PROGRAMS = 0
 WGRAD_WARPS = 2
 # A filter gradient's products as g^T x (the output gradient's block transposed once per step)
-# rather than x^T g (each tap's block transposed); its result is then transposed in XLA.
-WGRAD_G_FIRST = False
+# rather than x^T g (each tap's block transposed); its result is then transposed in XLA. On an
+# H200 (benchmarks/RESULTS.md) every method's update was 1-15% faster with it than without.
+WGRAD_G_FIRST = True
 STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of looped taps)
 # A convolution's taps as a loop (which Triton software-pipelines) rather than unrolled, and
 # its pipeline's stages.

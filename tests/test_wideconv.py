@@ -126,7 +126,7 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     "name, settings",
     [
         ("decoder", {"TAP_LOOP": False}),
-        ("encoder_shifted", {"TAP_LOOP": False, "WGRAD_G_FIRST": True}),
+        ("encoder_shifted", {"TAP_LOOP": False, "WGRAD_G_FIRST": False}),
     ],
 )
 def test_kernel_settings_compute_the_same(monkeypatch, name, settings):

@@ -222,7 +222,7 @@ def main():
     from benchmarks.common import save_json
 
     # ncu's arguments as anyone reruns them (the interpreter by name, not by its path here)
-    recorded = command[1:-len(target)] + ["python", *target[1:]]
+    recorded = command[1 : -len(target)] + ["python", *target[1:]]
     save_json({"ncu_command": recorded, "kernels": kernels}, args.out)
 
 

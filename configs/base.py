@@ -159,6 +159,8 @@ def get_config() -> ConfigDict:
     c.agent.std_final = 0.1
     c.agent.std_steps = 500_000  # agent steps of the linear std decay
     c.agent.explore_steps = 2000  # agent steps of uniform random actions per seed
+    # agent steps each env keeps one exploration draw; 1 (DrQ-v2, the paper): a new one each step
+    c.agent.noise_hold = 1
     c.agent.batch_size = 256
     c.agent.nstep = 3
     c.agent.discount = 0.99

@@ -58,7 +58,12 @@ RESUMABLE_CHANGES = (
 
 # Fields added to the config after runs were made, each with the value that does what the code
 # did before it: a checkpoint written without the field resumes when the config has that value.
-ADDED_FIELDS = {"env.distraction_types": "all", "env.render.mesh_faces": 0}
+ADDED_FIELDS = {
+    "env.distraction_types": "all",
+    "env.render.mesh_faces": 0,
+    "agent.noise_hold": 1,
+    "sweep.noise_hold": "",
+}
 
 
 def fingerprint(config: ConfigDict) -> dict:
@@ -137,6 +142,7 @@ def validate(config: ConfigDict) -> None:
         "agent.batch_size",
         "agent.nstep",
         "agent.update_every_steps",
+        "agent.noise_hold",
         "replay.capacity",
     )
     for key in positive:

@@ -37,7 +37,10 @@ SWEEPABLE = (
     "std_final",
     "std_steps",
     "explore_steps",
+    "noise_hold",
 )
+# Sweepable keys with a least valid value (the config's own field is checked alike).
+MINIMUM = {"noise_hold": 1.0}
 # The methods whose losses read a weight; sweeping it for another method changes nothing.
 USED_BY = {
     "alpha": ("dear", "sear"),
@@ -84,6 +87,8 @@ def _values(key: str, text) -> tuple[float, ...]:
         ) from None
     if len(set(values)) != len(values):
         raise ValueError(f"sweep.{key}={text!r} repeats a value")
+    if key in MINIMUM and min(values, default=MINIMUM[key]) < MINIMUM[key]:
+        raise ValueError(f"sweep.{key}={text!r}: every value must be >= {MINIMUM[key]:g}")
     return values
 
 

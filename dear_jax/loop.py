@@ -34,7 +34,7 @@ from dear_jax.evaluations import Evaluations, eval_due
 from dear_jax.evaluator import EvalProcess, EvalProcesses, LocalEvaluator
 from dear_jax.experiment import agent_config
 from dear_jax.logger import RunLogger
-from dear_jax.programs import cached_programs
+from dear_jax.programs import cached_programs, hold_keys
 from dear_jax.progress import Progress, TrainLog
 from dear_jax.trace import Trace
 
@@ -83,6 +83,7 @@ class Loop:
         )()
         key = self._everywhere(jax.random.fold_in(root, 1_000_003))
         self.eval_key = jax.random.fold_in(root, 2_000_003)  # the evaluations' own stream
+        self.hold_keys = self._split(hold_keys(config))
         key, k_reset = jax.random.split(key)
         state, ts = env.reset(hosts.env_key(k_reset))
         ts = hosts.to_global(ts)
@@ -226,7 +227,7 @@ class Loop:
         steps_per_seed = steps / len(self.lanes)
         if hosts.multi:
             stepping = hosts.place_local(stepping)
-        action, c.agent = programs.act(c.agent, c.ts.obs, k_act, stepping)
+        action, c.agent = programs.act(c.agent, c.ts.obs, k_act, stepping, self.hold_keys)
         future = self.env.step_async(c.state, hosts.to_local(action))
         # Updates are dispatched while the env thread renders the next observations.
         if counters["frame"] >= lv["seed_frames"] and steps_per_seed:

@@ -23,7 +23,9 @@ from dear_jax.experiment import hparams
 class Programs:
     """The jitted functions of the loop, each over all seeds at once."""
 
-    act: callable  # (agent, obs [S,E,...], key, stepping [S,E]) -> (actions [S,E,A], agent)
+    # (agent, obs [S,E,...], key, stepping [S,E], hold_keys(config) or None) -> (actions
+    # [S,E,A], agent)
+    act: callable
     learn: callable  # (agent, replay, key) -> (agent, metrics [S]): one update per seed
     add: callable  # (replay, ts, action) -> replay
     # (params, obs) -> (actions, {cos_agent_env, abs_cos_agent_env: [S]}, predicted mask of env 0
@@ -52,6 +54,19 @@ def cached_programs(
             del _PROGRAMS[key]  # a process runs one experiment at a time
         _PROGRAMS[experiment, mesh] = build_programs(acfg, hp, config, mesh)
     return _PROGRAMS[experiment, mesh]
+
+
+# fold_in(key(config.seed), HOLD_STREAM): the root of the lanes' held-exploration keys.
+HOLD_STREAM = 3_000_017
+
+
+def hold_keys(config: ConfigDict) -> jax.Array:
+    """Each lane's key for held exploration draws (`update.act`, agent.noise_hold), as key data
+    [lanes, ...] uint32: from its seed alone, so the same on every process and after a resume
+    (lanes of one seed share it, as they share their initial parameters)."""
+    root = jax.random.fold_in(jax.random.key(config.seed), HOLD_STREAM)
+    seeds = jnp.array([lane.seed for lane in lanes.lanes(config)])
+    return jax.random.key_data(jax.vmap(lambda s: jax.random.fold_in(root, s))(seeds))
 
 
 def build_programs(
@@ -89,13 +104,16 @@ def build_programs(
     def over_seeds(fn):
         return per_device(update.over_seeds(fn, a.seed_axis))
 
-    def act(agent, obs, key, stepping):
+    def act(agent, obs, key, stepping, hold=None):
         keys = jax.random.split(key, num_seeds)
 
-        def per_seed(agent, obs, key, hp, stepping):
-            return update.act(acfg, agent, obs, key, hp, explore=True, stepping=stepping)
+        def per_seed(agent, obs, key, hp, stepping, hold):
+            hold_key = None if hold is None else jax.random.wrap_key_data(hold)
+            return update.act(
+                acfg, agent, obs, key, hp, explore=True, stepping=stepping, hold_key=hold_key
+            )
 
-        return over_seeds(per_seed)(agent, obs, keys, hp, stepping)
+        return over_seeds(per_seed)(agent, obs, keys, hp, stepping, hold)
 
     def sample_one(buffer, key):
         return replay.sample(

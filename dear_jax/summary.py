@@ -105,6 +105,7 @@ def write_summary(
         "distraction": config.env.distraction,
         "distraction_types": list(spec.distraction_types),
         "backgrounds": spec.backgrounds,
+        "noise_hold": config.agent.noise_hold,
         "stopped": stopped,
         "per_seed": per_seed,
         "provenance": provenance(),
@@ -120,6 +121,8 @@ def write_summary(
         else ""
     )
     evaluators = f", {eval_processes} processes" if eval_processes > 1 else ""
+    held = config.agent.noise_hold
+    held = f"; exploration draws held {held:g} agent steps" if held != 1 else ""
     on = summary["device"] if devices == 1 else f"{devices} x {summary['device']}"
     if config.devices_per_seed > 1:
         on += f", {config.devices_per_seed} per {unit}"
@@ -128,7 +131,7 @@ def write_summary(
         f"{until}{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, "
         f"{wall:.0f} s of training ({fps:.0f} frames/s in all) on {on} "
         f"({spec.backend} physics, {summary['conv_stack']} conv stacks{kernels}, evaluations on "
-        f"{summary['eval_device']}{evaluators}); {_distraction_line(spec)}; render "
+        f"{summary['eval_device']}{evaluators}); {_distraction_line(spec)}{held}; render "
         f"settings {summary['render']}; commit {summary['provenance']['commit']}, jax "
         f"{summary['provenance']['jax']}\n\n{table}\n"
     )

@@ -101,6 +101,9 @@ class HParams:
     std_final: float = 0.1
     std_steps: float = 500_000.0  # agent steps of the linear std decay
     explore_steps: float = 2000.0  # agent steps of uniform random actions
+    # Agent steps each env keeps one exploration draw (its noise, or its uniform action while
+    # exploring): 1, DrQ-v2's and the paper's, draws anew every step (`act`).
+    noise_hold: float = 1.0
 
     def for_seeds(self, num_seeds: int) -> HParams:
         """Every field as a float32 [num_seeds] array (scalars broadcast), ready for vmap axis 0."""
@@ -262,18 +265,29 @@ def act(
     *,
     explore: bool,
     stepping: jax.Array | None = None,
+    hold_key: jax.Array | None = None,
 ) -> tuple[jax.Array, AgentState]:
     """Actions for a batch of observations uint8 [N, 84, 84, 9] -> f32 [N, A].
 
     explore=True: uniform actions during the first `explore_steps` agent steps, then the policy
     with the scheduled std; counts the steps taken: all N, or where `stepping` [N] is true (an
     env that restarts ignores its action). explore=False: the deterministic mean.
+
+    `hold_key` (the seed's, constant over its run) with `hp.noise_hold` = K > 1: the draws come
+    from fold_in(hold_key, the block of K agent steps per env this step is in) rather than from
+    `key`, so each env keeps its noise (scaled by the current std) or its uniform action for K
+    steps: exploration correlated over time. With K = 1, or no `hold_key`, every step draws anew.
     """
     nets = make_networks(cfg)
     z = nets.encoder.apply({"params": state.params["encoder"]}, obs)
     mean = nets.actor.apply({"params": state.params["actor"]}, z)
     if not explore:
         return mean, state
+    if hold_key is not None:
+        per_env = (state.steps // obs.shape[0]).astype(jnp.float32)
+        block = jax.random.fold_in(hold_key, (per_env / hp.noise_hold).astype(jnp.uint32))
+        data = jnp.where(hp.noise_hold > 1, jax.random.key_data(block), jax.random.key_data(key))
+        key = jax.random.wrap_key_data(data, impl=jax.random.key_impl(key))
     k_noise, k_uniform = jax.random.split(key)
     action = sample_action(mean, std_schedule(state.steps, hp), k_noise)
     uniform = jax.random.uniform(k_uniform, mean.shape, minval=-1.0, maxval=1.0)

@@ -63,6 +63,15 @@ def test_bad_sweeps_are_refused_naming_the_key():
         lanes.lanes(sweep_config(beta="1,x"))
     with pytest.raises(ValueError, match="repeats a value"):
         lanes.lanes(sweep_config(beta="1,1.0"))
+    with pytest.raises(ValueError, match=r"sweep.noise_hold='1,0.5': every value must be >= 1"):
+        lanes.lanes(sweep_config(noise_hold="1,0.5"))
+    c = base.get_config()
+    c.agent.noise_hold = 0
+    with pytest.raises(ValueError, match="agent.noise_hold must be >= 1, got 0"):
+        experiment.validate(c)
+    np.testing.assert_array_equal(
+        experiment.hparams(sweep_config(noise_hold="1,10")).noise_hold, [1, 1, 10, 10]
+    )
 
 
 def test_lanes_use_their_own_weights():

@@ -847,6 +847,7 @@ def test_grid_cells_of_a_weight_setting(tmp_path):
     c = paper.get_config("walker,dear,alpha=0,beta=0")
     assert (c.agent.alpha, c.agent.beta) == (0.0, 0.0)
     assert paper.get_config("walker,dear,std_steps=1000").agent.std_steps == 1000  # an int field
+    assert paper.get_config("light,drqv2,noise_hold=10").agent.noise_hold == 10
     for bad, message in (
         ("walker,drqv2,beta=1", r"'beta=1' in 'walker,drqv2,beta=1': drqv2 does not read beta \("),
         ("walker,dear,gamma=1", "unknown setting 'gamma' .*; valid: alpha, beta, "),

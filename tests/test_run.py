@@ -34,7 +34,7 @@ from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.config import resolve_config_path
 from dear_jax.devices import Hosts
 from dear_jax.logger import read_csv
-from dear_jax.programs import build_programs
+from dear_jax.programs import build_programs, hold_keys
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -499,6 +499,32 @@ def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
     np.testing.assert_allclose(a_host, a, atol=0.03)
     np.testing.assert_allclose(pred_host, pred, atol=0.03)
     assert not np.array_equal(a_host, a)  # two programs, not one
+
+
+def test_the_loops_act_holds_each_lanes_draws_by_its_hold_key():
+    """programs.act with the lanes' hold keys (what the loop passes): with noise_hold 3, two
+    steps of one block act alike whatever their keys, and by the hold keys given; with
+    noise_hold 1 the keys change nothing (every step draws from its own key)."""
+    fixed = {"agent.explore_steps": 0, "agent.std_init": 0.5, "agent.std_final": 0.5}
+    config = tiny_config(seeds=2, **{"agent.noise_hold": 3, **fixed})
+    acfg = experiment.agent_config(config, action_dim=6)
+    agent = update.init_seeds(acfg, jax.random.split(jax.random.key(0), config.seeds))
+    obs = jax.random.randint(jax.random.key(1), (config.seeds, 3, 84, 84, 9), 0, 256, jnp.uint8)
+    stepping = jnp.ones((config.seeds, 3), bool)
+    keys = hold_keys(config)
+
+    def actions(config, steps, key, hold):
+        programs = build_programs(acfg, experiment.hparams(config), config)
+        state = jax.tree.map(jnp.copy, agent)  # act donates the agent it is given
+        state = state.replace(steps=jnp.full((config.seeds,), steps, jnp.int32))
+        return np.asarray(programs.act(state, obs, jax.random.key(key), stepping, hold)[0])
+
+    first, second = actions(config, 0, 5, keys), actions(config, 3, 6, keys)  # per env: 0, 1
+    np.testing.assert_array_equal(first, second)
+    assert not np.allclose(first, actions(config, 9, 6, keys), atol=1e-3)  # per env 3: next
+    assert not np.allclose(first, actions(config, 0, 5, keys[::-1]), atol=1e-3)  # the lanes' keys
+    config.agent.noise_hold = 1
+    np.testing.assert_array_equal(actions(config, 0, 5, keys), actions(config, 0, 5, None))
 
 
 def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):

@@ -1,13 +1,14 @@
 """The learner: where gradients flow, acting, and the vmapped update over seeds."""
 
 import functools
+import itertools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dear_jax import update
+from dear_jax import lanes, update
 from dear_jax.replay import Batch
 
 # Narrow widths keep CPU compile and init cheap; the structure is the reference's.
@@ -189,6 +190,59 @@ def test_acting_phases_and_schedule(dear):
     assert np.abs(np.asarray(a2 - mean)).max() < 0.6
     np.testing.assert_allclose(update.std_schedule(jnp.float32(50.0), hp), 0.55, rtol=1e-6)
     np.testing.assert_allclose(update.std_schedule(jnp.float32(500.0), hp), 0.1, rtol=1e-6)
+
+
+def test_held_exploration_keeps_each_envs_draw_for_noise_hold_steps(dear):
+    cfg, state = dear
+    envs = 4
+    obs = jnp.asarray(np.random.default_rng(15).integers(0, 256, (envs, 84, 84, 9), np.uint8))
+    act = jax.jit(functools.partial(update.act, cfg), static_argnames="explore")
+    hold = jax.random.key(16)
+    for explore_steps in (0.0, 1e6):  # the policy's noise (constant std), then uniform actions
+        hp = update.HParams(explore_steps=explore_steps, std_init=0.5, std_final=0.5)
+        # noise_hold 1 (the default): the step's own key, with or without a hold key
+        iid, _ = act(state, obs, jax.random.key(17), hp, explore=True)
+        same, _ = act(state, obs, jax.random.key(17), hp, explore=True, hold_key=hold)
+        np.testing.assert_array_equal(iid, same)
+        # noise_hold 3: agent steps 0-2 of each env (the seed's counter 0, 4, 8) draw alike,
+        # whatever their step keys; step 3 starts the next block
+        held = hp.replace(noise_hold=3.0)
+        out = [
+            act(
+                state.replace(steps=jnp.int32(envs * t)),
+                obs,
+                jax.random.key(20 + t),
+                held,
+                explore=True,
+                hold_key=hold,
+            )[0]
+            for t in range(4)
+        ]
+        np.testing.assert_array_equal(out[0], out[1])
+        np.testing.assert_array_equal(out[0], out[2])
+        assert not np.allclose(out[2], out[3], atol=1e-3)
+        assert not np.allclose(out[0][0], out[0][1], atol=1e-3)  # each env its own draw
+        assert not np.allclose(out[0], iid, atol=1e-3)  # from the hold key, not the step's
+        other, _ = act(
+            state, obs, jax.random.key(20), held, explore=True, hold_key=jax.random.key(3)
+        )
+        assert not np.allclose(out[0], other, atol=1e-3)  # another seed's key, other draws
+
+
+def test_lanes_hold_keys_follow_their_seeds():
+    from configs.base import get_config
+    from dear_jax.programs import hold_keys
+
+    c = get_config()
+    c.seeds = 2
+    c.sweep.beta = "1,10"
+    keys = np.asarray(hold_keys(c))  # lanes: seed 0 beta 1, seed 0 beta 10, seed 1 ...
+    assert keys.shape[0] == 4 and keys.dtype == np.uint32
+    seeds = [lane.seed for lane in lanes.lanes(c)]
+    for i, j in itertools.combinations(range(4), 2):
+        assert np.array_equal(keys[i], keys[j]) == (seeds[i] == seeds[j])
+    c.seed = 1
+    assert not np.array_equal(np.asarray(hold_keys(c))[0], keys[0])
 
 
 def test_sample_action_clips_noise_and_passes_gradient_through_clamp():

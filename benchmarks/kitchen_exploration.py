@@ -51,6 +51,10 @@ Timing: CPU MuJoCo ms per agent step (40 physics steps), one env on one thread s
         --out benchmarks/results/kitchen_exploration_ou_cpu.json
     python -m benchmarks.kitchen_exploration --modes uniform --episodes 200 --repeat 10 \
         --out benchmarks/results/kitchen_exploration_repeat10_cpu.json
+    python -m benchmarks.kitchen_exploration --modes noise --episodes 200 --repeat K \
+        --out benchmarks/results/kitchen_exploration_noise_repeatK_cpu.json  # K = 5 10 20 40
+
+`--modes noise --repeat K` is what training does with `agent.noise_hold` K at a zero mean.
 """
 
 from __future__ import annotations

@@ -52,6 +52,9 @@ def get_config() -> ConfigDict:
     # one process, finger's DEAR waited 21% of its run for them; `python -m dear_jax.report evals
     # RUN` tells; benchmarks/RESULTS.md). 0: two on a GPU machine, one on a CPU-only one.
     c.eval_processes = 0
+    # Niceness the evaluation processes add to their own (0-19): above 0 the training's threads
+    # go first where they share cores with an evaluation's physics and render workers.
+    c.eval_nice = 0
     c.log_every_frames = 5_000  # per seed: train metrics to CSV / TensorBoard
     c.checkpoint_every_frames = 100_000  # per seed; 0 disables periodic checkpoints
     c.keep_checkpoints = 3

@@ -301,6 +301,8 @@ def _serve(conn, config_bytes: bytes, stream: int, policy_on: str) -> None:
     cores = sorted(os.sched_getaffinity(0))
     if len(cores) >= 4:  # its thread pools (XLA:CPU, render workers) on half the cores
         os.sched_setaffinity(0, cores[len(cores) // 2 :])
+    if config.get("eval_nice"):  # lower priority, for it and the processes it starts
+        os.nice(config.eval_nice)
 
     env = None
     try:

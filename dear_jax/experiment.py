@@ -45,6 +45,7 @@ RESUMABLE_CHANGES = (
     "eval_in_background",
     "eval_device",
     "eval_processes",
+    "eval_nice",
     "agent.seed_axis",
     "agent.shift_impl",
     "agent.filter_gradient",
@@ -116,6 +117,10 @@ def validate(config: ConfigDict) -> None:
         raise ValueError(
             f"eval_processes must be an int >= 1, or 0 (two on a GPU machine, else one); got "
             f"{config.eval_processes!r}"
+        )
+    if not (isinstance(config.eval_nice, int) and 0 <= config.eval_nice <= 19):
+        raise ValueError(
+            f"eval_nice must be an int in 0-19 (0: the training's), got {config.eval_nice!r}"
         )
     try:
         distractions.parse_types(config.env.distraction_types)

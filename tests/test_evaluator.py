@@ -72,8 +72,8 @@ def test_on_the_accelerator_the_eval_process_runs_the_trainings_own_program():
     """policy_on="accelerator" (the resolved eval_device): the child evaluates with the
     training's program (bf16 here, on this machine's only device, the CPU), so its returns are
     this process's with that program, and differ from the float32 host program's that "cpu"
-    runs."""
-    config = tiny_config(**{"agent.compute_dtype": "bfloat16"})
+    runs. With eval_nice it runs at a lower priority than this process."""
+    config = tiny_config(**{"agent.compute_dtype": "bfloat16", "eval_nice": 3})
     params, acfg = _agent_params(config)
     hosts = Hosts(None, lanes.num_lanes(config))
     programs = build_programs(acfg, experiment.hparams(config), config)
@@ -82,6 +82,9 @@ def test_on_the_accelerator_the_eval_process_runs_the_trainings_own_program():
     with EvalProcess(config, policy_on="accelerator") as remote:
         start = remote.host_state()
         got = remote.evaluate(params, key)
+        # eval_nice: the child runs 3 nicer than this process
+        niceness = os.getpriority(os.PRIO_PROCESS, remote._proc.pid)
+        assert niceness == min(os.getpriority(os.PRIO_PROCESS, 0) + 3, 19)
     env = experiment.make_env(config, envs_per_seed=config.num_eval_episodes, split="val", seed=1)
     try:
         for name, step in (("bf16", programs.evaluate_step), ("f32", programs.evaluate_step_host)):

@@ -483,6 +483,10 @@ def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
     with pytest.raises(ValueError, match="eval_processes must be an int >= 1, or 0 .*got -1"):
         experiment.validate(config)
     config.eval_processes = 1
+    config.eval_nice = 20
+    with pytest.raises(ValueError, match=r"eval_nice must be an int in 0-19 .*got 20"):
+        experiment.validate(config)
+    config.eval_nice = 0
     assert experiment.eval_processes(config, "accelerator") == 1
     config.eval_device = "train"
     acfg = experiment.agent_config(config, action_dim=6)

@@ -236,7 +236,7 @@ def test_lanes_hold_keys_follow_their_seeds():
     c = get_config()
     c.seeds = 2
     c.sweep.beta = "1,10"
-    keys = np.asarray(hold_keys(c))  # lanes: seed 0 beta 1, seed 0 beta 10, seed 1 ...
+    keys = np.asarray(hold_keys(c))  # lanes: beta 1 seeds 0, 1; beta 10 seeds 0, 1
     assert keys.shape[0] == 4 and keys.dtype == np.uint32
     seeds = [lane.seed for lane in lanes.lanes(c)]
     for i, j in itertools.combinations(range(4), 2):

@@ -48,8 +48,8 @@ padded layers reading a zero-padded copy of their input as VALID layers, without
 Filter gradients' products as g^T x (`WGRAD_G_FIRST`) then took DEAR from 3.23-3.25 to
 3.10-3.12 ms for one seed and 2.37-2.38 to 2.28-2.29 per seed for five on an H200; with them 4
 warps, 4 stages or 128-row steps were slower, 32-row steps no faster (benchmarks/RESULTS.md).
-Nsight Compute finds the 9-tap filter gradients limited by their registers (232-252 a thread: 2
-warps' programs, 6% occupancy) and L1 traffic (80% of its peak), not by memory.
+Nsight Compute found the 9-tap filter gradients (as x^T g) limited by their registers (232-252 a
+thread: 2 warps' programs, 6% occupancy) and L1 traffic (80% of its peak), not by memory.
 
 `conv_stack(x, layers, pads)` is the function of
 `for (k, b), p in zip(layers, pads): x = relu(VALID conv of x zero-padded by p with k, + b)`,

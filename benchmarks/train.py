@@ -153,7 +153,11 @@ def stage_split(config, reps) -> dict:
             leading=(num_seeds,),
         )
         state, ts = env.reset(jax.random.key(1))
-        action = jnp.zeros((num_seeds, num_envs, spec.action_dim))
+        # Uniform actions, as exploration takes them: the physics' cost depends on the poses
+        # the actions lead to (a zero action lets the kitchen's arm sag onto the counter).
+        rng = np.random.default_rng(0)
+        shape = (num_seeds, num_envs, spec.action_dim)
+        action = jnp.asarray(rng.uniform(-1.0, 1.0, shape), jnp.float32)
         buffer = programs.add(buffer, ts, action)
         for _ in range(8):  # a few rows so that sampling has transitions
             state, ts = env.step(state, action)

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 import pathlib
+import shlex
 import sys
 import time
 
@@ -35,7 +37,10 @@ def save_json(result: dict, out: str | None, default: str | None = None) -> path
 
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    head = {"command": " ".join(["python -m", _module(), *sys.argv[1:]]), **provenance()}
+    # XLA_FLAGS change what the programs compile to: the command carries them.
+    flags = os.environ.get("XLA_FLAGS")
+    env = [f"XLA_FLAGS={shlex.quote(flags)}"] if flags else []
+    head = {"command": " ".join([*env, "python -m", _module(), *sys.argv[1:]]), **provenance()}
     path.write_text(json.dumps({**head, **result}, indent=1))
     print(f"wrote {path}")
     return path

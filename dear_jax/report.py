@@ -1,7 +1,7 @@
 """Command-line reports about the agent and about finished runs.
 
     python -m dear_jax.report params [--action-dim 6]
-    python -m dear_jax.report table RUN [RUN ...] [--threshold 500] [--at FRAMES] [--last 11] [--out PREFIX]
+    python -m dear_jax.report table RUN [RUN ...] [--threshold T] [--at FRAMES] [--last 11] [--out PREFIX]
     python -m dear_jax.report curves RUN [RUN ...] [--out results/curves.png] [--band std]
     python -m dear_jax.report claims RUN [RUN ...] [--threshold 500] [--at FRAMES] [--last 11] [--out PREFIX]
     python -m dear_jax.report grid RUN [RUN ...] [--tasks walker cup finger] [--seeds 3] [--frames 1000000]
@@ -31,7 +31,8 @@ and devices (`sources` in the CSV):
   evaluations         900k-1M of a 1M-frame run), mean ± std over seeds: steadier than one
                       evaluation, which swings far from the next
   frames to T         first evaluated frame at which a seed's return reaches --threshold (the
-                      median over the seeds that reach it; "k/S" says how many did)
+                      median over the seeds that reach it; "k/S" says how many did); without
+                      it, a return of 500 on the DMC tasks and of 1 (a success) in the kitchen
 It prints Markdown and, with --out PREFIX, writes PREFIX.md and PREFIX.csv. A sweep's run
 (`dear_jax/lanes.py`) gives one row per setting.
 
@@ -127,6 +128,16 @@ PAPER = {
     "ted": {"params_m": 12.87, "s_per_1000": 16.19},
     "dear": {"params_m": 14.09, "s_per_1000": 16.11, "cos": 1e-7},
 }
+# Returns that count as reaching the task (frames to threshold) where no --threshold is given:
+# a DMC return of 500 of 1000; in the kitchen, whose return is 1 for a success, a success.
+DEFAULT_THRESHOLD, KITCHEN_THRESHOLD = 500.0, 1.0
+
+
+def default_threshold(task: str) -> float:
+    """The return a seed of `task` (an env name) reaches the task at, by default."""
+    return KITCHEN_THRESHOLD if task.startswith("kitchen-") else DEFAULT_THRESHOLD
+
+
 TABLE_COLUMNS = (
     "run",
     "method",
@@ -197,19 +208,22 @@ def _source(workdir: pathlib.Path, summary: dict, seeds: int) -> dict:
     }
 
 
-def run_rows(workdir, threshold: float, at: int | None = None, last: int = 11) -> list[dict]:
+def run_rows(workdir, threshold: float | None, at: int | None = None, last: int = 11) -> list[dict]:
     """Table II's rows for one run workdir: one, or one per setting of a sweep."""
     return pooled_rows([workdir], threshold, at, last)
 
 
-def pooled_rows(workdirs, threshold: float, at: int | None = None, last: int = 11) -> list[dict]:
+def pooled_rows(
+    workdirs, threshold: float | None, at: int | None = None, last: int = 11
+) -> list[dict]:
     """Table II's numbers for run workdirs (config.json, summary.json, their lanes' CSVs): one
     row per experiment and setting, its seeds pooled over the workdirs that ran them
     (`plot.pools`); `sources` says which workdir gave how many seeds, with its commit, device
     and jax version. With `at`, the returns, cosines and frames to the threshold are those of
     the evaluations up to `at` frames per seed (runs stopped at different points compare at the
     same frame). Beside the final return, each seed's mean over its last `last` evaluations (one
-    evaluation swings far from the next), then their mean and std over seeds."""
+    evaluation swings far from the next), then their mean and std over seeds. A threshold of
+    None is each task's `default_threshold`."""
     if last < 1:
         raise ValueError(f"last must be at least 1 evaluation, got {last}")
     workdirs = [pathlib.Path(w) for w in workdirs]
@@ -218,6 +232,7 @@ def pooled_rows(workdirs, threshold: float, at: int | None = None, last: int = 1
     for pool in plot.pools(workdirs):
         config = pool.config
         agent = config["agent"]
+        target = default_threshold(config["env"]["task"]) if threshold is None else threshold
         first = files[pool.workdirs[0]][1]
         cfg = AgentConfig(
             action_dim=_action_dim(first, config["env"]["task"]),
@@ -246,7 +261,7 @@ def pooled_rows(workdirs, threshold: float, at: int | None = None, last: int = 1
         lasts = np.array([e["episode_return"][-last:].mean() for e in evals])
         reached = []
         for e in evals:
-            hit = np.nonzero(e["episode_return"] >= threshold)[0]
+            hit = np.nonzero(e["episode_return"] >= target)[0]
             if hit.size:
                 reached.append(e["frame"][hit[0]])
         # A run stopped before its end (summary "stopped") is reported as far as it got.
@@ -276,7 +291,7 @@ def pooled_rows(workdirs, threshold: float, at: int | None = None, last: int = 1
                 "last": last,
                 "frames_to_threshold": float(np.median(reached)) if reached else math.nan,
                 "seeds_reaching_threshold": len(reached),
-                "threshold": threshold,
+                "threshold": target,
                 "code": ", ".join(
                     dict.fromkeys(f"{s['commit'][:7]} {s['device']}" for s in sources)
                 ),
@@ -289,7 +304,7 @@ def pooled_rows(workdirs, threshold: float, at: int | None = None, last: int = 1
 def _cells(r: dict) -> list:
     paper = PAPER.get(r["method"], {})
     fmt = lambda x, f: "-" if x is None or not np.isfinite(x) else format(x, f)  # noqa: E731
-    reached = f"{r['seeds_reaching_threshold']}/{r['seeds']}"
+    reached = f"{r['seeds_reaching_threshold']}/{r['seeds']} reach {r['threshold']:g}"
     return [
         r["run"],
         r["method"],
@@ -316,9 +331,10 @@ def _frames(low: int, high: int) -> str:
 
 
 def runs_table(
-    workdirs, threshold: float, out: str | None = None, at: int | None = None, last: int = 11
+    workdirs, threshold: float | None, out: str | None = None, at: int | None = None, last: int = 11
 ) -> tuple[list[dict], str]:
-    """Rows and the Markdown text of Table II; with `out`, also writes out.md and out.csv."""
+    """Rows and the Markdown text of Table II; with `out`, also writes out.md and out.csv.
+    threshold None: each task's `default_threshold`."""
     rows = pooled_rows(workdirs, threshold, at, last)
     when = "the last evaluation" if at is None else f"the last evaluation up to {at:,} frames"
     text = (
@@ -326,8 +342,10 @@ def runs_table(
         "s / 1000 frames per seed amortised over the seeds "
         f"trained together; returns and cosines of {when} (return: mean ± population std over "
         f"seeds; beside it each seed's mean over its last {last} evaluations, mean ± std over "
-        "seeds); frames to a return of "
-        f"{threshold:g}\n\n" + format_table(TABLE_COLUMNS, [_cells(r) for r in rows]) + "\n"
+        "seeds); frames to threshold: the first evaluation whose return reaches it (the median "
+        "over the seeds that do)\n\n"
+        + format_table(TABLE_COLUMNS, [_cells(r) for r in rows])
+        + "\n"
     )
     if out:
         path = pathlib.Path(out)
@@ -864,7 +882,12 @@ def main(argv=None):
     p.add_argument("--action-dim", type=int, default=6, help="|A| (walker: 6)")
     t = sub.add_parser("table", help="Table II for finished runs")
     t.add_argument("runs", nargs="+", help="run workdirs")
-    t.add_argument("--threshold", type=float, default=500.0, help="return for sample efficiency")
+    t.add_argument(
+        "--threshold",
+        type=float,
+        default=None,
+        help="return for sample efficiency (default: 500, the kitchen's 1: a success)",
+    )
     t.add_argument("--out", default=None, help="also write OUT.md and OUT.csv")
     t.add_argument(
         "--at", type=int, default=None, help="read the evaluations up to this many frames per seed"

@@ -545,6 +545,37 @@ def test_seeds_of_one_experiment_pool_over_workdirs(tmp_path):
         plot.pools([a, twice])
 
 
+def test_table_reads_each_tasks_own_threshold_unless_given_one(tmp_path):
+    """Frames to threshold: a return of 500 on a DMC task, 1 (a success) in the kitchen, unless
+    --threshold says otherwise. Seed s returns frame / 100 + (0, 10, 50)[s] at frames 0, 50, 100:
+    in the kitchen seeds 1 and 2 reach 1 at frame 0, seed 0 at 100 (median 0); on walker none
+    reaches 500."""
+    from configs import base, kitchen
+
+    runs = []
+    for name, c, action_dim in (
+        ("light", kitchen.make("light", "dear"), 9),
+        ("walker", base.make("walker", "dear"), 6),
+    ):
+        c.seeds = 3
+        fields = c.to_dict()
+        workdir = _fake_workdir(
+            tmp_path, name, "dear", fields.pop("env")["task"], frames=(0, 50, 100), **fields
+        )
+        summary = {"frames_per_seed": 100, "wall_s": 1.0, "action_dim": action_dim}
+        (workdir / "summary.json").write_text(json.dumps(summary))
+        runs.append(workdir)
+    light, walker = report.pooled_rows(runs, threshold=None)
+    assert (light["threshold"], light["seeds_reaching_threshold"]) == (1.0, 3)
+    assert light["frames_to_threshold"] == 0
+    assert (walker["threshold"], walker["seeds_reaching_threshold"]) == (500.0, 0)
+    given = report.pooled_rows(runs, threshold=1.5)
+    assert [r["seeds_reaching_threshold"] for r in given] == [2, 2]
+    assert given[0]["frames_to_threshold"] == 0
+    _, text = report.runs_table(runs, threshold=None)
+    assert "(3/3 reach 1)" in text and "(0/3 reach 500)" in text
+
+
 def test_pools_are_labelled_by_the_numbers_that_set_them_apart(tmp_path):
     """A pool's label names the per-lane numbers its method reads that set it apart: what its
     run swept, a loss weight changed from the default, and what differs from another pool of

@@ -5,7 +5,7 @@ agent steps, 4000 seed frames, 2000 uniform steps, eval every 10k frames over 10
 action repeat 1 a frame is an agent step, and an episode is at most 280 frames (it ends on
 success); eval logs and the run summary report the success rate. The paper's exploration (a new
 draw every agent step) never reached the light switch here; `paper.py:light,METHOD,noise_hold=20`
-holds each draw 20 agent steps and learns it (docs/method.md, decision 17).
+holds each draw 20 agent steps, with which DEAR learned it by 80k frames (docs/method.md, decision 17).
 """
 
 from ml_collections import ConfigDict

@@ -40,7 +40,8 @@ def save_json(result: dict, out: str | None, default: str | None = None) -> path
     # XLA_FLAGS change what the programs compile to: the command carries them.
     flags = os.environ.get("XLA_FLAGS")
     env = [f"XLA_FLAGS={shlex.quote(flags)}"] if flags else []
-    head = {"command": " ".join([*env, "python -m", _module(), *sys.argv[1:]]), **provenance()}
+    command = " ".join([*env, "python -m", _module(), shlex.join(sys.argv[1:])])
+    head = {"command": command, **provenance()}
     path.write_text(json.dumps({**head, **result}, indent=1))
     print(f"wrote {path}")
     return path

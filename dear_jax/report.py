@@ -3,7 +3,7 @@
     python -m dear_jax.report params [--action-dim 6]
     python -m dear_jax.report table RUN [RUN ...] [--threshold T] [--at FRAMES] [--last 11] [--out PREFIX]
     python -m dear_jax.report curves RUN [RUN ...] [--out results/curves.png] [--band std]
-    python -m dear_jax.report claims RUN [RUN ...] [--threshold 500] [--at FRAMES] [--last 11] [--out PREFIX]
+    python -m dear_jax.report claims RUN [RUN ...] [--threshold T] [--at FRAMES] [--last 11] [--out PREFIX]
     python -m dear_jax.report grid RUN [RUN ...] [--tasks walker cup finger] [--seeds 3] [--frames 1000000]
     python -m dear_jax.report evals RUN [RUN ...] [--out PREFIX]
 
@@ -31,8 +31,9 @@ and devices (`sources` in the CSV):
   evaluations         900k-1M of a 1M-frame run), mean ± std over seeds: steadier than one
                       evaluation, which swings far from the next
   frames to T         first evaluated frame at which a seed's return reaches --threshold (the
-                      median over the seeds that reach it; "k/S" says how many did); without
-                      it, a return of 500 on the DMC tasks and of 1 (a success) in the kitchen
+                      median over the seeds that reach it; "k/S reach T" says how many did);
+                      without it, a return of 500 on the DMC tasks, in the kitchen a success
+                      rate of 1 (every evaluation episode)
 It prints Markdown and, with --out PREFIX, writes PREFIX.md and PREFIX.csv. A sweep's run
 (`dear_jax/lanes.py`) gives one row per setting.
 
@@ -128,16 +129,6 @@ PAPER = {
     "ted": {"params_m": 12.87, "s_per_1000": 16.19},
     "dear": {"params_m": 14.09, "s_per_1000": 16.11, "cos": 1e-7},
 }
-# Returns that count as reaching the task (frames to threshold) where no --threshold is given:
-# a DMC return of 500 of 1000; in the kitchen, whose return is 1 for a success, a success.
-DEFAULT_THRESHOLD, KITCHEN_THRESHOLD = 500.0, 1.0
-
-
-def default_threshold(task: str) -> float:
-    """The return a seed of `task` (an env name) reaches the task at, by default."""
-    return KITCHEN_THRESHOLD if task.startswith("kitchen-") else DEFAULT_THRESHOLD
-
-
 TABLE_COLUMNS = (
     "run",
     "method",
@@ -223,7 +214,7 @@ def pooled_rows(
     the evaluations up to `at` frames per seed (runs stopped at different points compare at the
     same frame). Beside the final return, each seed's mean over its last `last` evaluations (one
     evaluation swings far from the next), then their mean and std over seeds. A threshold of
-    None is each task's `default_threshold`."""
+    None is each task's `claims.default_threshold`."""
     if last < 1:
         raise ValueError(f"last must be at least 1 evaluation, got {last}")
     workdirs = [pathlib.Path(w) for w in workdirs]
@@ -232,10 +223,11 @@ def pooled_rows(
     for pool in plot.pools(workdirs):
         config = pool.config
         agent = config["agent"]
-        target = default_threshold(config["env"]["task"]) if threshold is None else threshold
+        task = config["env"]["task"]
+        target = claims.default_threshold(task) if threshold is None else threshold
         first = files[pool.workdirs[0]][1]
         cfg = AgentConfig(
-            action_dim=_action_dim(first, config["env"]["task"]),
+            action_dim=_action_dim(first, task),
             method=agent["method"],
             encoder=agent["encoder"],
             latent_dim=agent["latent_dim"],
@@ -334,7 +326,7 @@ def runs_table(
     workdirs, threshold: float | None, out: str | None = None, at: int | None = None, last: int = 11
 ) -> tuple[list[dict], str]:
     """Rows and the Markdown text of Table II; with `out`, also writes out.md and out.csv.
-    threshold None: each task's `default_threshold`."""
+    threshold None: each task's `claims.default_threshold`."""
     rows = pooled_rows(workdirs, threshold, at, last)
     when = "the last evaluation" if at is None else f"the last evaluation up to {at:,} frames"
     text = (
@@ -886,7 +878,7 @@ def main(argv=None):
         "--threshold",
         type=float,
         default=None,
-        help="return for sample efficiency (default: 500, the kitchen's 1: a success)",
+        help="return for sample efficiency (default: 500; the kitchen's 1, every episode a success)",
     )
     t.add_argument("--out", default=None, help="also write OUT.md and OUT.csv")
     t.add_argument(
@@ -900,7 +892,9 @@ def main(argv=None):
     c.add_argument("--band", default="std", choices=plot.BANDS, help="shaded spread over seeds")
     k = sub.add_parser("claims", help="the paper's claims, checked on finished runs")
     k.add_argument("runs", nargs="+", help="run workdirs")
-    k.add_argument("--threshold", type=float, default=500.0, help="return for sample efficiency")
+    k.add_argument(
+        "--threshold", type=float, default=None, help="return for sample efficiency (as table's)"
+    )
     k.add_argument("--at", type=int, default=None, help="read evaluations up to this frame")
     k.add_argument("--last", type=int, default=11, help="evaluations a seed's return averages")
     k.add_argument("--out", default=None, help="also write OUT.md and OUT.json")

@@ -545,35 +545,44 @@ def test_seeds_of_one_experiment_pool_over_workdirs(tmp_path):
         plot.pools([a, twice])
 
 
-def test_table_reads_each_tasks_own_threshold_unless_given_one(tmp_path):
-    """Frames to threshold: a return of 500 on a DMC task, 1 (a success) in the kitchen, unless
-    --threshold says otherwise. Seed s returns frame / 100 + (0, 10, 50)[s] at frames 0, 50, 100:
-    in the kitchen seeds 1 and 2 reach 1 at frame 0, seed 0 at 100 (median 0); on walker none
-    reaches 500."""
+def test_table_and_claims_read_each_tasks_own_threshold_unless_given_one(tmp_path):
+    """Frames to threshold: a return of 500 on a DMC task, in the kitchen a success rate of 1,
+    unless a threshold is given. Seed s returns frame / 100 + (0, 10, 50)[s] at frames 0, 50,
+    100: in the kitchen seeds 1 and 2 reach 1 at frame 0, seed 0 at 100 (median 0); on walker
+    none reaches 500."""
     from configs import base, kitchen
 
     runs = []
     for name, c, action_dim in (
         ("light", kitchen.make("light", "dear"), 9),
         ("walker", base.make("walker", "dear"), 6),
+        ("light_drqv2", kitchen.make("light", "drqv2"), 9),
     ):
         c.seeds = 3
         fields = c.to_dict()
-        workdir = _fake_workdir(
-            tmp_path, name, "dear", fields.pop("env")["task"], frames=(0, 50, 100), **fields
-        )
+        method, task = c.agent.method, fields.pop("env")["task"]
+        workdir = _fake_workdir(tmp_path, name, method, task, frames=(0, 50, 100), **fields)
         summary = {"frames_per_seed": 100, "wall_s": 1.0, "action_dim": action_dim}
         (workdir / "summary.json").write_text(json.dumps(summary))
         runs.append(workdir)
-    light, walker = report.pooled_rows(runs, threshold=None)
+    dear_runs = runs[:2]
+    light, walker = report.pooled_rows(dear_runs, threshold=None)
     assert (light["threshold"], light["seeds_reaching_threshold"]) == (1.0, 3)
     assert light["frames_to_threshold"] == 0
     assert (walker["threshold"], walker["seeds_reaching_threshold"]) == (500.0, 0)
-    given = report.pooled_rows(runs, threshold=1.5)
+    given = report.pooled_rows(dear_runs, threshold=1.5)
     assert [r["seeds_reaching_threshold"] for r in given] == [2, 2]
     assert given[0]["frames_to_threshold"] == 0
-    _, text = report.runs_table(runs, threshold=None)
+    _, text = report.runs_table(dear_runs, threshold=None)
     assert "(3/3 reach 1)" in text and "(0/3 reach 500)" in text
+    rows = claims.check(runs)
+    (light_efficiency,) = [
+        r for r in rows if r["task"] == "kitchen-light" and r["claim"].endswith("than DrQ-v2")
+    ]
+    assert "(3/3 reach 1)" in light_efficiency["evidence"]
+    assert light_efficiency["verdict"] == "does not hold"  # both at frame 0
+    _, text = claims.claims_table(runs)
+    assert "frames to a return of 500 (the kitchen's: 1, a success in every episode)" in text
 
 
 def test_pools_are_labelled_by_the_numbers_that_set_them_apart(tmp_path):
@@ -1024,6 +1033,9 @@ def test_sample_efficiency_is_decided_only_where_the_censored_median_allows():
     # three seeds, one censored beyond the other two: the median is exact (ratio 0.60)
     row = verdict(seeds([300e3, 300e3, never], 1e6), seeds([500e3, 500e3, 600e3], 1e6))
     assert row["verdict"] == "holds" and row["evidence"].endswith("; ratio 0.60")
+    # a baseline reaching T at its first evaluation (frame 0) leaves nothing to beat
+    row = verdict(seeds([0.0] * 3, 1e6), seeds([0.0, 0.0, 10e3], 1e6))
+    assert row["verdict"] == "does not hold" and "ratio" not in row["evidence"]
 
 
 def test_table_ii_reads_logs_older_than_a_column_and_marks_mixed_frames():

@@ -46,9 +46,6 @@ COLUMNS = ("claim", "task", "evidence", "verdict")
 # The return at which a seed reaches its task (frames to T) where no threshold is given: 500 of a
 # DMC task's 1000; in the kitchen, whose evaluation return is its success rate, 1 (every episode).
 DMC_THRESHOLD, KITCHEN_THRESHOLD = 500.0, 1.0
-# An evaluation starts at the first step at or after its mark (10,016 frames for 10,000): frames
-# this close count as the same point of training (evaluations are 10k frames apart by default).
-SLACK = 1_000
 
 
 @dataclasses.dataclass
@@ -64,12 +61,12 @@ class Seeds:
     last: int = 11
 
     def upto(self, frame: float) -> Seeds:
-        """Returns and |cos| of the evaluations up to `frame` (within SLACK)."""
+        """Returns and |cos| of the evaluations up to `frame` (within plot.SLACK)."""
         if not self.series:
             raise ValueError("these figures carry no evaluations to take at another frame")
         rows = []
         for frames, returns, cos in self.series:
-            keep = frames <= frame + SLACK
+            keep = frames <= frame + plot.SLACK
             if not keep.any():
                 raise ValueError(f"a seed has no evaluation at or before {frame:,.0f} frames")
             rows.append((returns[keep][-self.last :].mean(), frames[keep][-1], cos[keep][-1]))
@@ -77,11 +74,17 @@ class Seeds:
         return dataclasses.replace(self, returns=returns, last_frame=last_frame, abs_cos=abs_cos)
 
     def median_bounds(self) -> tuple[float, float]:
-        """(lower, upper) bounds of the median over seeds of the frames to T: a seed that never
-        reached T took more than its last evaluated frame (lower: that frame; upper: inf)."""
-        censored = np.isinf(self.frames_to)
-        lower = np.median(np.where(censored, self.last_frame, self.frames_to))
-        return float(lower), float(np.median(self.frames_to))
+        """`median_frames_to` of these seeds."""
+        return median_frames_to(self.frames_to, self.last_frame)
+
+
+def median_frames_to(frames_to, last_frame) -> tuple[float, float]:
+    """(lower, upper) bounds of the median over seeds of the frames to T (inf where a seed never
+    reached T): such a seed took more than its last evaluated frame (lower: that frame; upper:
+    inf). Where most seeds reached T the two are equal: the median."""
+    frames_to, last_frame = np.asarray(frames_to, float), np.asarray(last_frame, float)
+    lower = np.median(np.where(np.isinf(frames_to), last_frame, frames_to))
+    return float(lower), float(np.median(frames_to))
 
 
 def is_kitchen(env_task: str) -> bool:
@@ -100,6 +103,8 @@ def experiments(workdirs, threshold: float | None, at: int | None, last: int) ->
     """{(task, method): Seeds} of the runs' pooled seeds; threshold None: each task's
     `default_threshold`. Two experiments of one method and task (e.g. two mask settings) are
     refused: give the runs of one experiment per method."""
+    if last < 1:
+        raise ValueError(f"last must be at least 1 evaluation, got {last}")
     found = {}
     for pool in plot.pools([pathlib.Path(w) for w in workdirs]):
         task, method = plot.task_name(pool.config), pool.config["agent"]["method"]
@@ -120,7 +125,7 @@ def experiments(workdirs, threshold: float | None, at: int | None, last: int) ->
             evals = read_csv(lane / "eval.csv")
             if "episode_return" not in evals or not len(evals["episode_return"]):
                 raise ValueError(f"{lane / 'eval.csv'} holds no evaluation")
-            keep = evals["frame"] <= (math.inf if at is None else at)
+            keep = evals["frame"] <= (math.inf if at is None else at + plot.SLACK)
             if not keep.any():
                 raise ValueError(f"{lane / 'eval.csv'} has no evaluation at or before {at:,}")
             frames, returns = evals["frame"][keep], evals["episode_return"][keep]
@@ -170,7 +175,7 @@ def _at_one_frame(x: Seeds, y: Seeds) -> tuple[Seeds, Seeds, str]:
     """x and y up to the last evaluation of the shortest run among them, and the evidence's
     note of that frame ("" where every run ended there)."""
     ends = np.concatenate([x.last_frame, y.last_frame])
-    if ends.max() <= ends.min() + SLACK:
+    if ends.max() <= ends.min() + plot.SLACK:
         return x, y, ""
     end = ends.min()
     return x.upto(end), y.upto(end), f", at {_k(end)} (the shortest run's last evaluation)"

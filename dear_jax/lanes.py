@@ -190,7 +190,12 @@ def pools(workdirs, defaults: dict, ignored: tuple[str, ...]) -> list[Pool]:
     found: dict[tuple[str, str], Pool] = {}
     values: dict[tuple[str, str], dict] = {}  # each pool's per-lane numbers (its lane's values)
     origin: dict[tuple[str, str, tuple[int, int]], pathlib.Path] = {}
+    settings: dict[tuple[str, str], dict] = {}  # each pool's fields that set it apart
+    # a workdir named twice (overlapping globs, a relative and an absolute path) counts once
+    unique: dict[pathlib.Path, pathlib.Path] = {}
     for workdir in map(pathlib.Path, workdirs):
+        unique.setdefault(workdir.resolve(), workdir)
+    for workdir in unique.values():
         by_setting = groups(workdir)
         config = json.loads((workdir / "config.json").read_text())
         fields = {**defaults, **flatten(config)}
@@ -198,11 +203,8 @@ def pools(workdirs, defaults: dict, ignored: tuple[str, ...]) -> list[Pool]:
         for key in USED_BY:  # a weight its method does not read changes nothing
             if not reads(method, key) and f"agent.{key}" in defaults:
                 fields[f"agent.{key}"] = defaults[f"agent.{key}"]
-        key = json.dumps(
-            {k: v for k, v in fields.items() if k not in ignored and k != "seed"},
-            sort_keys=True,
-            default=str,
-        )
+        kept = {k: v for k, v in fields.items() if k not in ignored and k != "seed"}
+        key = json.dumps(kept, sort_keys=True, default=str)
         run_lanes = lanes(ConfigDict(config))
         seed_of = {lane.name: lane.seed for lane in run_lanes}
         for lane in run_lanes:
@@ -217,6 +219,7 @@ def pools(workdirs, defaults: dict, ignored: tuple[str, ...]) -> list[Pool]:
                 or (k in USED_BY and f"agent.{k}" in defaults and v != defaults[f"agent.{k}"])
             )
             found.setdefault((key, lane.label), Pool(config, "", [], changed))
+            settings.setdefault((key, lane.label), kept)
         for label, dirs in by_setting.items():
             pool = found[key, label]
             for lane_dir in dirs:
@@ -242,6 +245,21 @@ def pools(workdirs, defaults: dict, ignored: tuple[str, ...]) -> list[Pool]:
             for k in mine
             if k in pool.changed or k in varying
         )
+    # Pools of one task and method split by a field that is not a per-lane number (a dtype, envs
+    # per seed, the replay's size, ...) would read alike: their labels name the first such fields.
+    alike: dict[tuple, list[tuple[str, str]]] = {}
+    for pool_key, pool in found.items():
+        alike.setdefault((*experiment(pool), pool.label), []).append(pool_key)
+    lane_fields = {f"agent.{k}" for k in SWEEPABLE}
+    for group in (g for g in alike.values() if len(g) > 1):
+        keys = sorted(set().union(*(settings[k] for k in group)) - lane_fields)
+        apart = [
+            k for k in keys if len({json.dumps(settings[g].get(k), default=str) for g in group}) > 1
+        ]
+        for pool_key in group:
+            named = [f"{k}={settings[pool_key].get(k)}" for k in apart[:2]]
+            more = [f"+{len(apart) - 2} more"] if len(apart) > 2 else []
+            found[pool_key].label = " ".join([found[pool_key].label, *named, *more]).strip()
     return list(found.values())
 
 

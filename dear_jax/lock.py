@@ -49,6 +49,15 @@ def _alive(holder: dict) -> bool:
     return started is None or _start_time(pid) in (None, started)
 
 
+def held(workdir: str | os.PathLike) -> bool:
+    """Whether a run holds `workdir` now: its lock names a live process of this host, or a
+    process of another host (which cannot be checked from here)."""
+    holder = WorkdirLock(workdir)._read()
+    if not holder:
+        return False
+    return holder.get("host") not in (None, socket.gethostname()) or _alive(holder)
+
+
 class WorkdirLock:
     """Context manager holding `<workdir>/run.lock`; re-entrant within one process. Process
     `process` > 0 of a multi-host run (`jax.distributed`) holds `run.<process>.lock`."""

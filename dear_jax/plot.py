@@ -22,6 +22,10 @@ from dear_jax import lanes
 from dear_jax.logger import read_csv
 from envs import distractions
 
+# An evaluation starts at the first step at or after its mark (10,016 frames for 10,000): frames
+# this close count as the same point of training (evaluations are 10k frames apart by default).
+SLACK = 1_000
+
 BANDS = ("minmax", "std")
 _BAND_TEXT = {"minmax": "shaded: min..max over seeds", "std": "shaded: mean ± std over seeds"}
 
@@ -101,10 +105,16 @@ def _series(paths: list[pathlib.Path], metric: str, x: str) -> tuple[np.ndarray,
                 raise KeyError(f"{path} has no column {name!r}; columns: {', '.join(cols)}")
         series.append((cols[x], cols[metric]))
     grid = np.unique(np.concatenate([xs[np.isfinite(xs)] for xs, _ in series]))
+    if x == "frame":  # evaluations at most SLACK frames apart (10,000 and 10,016) are one point
+        starts = np.diff(grid, prepend=-np.inf) > SLACK
+        grid = grid[starts]
     y = np.full((len(series), len(grid)), np.nan)
     for s, (xs, ys) in enumerate(series):
         ok = np.isfinite(xs)
-        y[s, np.searchsorted(grid, xs[ok])] = ys[ok]
+        y[s, np.searchsorted(grid, xs[ok], side="right") - 1] = ys[ok]
+    if x == "frame":  # only the points every seed has: a mean over fewer seeds would jump
+        shared = np.isfinite(y).all(0)
+        grid, y = grid[shared], y[:, shared]
     return grid, y
 
 

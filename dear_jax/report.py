@@ -11,7 +11,7 @@
 shapes only (jax.eval_shape), so it is instant and allocates nothing.
 
 `table` is the paper's Table II for the given run workdirs (what `run.py` writes), one row per
-experiment, beside the paper's figures (docs/method.md; walker on a 1080Ti/3080). Runs of
+experiment, beside the paper's figures on walker-walk's rows (docs/method.md; a 1080Ti/3080). Runs of
 the same config but for their seeds (other machines, other days: give each its own
 --config.seed) are one experiment, their seeds pooled; the row names the runs and their commits
 and devices (`sources` in the CSV):
@@ -30,8 +30,9 @@ and devices (`sources` in the CSV):
   mean of the last    each seed's mean return over its last --last evaluations (11 by default:
   evaluations         900k-1M of a 1M-frame run), mean ± std over seeds: steadier than one
                       evaluation, which swings far from the next
-  frames to T         first evaluated frame at which a seed's return reaches --threshold (the
-                      median over the seeds that reach it; "k/S reach T" says how many did);
+  frames to T         first evaluated frame at which a seed's return reaches --threshold, the
+                      median over all seeds ("not by F" where the median seed did not reach it
+                      by its last evaluation; "k/S reach T" says how many did);
                       without it, a return of 500 on the DMC tasks, in the kitchen a success
                       rate of 1 (every evaluation episode)
 It prints Markdown and, with --out PREFIX, writes PREFIX.md and PREFIX.csv. A sweep's run
@@ -52,9 +53,11 @@ magnitude |cos| how far from orthogonal each sample is.
 kitchen's too with `--tasks light kettle`; a task with more of paper.py's parts for another
 setting, e.g. `--tasks walker,medium-full`, or `walker,beta=10`: a weight ablation's cell, for
 the methods that read beta): a run belongs to a cell when its config is the
-cell's but for its seeds, envs per seed, dtype and replay (`GRID_MAY_DIFFER`). Per cell: the
-seeds that trained --frames frames, the runs stopped short and how far, how many seeds are
-missing; then a command per stopped run that kept a checkpoint (its resume) and per missing seed
+cell's but for its seeds, envs per seed, dtype and replay (`GRID_MAY_DIFFER`; `table` and
+`claims` keep runs that chose these differently apart, and the grid names such cells). Per cell: the
+seeds that trained --frames frames, the runs stopped short and how far (or running: a live
+process holds its workdir), how many seeds are missing; then a command per stopped run that
+kept a checkpoint (its resume) and per missing seed
 that no resume brings (one seed-run, a config.seed no run of the cell used); last the runs of its
 tasks and methods in no cell (sweeps included), each with the field that keeps it out, and how many
 runs are of other tasks or methods. `python -m dear_jax.grid` runs
@@ -84,7 +87,7 @@ import shlex
 import jax
 import numpy as np
 
-from dear_jax import claims, lanes, plot
+from dear_jax import claims, lanes, lock, plot
 from dear_jax.logger import format_table, read_csv
 from dear_jax.update import METHODS, AgentConfig, init_params
 
@@ -122,7 +125,8 @@ def format_params_table(rows) -> str:
     return "\n".join([fmt(lines[0]), sep, *map(fmt, lines[1:])])
 
 
-# The paper's table (docs/method.md: walker-walk on a 1080Ti/3080, and the cosine metric).
+# The paper's table (docs/method.md: walker-walk on a 1080Ti/3080, and the cosine metric):
+# beside walker-walk's rows alone.
 PAPER = {
     "drqv2": {"params_m": 12.86, "s_per_1000": 12.55},
     "sear": {"params_m": 16.21, "s_per_1000": 18.02, "cos": 0.1},
@@ -166,9 +170,11 @@ def _last_mean(evals: list[dict], column: str) -> float:
 
 def _until(evals: dict, frames: int | None, path: pathlib.Path) -> dict:
     """An eval log's rows up to `frames` per seed (all of them for None)."""
+    if not len(evals.get("frame", ())):
+        raise ValueError(f"{path} has no evaluation yet (the first is written at frame 0)")
     if frames is None:
         return evals
-    keep = evals["frame"] <= frames
+    keep = evals["frame"] <= frames + plot.SLACK  # an evaluation starts at its mark's step
     if not keep.any():
         raise ValueError(f"{path} has no evaluation at or before {frames:,} frames")
     return {name: column[keep] for name, column in evals.items()}
@@ -251,11 +257,11 @@ def pooled_rows(
         evals = [_until(read_csv(d / "eval.csv"), at, d / "eval.csv") for d in dirs]
         finals = np.array([e["episode_return"][-1] for e in evals])
         lasts = np.array([e["episode_return"][-last:].mean() for e in evals])
-        reached = []
+        frames_to = []  # inf: a seed that never reached the threshold
         for e in evals:
             hit = np.nonzero(e["episode_return"] >= target)[0]
-            if hit.size:
-                reached.append(e["frame"][hit[0]])
+            frames_to.append(e["frame"][hit[0]] if hit.size else math.inf)
+        by, median_to = claims.median_frames_to(frames_to, [e["frame"][-1] for e in evals])
         # A run stopped before its end (summary "stopped") is reported as far as it got.
         names = [
             f"{s['workdir'].rsplit('/', 1)[-1]}"
@@ -281,8 +287,10 @@ def pooled_rows(
                 "last_return_mean": float(lasts.mean()),
                 "last_return_std": float(lasts.std()),
                 "last": last,
-                "frames_to_threshold": float(np.median(reached)) if reached else math.nan,
-                "seeds_reaching_threshold": len(reached),
+                # the median seed's (inf: it did not reach it by frames_to_threshold_lower)
+                "frames_to_threshold": median_to,
+                "frames_to_threshold_lower": by,
+                "seeds_reaching_threshold": int(np.isfinite(frames_to).sum()),
                 "threshold": target,
                 "code": ", ".join(
                     dict.fromkeys(f"{s['commit'][:7]} {s['device']}" for s in sources)
@@ -294,7 +302,7 @@ def pooled_rows(
 
 
 def _cells(r: dict) -> list:
-    paper = PAPER.get(r["method"], {})
+    paper = PAPER.get(r["method"], {}) if r["task"].startswith("walker-walk") else {}
     fmt = lambda x, f: "-" if x is None or not np.isfinite(x) else format(x, f)  # noqa: E731
     reached = f"{r['seeds_reaching_threshold']}/{r['seeds']} reach {r['threshold']:g}"
     return [
@@ -313,9 +321,14 @@ def _cells(r: dict) -> list:
         _frames(r["eval_frame_min"], r["eval_frame"]),
         f"{r['final_return_mean']:.1f} ± {r['final_return_std']:.1f}",
         f"{r['last_return_mean']:.1f} ± {r['last_return_std']:.1f}",
-        f"{fmt(r['frames_to_threshold'], ',.0f')} ({reached})",
+        _frames_to(r["frames_to_threshold"], r["frames_to_threshold_lower"]) + f" ({reached})",
         r["code"],
     ]
+
+
+def _frames_to(median: float, lower: float) -> str:
+    """The median seed's frames to the threshold, or the frame it had not reached it by."""
+    return f"{median:,.0f}" if np.isfinite(median) else f"not by {lower:,.0f}"
 
 
 def _frames(low: int, high: int) -> str:
@@ -334,8 +347,8 @@ def runs_table(
         "s / 1000 frames per seed amortised over the seeds "
         f"trained together; returns and cosines of {when} (return: mean ± population std over "
         f"seeds; beside it each seed's mean over its last {last} evaluations, mean ± std over "
-        "seeds); frames to threshold: the first evaluation whose return reaches it (the median "
-        "over the seeds that do)\n\n"
+        "seeds); frames to threshold: the first evaluation whose return reaches it, the median "
+        "over seeds (a seed that never does counts as later than any)\n\n"
         + format_table(TABLE_COLUMNS, [_cells(r) for r in rows])
         + "\n"
     )
@@ -624,7 +637,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
     used, whose workdir name (the cell's "name", then _sSEED) is not in `taken`."""
     from configs import paper
     from configs.base import get_config
-    from dear_jax.experiment import ADDED_FIELDS
+    from dear_jax.experiment import ADDED_FIELDS, RESUMABLE_CHANGES
 
     kept = grid_run_fields()  # a resume restarts a run with what it chose
     # A field a run's config lacks: what the code did before the field, else today's default.
@@ -656,6 +669,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
                 "stopped": [],  # (frames reached, the seeds it brings, its resume's arguments)
                 "used": set(),
                 "paces": [],  # (lanes, *`training_pace`) of the runs that reached `frames`
+                "chosen": {},  # field -> the values its finished runs chose (GRID_MAY_DIFFER's)
             }
     outside, elsewhere = [], []
     # (env.task, method) -> (lanes, *`training_pace`) of its runs in any setting (sweeps aside)
@@ -695,14 +709,18 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
         cell["used"].add(seed)
         if reached is not None and reached >= frames:
             cell["done"].append(name)
+            for k in fields:
+                if k.startswith(GRID_MAY_DIFFER) and k not in ("seed", "seeds", *RESUMABLE_CHANGES):
+                    cell["chosen"].setdefault(k, set()).add(json.dumps(fields[k]))
             if pace is not None:
                 cell["paces"].append((config["seeds"], *pace))
             # A seed is (config.seed, lane seed): one trained to the end twice counts once.
             cell["seeds"].update((seed, s) for s in range(config["seeds"]))
             continue
-        state = "no summary: running?" if reached is None else f"{reached:,}"
+        running = lock.held(workdir)  # a run in it now: not one to resume
+        state = "running" if running else "no summary" if reached is None else f"{reached:,}"
         cell["short"].append(f"{name} ({state})")
-        if (workdir / "checkpoints").is_dir():  # resumed by the overrides that started it
+        if not running and (workdir / "checkpoints").is_dir():  # resumed as it was started
             own = [
                 f"--config.{k}={fields[k]}"
                 for k in sorted(fields)
@@ -737,6 +755,8 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
                 "paces": cell["paces"],
                 # without its own: those of its task and method in other settings
                 "related_paces": related.get((cell["ref"]["env.task"], cell["method"]), []),
+                # fields its runs chose differently: `report table` and `claims` keep them apart
+                "mixed": {k: sorted(v) for k, v in sorted(cell["chosen"].items()) if len(v) > 1},
             }
         )
     return {"cells": rows, "outside": outside, "elsewhere": elsewhere}
@@ -860,6 +880,19 @@ def grid_table(
             "Resume the stopped runs that kept a checkpoint, then start the missing seeds:",
         ]
         lines += commands
+    mixed = [
+        f"{r['task']} {r['method']}: "
+        + "; ".join(f"{k} {', '.join(v)}" for k, v in r["mixed"].items())
+        for r in rows
+        if r["mixed"]
+    ]
+    if mixed:
+        lines += [
+            "",
+            "Cells whose finished runs chose a field differently (`report table` and `claims` keep such "
+            "runs apart: give new runs the same --set):",
+            *mixed,
+        ]
     if grid["outside"]:
         lines += ["", "Runs in no cell of this grid:", *grid["outside"]]
     if grid["elsewhere"]:

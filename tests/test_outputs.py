@@ -16,7 +16,7 @@ import pytest
 from ml_collections import ConfigDict
 from tensorboardX.proto import event_pb2
 
-from dear_jax import claims, lanes, plot, report, update
+from dear_jax import claims, lanes, lock, plot, report, update
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.logger import RunLogger, format_table, read_csv
 from dear_jax.video import SEPARATOR_RGB, side_by_side, write_video
@@ -538,11 +538,44 @@ def test_seeds_of_one_experiment_pool_over_workdirs(tmp_path):
         (str(b), 3, "77"),
     ]
     assert row["code"] == "0000000 H100, 7777777 H100"
+    # --at takes an evaluation that started just past its mark (10,016 for 10,000) as at it.
+    at = [report.pooled_rows([a], 150.0, at=f)[0]["eval_frame"] for f in (19_500, 18_000)]
+    assert at == [20_000, 10_000]
     out = report.main(["curves", str(a), str(b), str(drq), "--out", str(tmp_path / "p.png")])
     assert cv2.imread(str(out)).std() > 0
     twice = full("a_again", "dear", 0)
     with pytest.raises(ValueError, match="both trained seed 0 of config.seed=0 .* the same seed"):
         plot.pools([a, twice])
+    # One workdir named twice (overlapping globs; relative and absolute) counts once.
+    (once,) = plot.pools([a, a, a.resolve()])
+    assert len(once.seeds) == 3 and once.workdirs == [a]
+    # Runs split by a field that is not a per-lane number are named by it, not both "dear".
+    bf16 = full("e", "dear", 3, [("agent.compute_dtype", "bfloat16"), ("envs_per_seed", 16)])
+    assert [(p.label, len(p.seeds)) for p in plot.pools([a, bf16])] == [
+        ("agent.compute_dtype=float32 envs_per_seed=8", 3),
+        ("agent.compute_dtype=bfloat16 envs_per_seed=16", 3),
+    ]
+
+
+def test_curves_pool_seeds_at_the_evaluations_they_share(tmp_path):
+    """Seeds of runs whose evaluations start a few frames apart (10,000 and 10,016) share a
+    point; a pooled curve ends at the last evaluation every seed has (a run stopped earlier
+    ends it), so its mean is never over fewer seeds than its legend's n."""
+    from configs import base
+
+    def run(name, seed, frames):
+        c = base.make("walker", "dear")
+        c.seeds, c.seed = 3, seed
+        return _fake_workdir(tmp_path, name, "dear", offset=seed, frames=frames, **c.to_dict())
+
+    a = run("a", 0, (10_000, 20_000, 30_000))
+    b = run("b", 1, (10_016, 20_016))  # stopped before its third evaluation
+    (pool,) = plot.pools([a, b])
+    curve = plot.pool_curve(pool, "episode_return")
+    np.testing.assert_array_equal(curve.x, [10_000, 20_000])
+    np.testing.assert_allclose(curve.y[:, 1], [200, 210, 250, 201.16, 211.16, 251.16])
+    (alone,) = plot.load_curves(a, "episode_return")
+    np.testing.assert_array_equal(alone.x, [10_000, 20_000, 30_000])
 
 
 def test_table_and_claims_read_each_tasks_own_threshold_unless_given_one(tmp_path):
@@ -570,11 +603,17 @@ def test_table_and_claims_read_each_tasks_own_threshold_unless_given_one(tmp_pat
     assert (light["threshold"], light["seeds_reaching_threshold"]) == (1.0, 3)
     assert light["frames_to_threshold"] == 0
     assert (walker["threshold"], walker["seeds_reaching_threshold"]) == (500.0, 0)
+    assert (walker["frames_to_threshold"], walker["frames_to_threshold_lower"]) == (np.inf, 100)
     given = report.pooled_rows(dear_runs, threshold=1.5)
     assert [r["seeds_reaching_threshold"] for r in given] == [2, 2]
     assert given[0]["frames_to_threshold"] == 0
     _, text = report.runs_table(dear_runs, threshold=None)
-    assert "(3/3 reach 1)" in text and "(0/3 reach 500)" in text
+    assert "| 0 (3/3 reach 1)" in text and "| not by 100 (0/3 reach 500)" in text
+    # At 1.5 seeds 1 and 2 reach it at frame 0, seed 0 never: the median seed at 0. At 12 only
+    # seed 2 does: the median seed had not by its last evaluation, at 100.
+    (at_12,) = report.pooled_rows(dear_runs[:1], threshold=12)
+    assert at_12["seeds_reaching_threshold"] == 1 and at_12["frames_to_threshold"] == np.inf
+    assert at_12["frames_to_threshold_lower"] == 100
     rows = claims.check(runs)
     (light_efficiency,) = [
         r for r in rows if r["task"] == "kitchen-light" and r["claim"].endswith("than DrQ-v2")
@@ -583,6 +622,12 @@ def test_table_and_claims_read_each_tasks_own_threshold_unless_given_one(tmp_pat
     assert light_efficiency["verdict"] == "does not hold"  # both at frame 0
     _, text = claims.claims_table(runs)
     assert "frames to a return of 500 (the kitchen's: 1, a success in every episode)" in text
+    with pytest.raises(ValueError, match="last must be at least 1"):
+        claims.check(runs, last=0)
+    log = runs[0] / "seed_0" / "eval.csv"  # a run before its first evaluation's row
+    log.write_text(log.read_text().splitlines()[0] + "\n")
+    with pytest.raises(ValueError, match="seed_0/eval.csv has no evaluation yet"):
+        report.pooled_rows(runs[:1], threshold=None)
 
 
 def test_pools_are_labelled_by_the_numbers_that_set_them_apart(tmp_path):
@@ -776,7 +821,7 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
         "name": "walker_dear",
         "seeds_done": 1,
         "done": [f"{here}/w_dear_s0", f"{here}/w_dear_s0_again"],
-        "short": [f"{here}/w_dear_s1 (500,000)", f"{here}/w_dear_s4 (no summary: running?)"],
+        "short": [f"{here}/w_dear_s1 (500,000)", f"{here}/w_dear_s4 (no summary)"],
         "resume": [
             [
                 "--config.agent.compute_dtype=bfloat16",
@@ -791,8 +836,13 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
         "total_frames": 1_000_000,
         "paces": [],  # its finished runs' summaries hold no wall clock
         "related_paces": [],  # nor those of its task and method in other settings
+        "mixed": {"envs_per_seed": ["16", "8"]},  # its finished runs' choices differ
     }
     assert (cell["cup", "sear"]["seeds_done"], cell["cup", "sear"]["next_seeds"]) == (2, [1])
+    # A run that holds its workdir now (a live process in its lock) is running: not resumed.
+    with lock.WorkdirLock(runs[2]):
+        busy = report.grid_rows(runs, ["walker"], ["dear"], seeds=3)["cells"][0]
+    assert busy["short"][0] == f"{here}/w_dear_s1 (running)" and busy["resume"] == []
     assert cell["walker", "sear"]["missing"] == 3 and cell["walker", "sear"]["next_seeds"] == [
         0,
         1,
@@ -819,6 +869,7 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
         "--config.total_frames=500000 --workdir runs/walker_sear_s0" in lines
     )
     text = report.grid_table(runs, ["walker"], ["dear"], seeds=3)
+    assert "walker dear: envs_per_seed 16, 8" in text.splitlines()  # apart in `report table`
     assert (
         "python run.py --config configs/paper.py:walker,dear --config.agent.compute_dtype=bfloat16 "
         f"--config.seed=1 --config.seeds=1 --workdir {runs[2].resolve()}" in text

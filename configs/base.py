@@ -23,7 +23,7 @@ def get_config() -> ConfigDict:
     # Devices each seed's update is split over (devices must be a multiple of it): each holds the
     # whole seed (agent, replay), draws its share of the batch, and the gradients are averaged.
     # One process only. A walker SEAR seed (batch 512) made 609 env frames/s on 2 H200s with
-    # evaluations, against 753 on one without (benchmarks/RESULTS.md, "Several GPUs").
+    # evaluations, against 678 on one (benchmarks/RESULTS.md, "Several GPUs").
     c.devices_per_seed = 1
     # Parallel environments per seed; E / update_every_steps updates per step. DEAR walker-walk,
     # 5 seeds, H100: 704 / 731 / 732 / 736 frames/s at 4 / 8 / 16 / 32 (benchmarks/RESULTS.md).

@@ -20,7 +20,7 @@ def get_config():
     c.env.render.num_workers = 2
     c.env.render.quality = "fast"  # dm_control's effects cost ~7x on Mesa llvmpipe
     c.agent.batch_size = 16
-    # Narrow networks: checkpoints of ~30 MB instead of ~310 MB (a DEAR seed at the paper's
+    # Narrow networks: checkpoints of ~22 MB instead of ~310 MB (a DEAR seed at the paper's
     # widths holds ~14.3M parameters, ~160 MB with its optimiser state).
     c.agent.latent_dim = 256
     c.agent.hidden_dim = 256

@@ -125,7 +125,7 @@ def experiments(workdirs, threshold: float | None, at: int | None, last: int) ->
             evals = read_csv(lane / "eval.csv")
             if "episode_return" not in evals or not len(evals["episode_return"]):
                 raise ValueError(f"{lane / 'eval.csv'} holds no evaluation")
-            keep = evals["frame"] <= (math.inf if at is None else at + plot.SLACK)
+            keep = evals["frame"] <= (math.inf if at is None else at + plot.slack(pool.config))
             if not keep.any():
                 raise ValueError(f"{lane / 'eval.csv'} has no evaluation at or before {at:,}")
             frames, returns = evals["frame"][keep], evals["episode_return"][keep]

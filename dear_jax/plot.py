@@ -26,6 +26,12 @@ from envs import distractions
 # this close count as the same point of training (evaluations are 10k frames apart by default).
 SLACK = 1_000
 
+
+def slack(config: dict) -> float:
+    """SLACK for a run of `config`, at most half its evaluations' spacing."""
+    return min(SLACK, config.get("eval_every_frames", 10_000) / 2)
+
+
 BANDS = ("minmax", "std")
 _BAND_TEXT = {"minmax": "shaded: min..max over seeds", "std": "shaded: mean ± std over seeds"}
 
@@ -84,7 +90,7 @@ def pool_curve(pool: lanes.Pool, metric: str, x: str = "frame") -> Curve:
             f"no eval logs in {pool.workdirs[0]}: expected {pool.seeds[0][1] / 'eval.csv'} "
             "(written after the first evaluation)"
         )
-    x_grid, y = _series(paths, metric, x)
+    x_grid, y = _series(paths, metric, x, slack(pool.config))
     method = pool.config.get("agent", {}).get("method", "?")
     curve = Curve(pool.workdirs[0], task_name(pool.config), method, x_grid, y, pool.label)
     curve.workdirs = pool.workdirs
@@ -96,7 +102,9 @@ def load_curves(workdir: str | os.PathLike, metric: str, x: str = "frame") -> li
     return [pool_curve(p, metric, x) for p in pools([workdir])]
 
 
-def _series(paths: list[pathlib.Path], metric: str, x: str) -> tuple[np.ndarray, np.ndarray]:
+def _series(
+    paths: list[pathlib.Path], metric: str, x: str, near: float = SLACK
+) -> tuple[np.ndarray, np.ndarray]:
     series = []
     for path in paths:
         cols = read_csv(path)
@@ -105,8 +113,8 @@ def _series(paths: list[pathlib.Path], metric: str, x: str) -> tuple[np.ndarray,
                 raise KeyError(f"{path} has no column {name!r}; columns: {', '.join(cols)}")
         series.append((cols[x], cols[metric]))
     grid = np.unique(np.concatenate([xs[np.isfinite(xs)] for xs, _ in series]))
-    if x == "frame":  # evaluations at most SLACK frames apart (10,000 and 10,016) are one point
-        starts = np.diff(grid, prepend=-np.inf) > SLACK
+    if x == "frame":  # evaluations `near` frames apart or closer (10,000, 10,016) are one point
+        starts = np.diff(grid, prepend=-np.inf) > near
         grid = grid[starts]
     y = np.full((len(series), len(grid)), np.nan)
     for s, (xs, ys) in enumerate(series):

@@ -168,13 +168,14 @@ def _last_mean(evals: list[dict], column: str) -> float:
     return float(np.mean([e[column][-1] if column in e else math.nan for e in evals]))
 
 
-def _until(evals: dict, frames: int | None, path: pathlib.Path) -> dict:
-    """An eval log's rows up to `frames` per seed (all of them for None)."""
+def _until(evals: dict, frames: int | None, path: pathlib.Path, near: float = plot.SLACK) -> dict:
+    """An eval log's rows up to `frames` per seed (all of them for None), an evaluation up to
+    `near` frames past it counted as at it (it starts at the first step at or after its mark)."""
     if not len(evals.get("frame", ())):
         raise ValueError(f"{path} has no evaluation yet (the first is written at frame 0)")
     if frames is None:
         return evals
-    keep = evals["frame"] <= frames + plot.SLACK  # an evaluation starts at its mark's step
+    keep = evals["frame"] <= frames + near
     if not keep.any():
         raise ValueError(f"{path} has no evaluation at or before {frames:,} frames")
     return {name: column[keep] for name, column in evals.items()}
@@ -223,6 +224,8 @@ def pooled_rows(
     None is each task's `claims.default_threshold`."""
     if last < 1:
         raise ValueError(f"last must be at least 1 evaluation, got {last}")
+    if at is not None and at < 0:
+        raise ValueError(f"at must be a frame >= 0, got {at}")
     workdirs = [pathlib.Path(w) for w in workdirs]
     files = {w: _run_files(w) for w in workdirs}
     rows = []
@@ -254,7 +257,8 @@ def pooled_rows(
             mine = sum(w == workdir for w, _ in pool.seeds)
             sources.append(_source(workdir, summary, mine))
         dirs = [d for _, d in pool.seeds]
-        evals = [_until(read_csv(d / "eval.csv"), at, d / "eval.csv") for d in dirs]
+        near = plot.slack(config)
+        evals = [_until(read_csv(d / "eval.csv"), at, d / "eval.csv", near) for d in dirs]
         finals = np.array([e["episode_return"][-1] for e in evals])
         lasts = np.array([e["episode_return"][-last:].mean() for e in evals])
         frames_to = []  # inf: a seed that never reached the threshold
@@ -388,7 +392,9 @@ def cosine_rows(workdirs, rows: int = 20, at: int | None = None) -> list[dict]:
     for pool in plot.pools([pathlib.Path(w) for w in workdirs]):
         batch = pool.config["agent"]["batch_size"]
         for workdir, seed_dir in pool.seeds:
-            evals = _until(read_csv(seed_dir / "eval.csv"), at, seed_dir / "eval.csv")
+            evals = _until(
+                read_csv(seed_dir / "eval.csv"), at, seed_dir / "eval.csv", plot.slack(pool.config)
+            )
             if not evals.get("frame", np.empty(0)).size:
                 raise ValueError(f"{seed_dir / 'eval.csv'} has no evaluation yet")
             train = read_csv(seed_dir / "train.csv")

@@ -574,7 +574,7 @@ def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):
     assert early["eval_frame"] == 120
     firsts = np.array([e["episode_return"][e["frame"] <= 150][-1] for e in evals])
     assert early["final_return_mean"] == pytest.approx(firsts.mean())
-    with pytest.raises(ValueError, match="no evaluation at or before -1 frames"):
+    with pytest.raises(ValueError, match="at must be a frame >= 0, got -1"):
         report.run_rows(whole, threshold, at=-1)
     with pytest.raises(FileNotFoundError, match="config.json not found"):
         report.run_rows(tmp_path, threshold)

@@ -309,6 +309,7 @@ def _cells(r: dict) -> list:
     paper = PAPER.get(r["method"], {}) if r["task"].startswith("walker-walk") else {}
     fmt = lambda x, f: "-" if x is None or not np.isfinite(x) else format(x, f)  # noqa: E731
     reached = f"{r['seeds_reaching_threshold']}/{r['seeds']} reach {r['threshold']:g}"
+    ret = ".2f" if r["task"].startswith("kitchen") else ".1f"  # the kitchen's: a success rate
     return [
         r["run"],
         r["method"],
@@ -323,8 +324,8 @@ def _cells(r: dict) -> list:
         fmt(r["abs_cos"], ".2e"),
         fmt(paper.get("cos"), ".0e"),
         _frames(r["eval_frame_min"], r["eval_frame"]),
-        f"{r['final_return_mean']:.1f} ± {r['final_return_std']:.1f}",
-        f"{r['last_return_mean']:.1f} ± {r['last_return_std']:.1f}",
+        f"{r['final_return_mean']:{ret}} ± {r['final_return_std']:{ret}}",
+        f"{r['last_return_mean']:{ret}} ± {r['last_return_std']:{ret}}",
         _frames_to(r["frames_to_threshold"], r["frames_to_threshold_lower"]) + f" ({reached})",
         r["code"],
     ]

@@ -610,8 +610,8 @@ def test_table_and_claims_read_each_tasks_own_threshold_unless_given_one(tmp_pat
     _, text = report.runs_table(dear_runs, threshold=None)
     assert "| 0 (3/3 reach 1)" in text and "| not by 100 (0/3 reach 500)" in text
     # the kitchen's returns (success rates) with two decimals, a DMC task's with one
-    assert f"| {light['final_return_mean']:.2f} ± {light['final_return_std']:.2f} |" in text
-    assert f"| {walker['final_return_mean']:.1f} ± {walker['final_return_std']:.1f} |" in text
+    assert f" {light['final_return_mean']:.2f} ± {light['final_return_std']:.2f} |" in text
+    assert f" {walker['final_return_mean']:.1f} ± {walker['final_return_std']:.1f} |" in text
     # At 1.5 seeds 1 and 2 reach it at frame 0, seed 0 never: the median seed at 0. At 12 only
     # seed 2 does: the median seed had not by its last evaluation, at 100.
     (at_12,) = report.pooled_rows(dear_runs[:1], threshold=12)

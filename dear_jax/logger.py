@@ -9,7 +9,8 @@ Every write is flushed, so a killed run keeps its logs. A resumed run (`resume_f
 rows up to the checkpoint's frame and drops the later ones, which the resumed run will log again
 (and, for the kinds in `redo`, those at the checkpoint's frame too: an evaluation the checkpoint
 holds as due);
-TensorBoard is told the same by a purge marker (SessionLog START at resume_frame + 1). A fresh run
+TensorBoard is told the same by a purge marker (SessionLog START at resume_frame + 1; with a kind
+to redo, at resume_frame, and the rows kept at that frame are written to it again). A fresh run
 (`resume_frame=None`) starts new files in place of any left by an earlier run in that workdir.
 """
 
@@ -61,6 +62,11 @@ def _cell(value) -> str:
     if isinstance(value, (int, np.integer)):
         return str(int(value))
     return repr(float(value))  # shortest string that reads back to the same float
+
+
+def _numbers(kind: str, row: dict) -> dict[str, float]:
+    """A CSV row's metrics as TensorBoard scalars ("<kind>/<metric>"), the empty cells left out."""
+    return {f"{kind}/{k}": float(v) for k, v in row.items() if k != FRAME and v not in ("", None)}
 
 
 def _frame_of(row: dict) -> float:
@@ -130,6 +136,7 @@ class RunLogger:
         self.num_seeds = num_seeds
         self._columns: dict[tuple[str, int], list[str]] = {}
         self._writers = []
+        again: list[list[tuple[str, dict]]] = [[] for _ in range(num_seeds)]  # rows at the purge
         for seed in range(num_seeds):
             seed_dir = self.seed_dir(seed)
             seed_dir.mkdir(parents=True, exist_ok=True)
@@ -146,6 +153,7 @@ class RunLogger:
                 kept = [r for r in rows if _frame_of(r) <= last]
                 if len(kept) != len(rows):
                     _replace_csv(path, columns, kept)
+                again[seed] += [(kind, r) for r in kept if _frame_of(r) == resume_frame]
                 if columns:
                     self._columns[(kind, seed)] = columns
         if tensorboard:
@@ -154,8 +162,12 @@ class RunLogger:
                 if resume_frame is None and tb_dir.is_dir():
                     for old in tb_dir.glob("events.out.tfevents.*"):
                         old.unlink()
-                purge = None if resume_frame is None else int(resume_frame) + 1
-                self._writers.append(_EventWriter(tb_dir, purge_step=purge))
+                # TensorBoard drops the earlier events at steps >= purge: those logged again
+                purge = None if resume_frame is None else int(resume_frame) + (not redo)
+                writer = _EventWriter(tb_dir, purge_step=purge)
+                for kind, row in again[seed] if redo else ():
+                    writer.scalars(int(resume_frame), _numbers(kind, row))
+                self._writers.append(writer)
 
     def seed_dir(self, seed: int) -> pathlib.Path:
         return self.workdir / self.names[seed]

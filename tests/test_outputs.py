@@ -150,6 +150,37 @@ def test_tensorboard_resume_purges_and_fresh_run_restarts(tmp_path):
     assert _scalars(tb) == {"train/loss": [(50, 5.0)]} and _session_starts(tb) == []
 
 
+def _visible(tb_dir):
+    """The scalars TensorBoard shows: a session START at step p hides the earlier events at
+    steps >= p (its purge of a resumed run's)."""
+    out = {}
+    for path in sorted(tb_dir.glob("events.out.tfevents.*")):
+        for record in _tfrecords(path):
+            event = event_pb2.Event.FromString(record)
+            if event.HasField("session_log"):
+                out = {t: [(s, v) for s, v in pts if s < event.step] for t, pts in out.items()}
+            for value in event.summary.value:
+                out.setdefault(value.tag, []).append((event.step, value.simple_value))
+    return out
+
+
+def test_tensorboard_shows_a_redone_evaluation_once(tmp_path):
+    """A run resumed from a checkpoint that holds an evaluation as due redoes it: TensorBoard
+    shows the new point alone at that frame, and the training row kept there once."""
+    with RunLogger(tmp_path, 1) as log:
+        log.write("train", 100, {"loss": 1.0})
+        log.write("eval", 100, {"episode_return": 7.0})
+        log.write("train", 200, {"loss": 2.0})
+    with RunLogger(tmp_path, 1, resume_frame=100, redo=("eval",)) as log:
+        log.write("eval", 100, {"episode_return": 8.0})
+        log.write("train", 200, {"loss": 3.0})
+    assert _visible(tmp_path / "seed_0" / "tb") == {
+        "train/loss": [(100, 1.0), (200, 3.0)],
+        "eval/episode_return": [(100, 8.0)],
+    }
+    assert read_csv(tmp_path / "seed_0" / "eval.csv")["episode_return"].tolist() == [8.0]
+
+
 def test_format_table():
     table = format_table(["seed", "return", "note"], [[0, "812.5", "ok"], [11, "7.25", ""]])
     assert table == (

@@ -107,7 +107,7 @@ def main(argv):
     try:
         lock = WorkdirLock(workdir, process)
         lock.acquire()  # before the slow imports: a second run on a workdir fails at once
-    except WorkdirLocked as e:
+    except (WorkdirLocked, OSError) as e:  # in use, or not a folder one can make
         sys.exit(f"error: {e}")
     try:
         _check(_CONFIG.value)
@@ -116,8 +116,12 @@ def main(argv):
         if new:
             pathlib.Path(workdir).rmdir()  # it holds nothing but the lock this run took
         sys.exit(f"error: {e}")
+    except BaseException:
+        lock.release()
+        raise
     console.setup(workdir, verbose=_VERBOSE.value, process=process)
     from dear_jax.checkpoint import IncompatibleCheckpointError
+    from dear_jax.experiment import ConfigError
     from dear_jax.replay_disk import DiskSpaceError
     from dear_jax.signals import Stopped
     from dear_jax.train import train
@@ -127,8 +131,8 @@ def main(argv):
     except Stopped as e:
         logging.getLogger("dear_jax").warning("%s", e)
         sys.exit(e.exit_code)
-    except (IncompatibleCheckpointError, DiskSpaceError) as e:  # the message says what to do
-        logging.getLogger("dear_jax").error("error: %s", e)
+    except (IncompatibleCheckpointError, DiskSpaceError, ConfigError, MemoryError) as e:
+        logging.getLogger("dear_jax").error("error: %s", e)  # the message says what to do
         sys.exit(2)
     finally:
         lock.release()

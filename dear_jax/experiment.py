@@ -19,7 +19,7 @@ from ml_collections import ConfigDict
 import envs
 from dear_jax import augment, lanes, losses, networks, replay, replay_disk, update, wideconv
 from dear_jax.devices import Hosts, lanes_per_host, num_devices
-from envs import distractions
+from envs import distractions, render
 
 log = logging.getLogger("dear_jax")
 
@@ -92,6 +92,11 @@ def _get(config: ConfigDict, dotted: str):
     return config
 
 
+class ConfigError(ValueError):
+    """Bad input found once the run has its envs and devices (`validate` finds the rest):
+    run.py prints its message as one line."""
+
+
 def validate(config: ConfigDict) -> None:
     """Fail early, naming the field and the valid choices."""
     if config.env.task not in envs.names():
@@ -109,6 +114,8 @@ def validate(config: ConfigDict) -> None:
         "eval_device": EVAL_DEVICES,
         "env.distraction": ("none", "easy", "medium", "hard"),
         "env.mask": ("true", "noisy", "approximate"),
+        "env.render.quality": render.QUALITIES,
+        "agent.compute_dtype": ("float32", "bfloat16"),
     }
     for key, valid in choices.items():
         if _get(config, key) not in valid:
@@ -149,6 +156,9 @@ def validate(config: ConfigDict) -> None:
         "agent.update_every_steps",
         "agent.noise_hold",
         "replay.capacity",
+        "env.action_repeat",
+        "log_every_frames",
+        "keep_checkpoints",
     )
     for key in positive:
         if _get(config, key) < 1:
@@ -157,6 +167,7 @@ def validate(config: ConfigDict) -> None:
         ("env.physics_threads", "one per device"),
         ("env.eval_physics_threads", "one per core, up to 8"),
         ("env.switch_interval_ms", "Python's own"),
+        ("checkpoint_every_frames", "no periodic checkpoints"),
     ]:
         if _get(config, key) < 0:
             raise ValueError(f"{key} must be >= 0 (0: {auto}), got {_get(config, key)}")

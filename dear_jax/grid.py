@@ -53,7 +53,7 @@ import subprocess
 import sys
 import time
 
-from dear_jax import report
+from dear_jax import lanes, report
 from dear_jax.logger import format_table
 
 REPO = pathlib.Path(__file__).resolve().parents[1]  # run.py and configs/ are here
@@ -145,18 +145,32 @@ def parse_duration(text: str, what: str = "time limit") -> float:
 
 def overrides(settings: list[str]) -> list[str]:
     """--set FIELD=VALUE items -> run.py's `--config.FIELD=VALUE`, each FIELD one a grid run
-    chooses for itself; otherwise a ValueError naming the valid ones."""
+    chooses for itself and each VALUE of its field's type; otherwise a ValueError naming the
+    valid ones."""
+    from configs.base import get_config
+
     may = [f for f in report.grid_run_fields() if f not in ("seed", "seeds")]
+    fields = lanes.flatten(get_config().to_dict())
     out = []
     for item in settings:
         field, eq, value = item.partition("=")
         ok = any(field == f or (f.endswith(".") and field.startswith(f)) for f in may)
-        if not eq or not field or not ok:
+        if not eq or not field or not ok or field not in fields:
             raise ValueError(
                 f"--set {item!r}: give FIELD=VALUE with FIELD one a grid run may choose: "
                 f"{', '.join(f + '*' if f.endswith('.') else f for f in may)} (the seeds come "
                 "from the grid, the length from --frames; other fields make another experiment)"
             )
+        kind = type(fields[field])
+        try:
+            if kind is bool and value.lower() not in ("true", "false", "1", "0"):
+                raise ValueError
+            if kind in (int, float):
+                kind(value)
+        except ValueError:
+            raise ValueError(
+                f"--set {item!r}: {field} takes a {kind.__name__}, e.g. {fields[field]!r}"
+            ) from None
         out.append(f"--config.{field}={value}")
     return out
 

@@ -29,6 +29,7 @@ from dear_jax.evaluator import EvalProcess, EvalProcesses, LocalEvaluator
 from dear_jax.experiment import (
     ADDED_FIELDS,
     OWN_PROCESS,
+    ConfigError,
     agent_config,
     eval_device,
     eval_processes,
@@ -176,7 +177,7 @@ def _check_resumable(ckpt: Checkpointer, hosts: Hosts) -> None:
 def _check_fits(config: ConfigDict, spec, mesh) -> None:
     """Refuse an n-step return longer than an episode, or a replay too large for a device."""
     if config.agent.nstep > spec.episode_steps:
-        raise ValueError(
+        raise ConfigError(
             f"agent.nstep={config.agent.nstep} is longer than an episode of {spec.name} "
             f"({spec.episode_steps} agent steps); lower agent.nstep"
         )

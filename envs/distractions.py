@@ -90,16 +90,28 @@ def parse_types(types: str | tuple | list) -> tuple[str, ...]:
 
 def check_background_dir(env) -> None:
     """An env config's background_dir (when its distraction shows backgrounds) holds DAVIS-2017's
-    layout: the train and val lists, and the folder of each list's first video."""
+    layout: the train and val lists, each with the videos its difficulty draws, and their
+    folders with frames (none is read)."""
     if not env.background_dir or env.distraction == "none":
         return
     if "background" not in parse_types(env.distraction_types):
         return
+    wanted = difficulty_videos(env.distraction)
     for split in SPLITS:
-        first = davis_video_names(env.background_dir, split)[0]
-        folder = pathlib.Path(env.background_dir) / "JPEGImages" / "480p" / first
-        if not folder.is_dir():
-            raise FileNotFoundError(f"video folder {folder} is missing; expected a {DAVIS_LAYOUT}")
+        names = davis_video_names(env.background_dir, split)
+        if wanted is not None and wanted > len(names):
+            raise ValueError(
+                f"distraction {env.distraction!r} draws {wanted} videos, but {split}.txt lists "
+                f"{len(names)}"
+            )
+        for name in names[:wanted]:
+            folder = pathlib.Path(env.background_dir) / "JPEGImages" / "480p" / name
+            if not folder.is_dir():
+                raise FileNotFoundError(
+                    f"video folder {folder} is missing; expected a {DAVIS_LAYOUT}"
+                )
+            if not any(p.suffix.lower() in (".jpg", ".jpeg", ".png") for p in folder.iterdir()):
+                raise FileNotFoundError(f"{folder} holds no frames; expected a {DAVIS_LAYOUT}")
 
 
 def difficulty_videos(difficulty: str) -> int | None:

@@ -344,12 +344,20 @@ def test_background_dir_is_checked_only_where_backgrounds_are_shown(davis, tmp_p
             {"background_dir": str(folder), "distraction": distraction, "distraction_types": types}
         )
 
-    D.check_background_dir(env(davis))  # the layout of DAVIS-2017
+    D.check_background_dir(env(davis, distraction="hard"))  # the layout of DAVIS-2017
+    # "medium" draws 8 videos of each split: these lists hold 5 and 1
+    with pytest.raises(ValueError, match="'medium' draws 8 videos, but train.txt lists 5"):
+        D.check_background_dir(env(davis))
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match="ImageSets/2017/train.txt is missing"):
         D.check_background_dir(env(tmp_path / "empty"))
+    frames = davis / "JPEGImages" / "480p" / "v1"
+    for f in frames.iterdir():
+        f.rename(davis / f"v1_{f.name}")
+    with pytest.raises(FileNotFoundError, match="v1 holds no frames"):
+        D.check_background_dir(env(davis, distraction="hard"))
     (davis / "JPEGImages" / "480p" / "v3").rename(davis / "moved")
     with pytest.raises(FileNotFoundError, match="video folder .*v3 is missing"):
-        D.check_background_dir(env(davis))
+        D.check_background_dir(env(davis, distraction="hard"))
     D.check_background_dir(env(tmp_path / "nope", types="color,camera"))  # no videos shown
     D.check_background_dir(env(tmp_path / "nope", distraction="none"))

@@ -337,8 +337,12 @@ def test_bad_settings_are_refused_by_name(tmp_path, capsys):
         "--config.replay.capacity=1000",
         "--config.progress=False",
     ]
-    for bad in ["agent.beta=2", "seed=4", "total_frames=10", "envs_per_seed"]:
+    for bad in ["agent.beta=2", "seed=4", "total_frames=10", "envs_per_seed", "replay.bogus=1"]:
         with pytest.raises(ValueError, match="FIELD one a grid run may choose: envs_per_seed"):
+            grid.overrides([bad])
+    # A value of the wrong type is refused before any run would start and fail on it.
+    for bad, kind in [("envs_per_seed=abc", "int"), ("progress=maybe", "bool")]:
+        with pytest.raises(ValueError, match=f"takes a {kind}, e.g."):
             grid.overrides([bad])
     with pytest.raises(ValueError, match="--per-gpu must be at least 1"):
         grid.slots(["0"], per_gpu=0)

@@ -1,9 +1,11 @@
 """The trainer end to end on CPU: outputs, resume, seeds, and clear errors for bad input."""
 
 import contextlib
+import copy
 import json
 import os
 import pathlib
+import re
 import signal
 import socket
 import subprocess
@@ -487,6 +489,23 @@ def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
     with pytest.raises(ValueError, match=r"eval_nice must be an int in 0-19 .*got 20"):
         experiment.validate(config)
     config.eval_nice = 0
+    # Values a run would fail on later (or loop on) are refused before it starts, by name.
+    for key, bad, match in [
+        ("agent.compute_dtype", "float99", "unknown agent.compute_dtype 'float99'; valid: float32"),
+        ("env.render.quality", "bogus", "unknown env.render.quality 'bogus'; valid: dm_control"),
+        ("env.action_repeat", 0, "env.action_repeat must be >= 1, got 0"),
+        ("keep_checkpoints", 0, "keep_checkpoints must be >= 1, got 0"),
+        ("log_every_frames", 0, "log_every_frames must be >= 1, got 0"),
+        ("checkpoint_every_frames", -40, r"checkpoint_every_frames must be >= 0 \(0: no periodic"),
+    ]:
+        bad_config = copy.deepcopy(config)
+        *parents, field = key.split(".")
+        node = bad_config
+        for part in parents:
+            node = node[part]
+        node[field] = bad
+        with pytest.raises(ValueError, match=match):
+            experiment.validate(bad_config)
     assert experiment.eval_processes(config, "accelerator") == 1
     config.eval_device = "train"
     acfg = experiment.agent_config(config, action_dim=6)
@@ -648,6 +667,29 @@ def test_bad_input_says_one_line_and_leaves_nothing(tmp_path, flags, message):
     assert out.stderr.strip().splitlines() == [out.stderr.strip()]
     assert out.stderr.startswith(message) and not out.stdout
     assert not workdir.exists()
+
+
+@pytest.mark.parametrize(
+    "flag, message",
+    [
+        (
+            "--config.replay.capacity=1000000000",
+            r"error: replay for 2 seeds x 1,000,000,000 entries",
+        ),
+        ("--config.agent.nstep=150", r"error: agent.nstep=150 is longer than an episode"),
+    ],
+)
+def test_input_the_run_finds_bad_says_one_line(tmp_path, flag, message):
+    """What only the run can check (the replay against free memory, an n-step return against
+    the episode): one line naming the problem and its fix, exit status 2, no traceback."""
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "run.py"), "--config=smoke", flag, f"--workdir={tmp_path}"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert re.match(message, out.stderr.strip().splitlines()[-1])
 
 
 def test_config_by_bare_name_and_unknown_names():

@@ -123,7 +123,7 @@ def main(argv):
     from dear_jax.checkpoint import IncompatibleCheckpointError
     from dear_jax.experiment import ConfigError
     from dear_jax.replay_disk import DiskSpaceError
-    from dear_jax.signals import Stopped
+    from dear_jax.signals import Stopped, StoppedAtOnce
     from dear_jax.train import train
 
     try:
@@ -131,6 +131,13 @@ def main(argv):
     except Stopped as e:
         logging.getLogger("dear_jax").warning("%s", e)
         sys.exit(e.exit_code)
+    except StoppedAtOnce as e:  # saves are atomic: the last checkpoint stays whole
+        logging.getLogger("dear_jax").warning(
+            "%s, without a checkpoint; rerun the same command to resume from the last one in %s",
+            e,
+            pathlib.Path(workdir) / "checkpoints",
+        )
+        sys.exit(128 + e.signum)
     except (IncompatibleCheckpointError, DiskSpaceError, ConfigError, MemoryError) as e:
         logging.getLogger("dear_jax").error("error: %s", e)  # the message says what to do
         sys.exit(2)

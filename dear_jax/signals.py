@@ -3,7 +3,7 @@
 `StopRequest` replaces both handlers while a run lasts (main thread only; elsewhere it does
 nothing) and restores the previous ones after. The first signal only sets a flag that the loop
 reads once per step (and every step of an evaluation); a second one stops at once with
-KeyboardInterrupt, without a checkpoint (the previous checkpoint stays intact: saves are atomic).
+StoppedAtOnce (a KeyboardInterrupt), without a checkpoint (the previous checkpoint stays intact: saves are atomic).
 """
 
 from __future__ import annotations
@@ -26,6 +26,14 @@ class Stopped(Exception):
         return 128 + self.signum  # what a shell reports for a process ended by that signal
 
 
+class StoppedAtOnce(KeyboardInterrupt):
+    """A second signal stopped the run at once, without a checkpoint."""
+
+    def __init__(self, signum: int):
+        super().__init__(f"a second {signal.Signals(signum).name}: stopped at once")
+        self.signum = signum
+
+
 class StopRequest:
     """Context manager: `signum` is None until SIGTERM or SIGINT arrives."""
 
@@ -42,7 +50,7 @@ class StopRequest:
 
     def _handle(self, signum, frame) -> None:
         if self.signum is not None:
-            raise KeyboardInterrupt(f"second {signal.Signals(signum).name}: stopping at once")
+            raise StoppedAtOnce(signum)
         self.signum = signum
 
     def __enter__(self) -> StopRequest:

@@ -692,6 +692,22 @@ def test_input_the_run_finds_bad_says_one_line(tmp_path, flag, message):
     assert re.match(message, out.stderr.strip().splitlines()[-1])
 
 
+def test_a_second_signal_stops_at_once():
+    """The first SIGTERM asks for a stop at the end of the step; a second stops at once with
+    StoppedAtOnce, a KeyboardInterrupt that names the signal (run.py: one line, 128 + signal)."""
+    from dear_jax import signals
+
+    with signals.StopRequest() as stop:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.05)  # a handler runs between bytecodes
+        assert stop.signum == signal.SIGTERM
+        with pytest.raises(signals.StoppedAtOnce) as raised:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1)
+    assert raised.value.signum == signal.SIGTERM and isinstance(raised.value, KeyboardInterrupt)
+    assert str(raised.value) == "a second SIGTERM: stopped at once"
+
+
 def test_config_by_bare_name_and_unknown_names():
     """`--config walker_dear.py` (or `smoke`) is looked up in configs/; an unknown name lists them."""
     out = subprocess.run(

@@ -151,7 +151,7 @@ def test_tensorboard_resume_purges_and_fresh_run_restarts(tmp_path):
 
 
 def _visible(tb_dir):
-    """The scalars TensorBoard shows: a session START at step p hides the earlier events at
+    """The scalars TensorBoard shows: a START marker at step p hides the earlier events at
     steps >= p (its purge of a resumed run's)."""
     out = {}
     for path in sorted(tb_dir.glob("events.out.tfevents.*")):

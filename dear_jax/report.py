@@ -396,8 +396,6 @@ def cosine_rows(workdirs, rows: int = 20, at: int | None = None) -> list[dict]:
             evals = _until(
                 read_csv(seed_dir / "eval.csv"), at, seed_dir / "eval.csv", plot.slack(pool.config)
             )
-            if not evals.get("frame", np.empty(0)).size:
-                raise ValueError(f"{seed_dir / 'eval.csv'} has no evaluation yet")
             train = read_csv(seed_dir / "train.csv")
             needed = ("abs_cos_agent_env", "cos_agent_env", "updates")
             missing = [name for name in needed if name not in train]

@@ -116,11 +116,29 @@ class WorkdirLock:
                     where,
                     holder.get("since"),
                 )
-                if self._read() == holder:
-                    self.path.unlink(missing_ok=True)
+                self._remove_stale(holder, tmp.with_suffix(".stale"))
             raise WorkdirLocked(f"could not take {self.path}: other runs keep taking it")
         finally:
             tmp.unlink(missing_ok=True)
+
+    def _remove_stale(self, holder: dict, aside: pathlib.Path) -> None:
+        """Remove the lock file if it still names `holder`: moved aside first (a rename is atomic,
+        so of two runs taking over at once one moves it), then deleted; a lock another run took
+        meanwhile goes back in place."""
+        try:
+            os.rename(self.path, aside)
+        except FileNotFoundError:
+            return  # another run moved it first
+        try:
+            moved = json.loads(aside.read_text())
+        except (OSError, ValueError):
+            moved = {}
+        if moved != holder and moved:
+            try:
+                os.link(aside, self.path)  # a live run's lock: restored
+            except FileExistsError:
+                pass
+        aside.unlink(missing_ok=True)
 
     def release(self) -> None:
         if self._owned:

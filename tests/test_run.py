@@ -1008,6 +1008,14 @@ def test_stale_lock_is_taken_over(tmp_path, caplog):
     (tmp_path / "run.lock").write_text(json.dumps({"pid": 1, "host": "elsewhere"}))
     with pytest.raises(WorkdirLocked, match="delete .*run.lock"):
         WorkdirLock(tmp_path).acquire()
+    # Two runs taking over one stale lock at once: the slower finds the faster's fresh lock in
+    # its place and leaves it there (not deleted, as a read-then-delete would).
+    stale, fresh = {"pid": 2, "host": "h"}, {"pid": 3, "host": "h"}
+    (tmp_path / "run.lock").write_text(json.dumps(fresh))
+    WorkdirLock(tmp_path)._remove_stale(stale, tmp_path / "aside")
+    assert json.loads((tmp_path / "run.lock").read_text()) == fresh
+    WorkdirLock(tmp_path)._remove_stale(fresh, tmp_path / "aside")
+    assert not (tmp_path / "run.lock").exists() and not (tmp_path / "aside").exists()
 
 
 # Last in this file: its two-lane programs replace the fixture's in the trainer's program cache

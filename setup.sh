@@ -5,6 +5,10 @@
 # GPU machine. Afterwards: .venv/bin/python run.py ... (or `source .venv/bin/activate`).
 set -euo pipefail
 cd "$(dirname "$0")"
+python3 -c 'import sys; sys.exit(sys.version_info < (3, 11))' || {
+  echo "error: python3 is $(python3 -V 2>&1 | cut -d' ' -f2); the pinned jax, flax and mujoco need Python >= 3.11" >&2
+  exit 1
+}
 packages=()
 if ! ldconfig -p | grep -q 'libEGL_mesa\|libEGL_nvidia'; then
   packages+=(libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libglx-mesa0)

@@ -103,7 +103,7 @@ def load_curves(workdir: str | os.PathLike, metric: str, x: str = "frame") -> li
 
 
 def _series(
-    paths: list[pathlib.Path], metric: str, x: str, near: float = SLACK
+    paths: list[pathlib.Path], metric: str, x: str, near: float
 ) -> tuple[np.ndarray, np.ndarray]:
     series = []
     for path in paths:

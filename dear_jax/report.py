@@ -168,7 +168,7 @@ def _last_mean(evals: list[dict], column: str) -> float:
     return float(np.mean([e[column][-1] if column in e else math.nan for e in evals]))
 
 
-def _until(evals: dict, frames: int | None, path: pathlib.Path, near: float = plot.SLACK) -> dict:
+def _until(evals: dict, frames: int | None, path: pathlib.Path, near: float) -> dict:
     """An eval log's rows up to `frames` per seed (all of them for None), an evaluation up to
     `near` frames past it counted as at it (it starts at the first step at or after its mark)."""
     if not len(evals.get("frame", ())):

@@ -112,7 +112,15 @@ def throughput(config, warmup_frames) -> dict:
     # holding up the loop) fall inside those intervals. Over the measured span: frames / time.
     span = np.diff(frames, prepend=0)[after] * config.seeds
     span_fps = float(span.sum() / (span / fps[after]).sum()) if after.any() else float("nan")
+    # The loop's own account of an iteration (dear_jax.loop.Loop.host_seconds): its wall time,
+    # the env thread's stages and the main thread's wait for them, ms, the mean over the rows.
+    host_ms = {
+        k[: -len("_ms")]: float(np.mean(v[after])) if after.any() else float("nan")
+        for k, v in logs.items()
+        if k.endswith("_ms")
+    }
     return dict(
+        host_ms_per_iteration=host_ms,
         aggregate_fps=float(np.mean(fps[after])) if after.any() else float("nan"),
         median_row_fps=float(np.median(fps[after])) if after.any() else float("nan"),
         span_fps_with_evaluations=span_fps,
@@ -305,6 +313,10 @@ def main():
             f"({args.seeds} seeds x {args.envs} envs, {config.agent.method}, "
             f"{config.env.task}); {tp['aggregate_fps'] / PYTORCH_ANCHOR_FPS:.1f}x the PyTorch "
             f"pipeline's {PYTORCH_ANCHOR_FPS:.0f} frames/s (docs/design.md)"
+        )
+        print(
+            "per iteration, ms (the loop's log): "
+            + ", ".join(f"{k} {v:.1f}" for k, v in tp["host_ms_per_iteration"].items())
         )
         if args.eval_every:
             print(

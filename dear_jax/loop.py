@@ -103,6 +103,7 @@ class Loop:
         self.resumed_from = None  # the frame of the checkpoint this run resumed from
         self.evals = None  # while `run` runs: its Evaluations
         self.stop = None
+        self.wait_env_s = 0.0  # the main thread's wait for the env's steps (host_seconds)
         if ckpt.latest_step() is None:
             if store is not None:
                 store.forget_after(0)  # files of an earlier run whose checkpoints were deleted
@@ -121,6 +122,15 @@ class Loop:
         if self.mesh is None:
             return tree
         return jax.tree.map(lambda x: self.hosts.place(x, NamedSharding(self.mesh, P())), tree)
+
+    def host_seconds(self) -> dict[str, float]:
+        """Host seconds since the last call: the env thread's stages (`env_physics`,
+        `env_draw`, `env_post`: envs.Env.take_host_seconds) and the main thread's wait for them
+        (`wait_env`). The steps overlap the updates: where `wait_env` is small, the accelerator
+        sets the pace; where it is large, the env does."""
+        taken = {f"env_{k}": s for k, s in self.env.take_host_seconds().items()}
+        taken["wait_env"], self.wait_env_s = self.wait_env_s, 0.0
+        return taken
 
     def eval_due(self) -> bool:
         """An evaluation is due at this frame and has not started."""
@@ -253,7 +263,9 @@ class Loop:
                 )
                 lv["metric_count"] += 1
             counters["updates"] += n
+        t_wait = time.perf_counter()
         c.state, ts = future.result()
+        self.wait_env_s += time.perf_counter() - t_wait
         c.ts = hosts.to_global(ts)
         self._add(c.ts, action)
         c.returns = programs.accumulate(c.returns, c.ts)
@@ -300,8 +312,16 @@ class Loop:
         self.stop = stop
         t_start, wall0 = time.perf_counter(), counters["wall_s"]
         train_log = TrainLog(
-            logger, progress, self.hosts, len(self.lanes), config.log_every_frames, t_start
+            logger,
+            progress,
+            self.hosts,
+            len(self.lanes),
+            config.log_every_frames,
+            t_start,
+            iteration=counters["iteration"],
+            host_seconds=self.host_seconds,
         )
+        self.host_seconds()  # the steps of the env's reset and of earlier runs are not counted
         wall = lambda: wall0 + time.perf_counter() - t_start  # noqa: E731
         trace = Trace(config.profile, pathlib.Path(workdir), counters["frame"])
         c = self.carry

@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -55,7 +56,9 @@ class Progress:
 
 class TrainLog:
     """The train log's rows: the training metrics averaged since the last row, the mean return of
-    the episodes ended since then, and the rate in frames per second over all lanes."""
+    the episodes ended since then, the rate in frames per second over all lanes, and where an
+    iteration's time went on the host (`host_seconds`: a callable returning the seconds spent
+    since its last call by stage, logged as `<stage>_ms` per iteration)."""
 
     def __init__(
         self,
@@ -65,9 +68,12 @@ class TrainLog:
         num_lanes: int,
         every_frames: int,
         t0: float,
+        iteration: int,
+        host_seconds: Callable[[], dict[str, float]],
     ):
         self.logger, self.progress, self.hosts = logger, progress, hosts
         self.num_lanes, self.every_frames, self.last_t = num_lanes, every_frames, t0
+        self.last_iteration, self.host_seconds = iteration, host_seconds
 
     def write_if_due(self, carry) -> None:
         """A row, if the log interval has passed and something happened since the last one
@@ -80,10 +86,13 @@ class TrainLog:
             return
         carry.episodes_pending = False
         now = time.perf_counter()
+        iterations = max(counters["iteration"] - self.last_iteration, 1)
         row = {
             "episode": counters["episode"],
             "updates": counters["updates"],
             "fps": (frame - lv["last_log_frame"]) * self.num_lanes / max(now - self.last_t, 1e-9),
+            "iteration_ms": (now - self.last_t) * 1e3 / iterations,
+            **{f"{k}_ms": s * 1e3 / iterations for k, s in self.host_seconds().items()},
         }
         if lv["metric_count"]:
             row.update(
@@ -105,4 +114,5 @@ class TrainLog:
             extra={"console": self.progress.bar is None},
         )
         self.last_t, lv["last_log_frame"] = now, frame
+        self.last_iteration = counters["iteration"]
         lv["next_log"] = frame + self.every_frames

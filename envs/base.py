@@ -33,6 +33,7 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import functools
+import time
 from typing import Any
 
 import flax.struct
@@ -99,12 +100,14 @@ class EnvState:
 def _post(
     rgb,
     labels,
-    background,
-    stack,
+    video,
+    video_frame,
     reward,
     first,
     last,
     success,
+    videos,
+    stack,
     key,
     *,
     floor_alpha,
@@ -113,10 +116,16 @@ def _post(
     composite,
     frame_stack,
 ):
-    """Device half of a step: composite, masks, frame stack, TimeStep fields (jitted)."""
-    frame = distractions.composite(rgb, labels, background, floor_alpha) if composite else rgb
+    """Device half of a step, one program (jitted): each env's background frame (`videos`
+    [V,T,H,W,3] at [video, video_frame]), composite, masks, frame stack, TimeStep fields.
+    Returns (stack, TimeStep, the key's next state)."""
+    key, mask_key = jax.random.split(key)
+    if composite:
+        frame = distractions.composite(rgb, labels, videos[video, video_frame], floor_alpha)
+    else:
+        frame = rgb
     true_mask = masks.agent_mask(labels)
-    mask = masks.make_mask(labels, key, mask_kind, drop_prob)
+    mask = masks.make_mask(labels, mask_key, mask_kind, drop_prob)
     rolled = jnp.concatenate([stack[..., 3:], frame], axis=-1)
     fresh = jnp.concatenate([frame] * frame_stack, axis=-1)
     obs = jnp.where(first[..., None, None, None], fresh, rolled)
@@ -133,7 +142,7 @@ def _post(
         last=last,
         success=success.astype(jnp.float32),
     )
-    return obs, ts
+    return obs, ts, key
 
 
 class Env:
@@ -243,11 +252,11 @@ class Env:
                 seed=seed,
             )
             num_videos, num_frames = videos.shape[:2]
-        # Every device holds all videos: each looks up its own seeds' background frames.
+        # Every device holds all videos (and the mask noise's key): each looks up its own seeds'
+        # background frames.
+        everywhere = None if sharding is None else jax.sharding.NamedSharding(sharding.mesh, P())
         self._backgrounds = (
-            jnp.asarray(videos)
-            if sharding is None
-            else jax.device_put(videos, jax.sharding.NamedSharding(sharding.mesh, P()))
+            jnp.asarray(videos) if sharding is None else jax.device_put(videos, everywhere)
         )
         self._distractor = distractions.Distractor(
             render_model,
@@ -271,9 +280,10 @@ class Env:
                 composite=with_videos,
                 frame_stack=self.spec.frame_stack,
             ),
-            **({} if sharding is None else {"out_shardings": sharding}),
+            **({} if sharding is None else {"out_shardings": (sharding, sharding, everywhere)}),
         )
         self._rng = np.random.RandomState(seed)
+        self._host_s = {"physics": 0.0, "draw": 0.0, "post": 0.0}  # take_host_seconds
         self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="env")
         self._pool = RenderPool(
             task.render_factory(render.mesh_faces),
@@ -350,12 +360,22 @@ class Env:
 
     def _advance(self, phys, action, reset, starts):
         """(physics state, reward [S,E]) one agent step on; envs in `reset` start anew."""
+        t0 = time.perf_counter()
         if reset.all():
             return self.physics.init(*starts), np.zeros(self.shape, np.float32)
         phys, reward = self.physics.step(phys, action)
         if starts is not None:
             phys = self.physics.where(reset, self.physics.init(*starts), phys)
+        self._host_s["physics"] += time.perf_counter() - t0
         return phys, reward
+
+    def take_host_seconds(self) -> dict[str, float]:
+        """Seconds the steps since the last call spent, by stage, on the host: "physics" (CPU
+        physics; MJX: its dispatch and the wait for the states to draw), "draw" (the render
+        pool's frames and labels) and "post" (the frames' upload and their device program's
+        dispatch); then starts counting again."""
+        taken, self._host_s = self._host_s, dict.fromkeys(self._host_s, 0.0)
+        return taken
 
     def step(self, state: EnvState, action: jax.Array) -> tuple[EnvState, TimeStep]:
         return self.step_async(state, action).result()
@@ -376,15 +396,13 @@ class Env:
         self._distractor.set_state(state["distractor"])
 
     def _finish(self, phys, reward, *, first, step, stack, key, perturb, bg_index):
+        t0 = time.perf_counter()
         qpos = np.asarray(self.physics.qpos(phys)).reshape(self.batch, -1)
+        t1 = time.perf_counter()
         rgb, labels = self._pool.render(qpos, perturb=perturb)
+        t2 = time.perf_counter()
         h, w, _ = self.spec.frame_shape
-        video, frame_idx = bg_index
-        background = self._backgrounds[
-            self._upload(np.reshape(video, self.shape)),
-            self._upload(np.reshape(frame_idx, self.shape)),
-        ]
-        key, mask_key = jax.random.split(key)
+        video, video_frame = bg_index
         last = step >= self.spec.episode_steps
         success = np.zeros(self.shape, bool)
         if self.task.success_ends_episode:
@@ -392,17 +410,24 @@ class Env:
             success = (np.asarray(reward).reshape(self.shape) > 0) & ~first
             last = last | success
             reward = success.astype(np.float32)
-        stack, ts = self._post(
-            self._upload(np.reshape(rgb, self.shape + (h, w, 3))),
-            self._upload(np.reshape(labels, self.shape + (h, w))),
-            background,
-            stack,
-            self._upload(reward),
-            self._upload(first),
-            self._upload(last),
-            self._upload(success),
-            mask_key,
+        # The step's host arrays go to the device in one transfer call and are used by one
+        # program: on the env thread every dispatch is a wait beside the training's.
+        per_env = (
+            np.reshape(rgb, self.shape + (h, w, 3)),
+            np.reshape(labels, self.shape + (h, w)),
+            np.reshape(video, self.shape),
+            np.reshape(video_frame, self.shape),
+            reward,
+            first,
+            last,
+            success,
         )
+        if self.sharding is not None:
+            per_env = jax.device_put(per_env, self.sharding)
+        stack, ts, key = self._post(*per_env, self._backgrounds, stack, key)
+        self._host_s["physics"] += t1 - t0
+        self._host_s["draw"] += t2 - t1
+        self._host_s["post"] += time.perf_counter() - t2
         state = EnvState(physics=phys, stack=stack, key=key, step=step, last=last)
         return state, ts
 

@@ -73,7 +73,16 @@ def tiny_config(**overrides):
 
 # Columns that hold wall-clock measurements; every other column of a resumed run's logs must equal
 # the uninterrupted run's.
-TIMING_COLUMNS = {"fps", "wall_s", "eval_s", "loop_wait_s", "sec_per_1000_frames"}
+HOST_STAGES = ("env_physics_ms", "env_draw_ms", "env_post_ms", "wait_env_ms")
+TIMING_COLUMNS = {
+    "fps",
+    "wall_s",
+    "eval_s",
+    "loop_wait_s",
+    "sec_per_1000_frames",
+    "iteration_ms",
+    *HOST_STAGES,
+}
 
 
 def whole_config():
@@ -149,6 +158,12 @@ def test_outputs_exist_and_parse(run):
         assert np.all(np.isfinite(train_log["frame"]))
         # DEAR's orthogonality loss (the paper's form) is the batch's mean |cos|, logged as such
         np.testing.assert_allclose(train_log["abs_cos_agent_env"], train_log["ortho_loss"], 1e-5)
+        # Where an iteration's time went: the env thread's stages and the loop's wait for them
+        # happen within the iteration (the env thread's one after the other, so their sum too).
+        per_iteration = train_log["iteration_ms"]
+        stages = np.stack([train_log[k] for k in HOST_STAGES])
+        assert np.all(stages >= 0) and np.all(stages[:2] > 0)  # every row's steps drew frames
+        assert np.all(stages[:3].sum(0) <= per_iteration) and np.all(stages[3] <= per_iteration)
         eval_log = read_csv(workdir / f"seed_{seed}" / "eval.csv")
         assert {
             "episode_return",

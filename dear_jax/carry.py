@@ -62,8 +62,18 @@ class Carry:
             "last_eval_frame": -1,
         }
         self.metric_sum = None  # train metrics summed since the last log row
-        self.episode_returns = []  # [2, S] per step: returns summed and count of ended episodes
+        # Per step that ended episodes: their returns summed per seed ([S], on the device until
+        # read) and their count per seed of this process ([S], host); `ended_episodes` reads them.
+        self.episode_returns = []
         self.episodes_pending = False  # an episode ended (on any process) since the last row
+
+    def ended_episodes(self) -> list[np.ndarray]:
+        """[2, S] per step that ended episodes: their returns summed and their count, for each
+        seed of this process."""
+        return [
+            np.stack([r if isinstance(r, np.ndarray) else self.hosts.read(r), n])
+            for r, n in self.episode_returns
+        ]
 
     def _saved_on_host(self, x) -> bool:
         """Env state leaves saved with this process's host values: numpy ones and, with several
@@ -94,7 +104,7 @@ class Carry:
                 if self.metric_sum is None
                 else {k: self.hosts.read(v) for k, v in self.metric_sum.items()}
             ),
-            "episode_returns": list(self.episode_returns),
+            "episode_returns": self.ended_episodes(),
             "env_host": [
                 _to_host(x) for x in jax.tree.leaves(self.state) if self._saved_on_host(x)
             ],
@@ -129,5 +139,5 @@ class Carry:
                 k: self.hosts.place_local(v) if self.hosts.multi else jnp.asarray(v)
                 for k, v in extra["metric_sum"].items()
             }
-        self.episode_returns = [np.asarray(r) for r in extra["episode_returns"]]
+        self.episode_returns = [tuple(np.asarray(r)) for r in extra["episode_returns"]]
         self.episodes_pending = bool(self.hosts.agree([len(self.episode_returns)]).any())

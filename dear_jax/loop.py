@@ -268,7 +268,7 @@ class Loop:
         self.wait_env_s += time.perf_counter() - t_wait
         c.ts = hosts.to_global(ts)
         self._add(c.ts, action)
-        c.returns = programs.accumulate(c.returns, c.ts)
+        c.returns, ended_returns = programs.accumulate(c.returns, c.ts)
         counters["iteration"] += 1
         # Frames count per seed over its envs (the mean over seeds where their envs differ).
         lv["env_steps"] += steps
@@ -277,9 +277,10 @@ class Loop:
             counters["frame"] += frames
             progress.advance(frames)
         ended = np.asarray(c.state.last)
-        if ended.any():  # [2, S]: the summed returns and the number of the episodes each seed ended
-            ended_returns = np.where(ended, hosts.read(c.returns), 0.0).sum(1)
-            c.episode_returns.append(np.stack([ended_returns, ended.sum(1)]))
+        if ended.any():
+            # Read at the next log row: reading them now would wait for this step's updates
+            # before the next action, every step an episode ends (the kitchen's, on success).
+            c.episode_returns.append((ended_returns, ended.sum(1)))
         ended_all = int(hosts.agree([ended.sum()]).sum())
         if ended_all:
             lv["episodes_ended"] += ended_all

@@ -34,11 +34,19 @@ class Programs:
     # The same in float32, for the evaluation process on the host's CPU (eval_device="cpu",
     # dear_jax/evaluator.py): XLA:CPU runs bfloat16 convolutions at half float32's speed.
     evaluate_step_host: callable
-    accumulate: callable  # (returns [S,E], ts) -> returns
+    # (returns [S,E], ts) -> (returns, per seed the returns of the episodes ts ended, summed [S])
+    accumulate: callable
     add_metrics: callable  # (metrics, metrics) -> elementwise sum
 
 
 _PROGRAMS: dict = {}
+
+
+def accumulate(returns, ts):
+    """The returns of the episodes under way [S,E] after timestep `ts`, and per seed the sum of
+    those of the episodes `ts` ends [S]."""
+    returns = jnp.where(ts.first, 0.0, returns) + ts.reward
+    return returns, jnp.where(ts.last, returns, 0.0).sum(-1)
 
 
 def cached_programs(
@@ -172,9 +180,6 @@ def build_programs(
         return one
 
     nets_f32 = update.make_networks(dataclasses.replace(acfg, compute_dtype="float32"))
-
-    def accumulate(returns, ts):
-        return jnp.where(ts.first, 0.0, returns) + ts.reward
 
     return Programs(
         act=jax.jit(act, donate_argnums=0),

@@ -100,7 +100,7 @@ class TrainLog:
             )
             carry.metric_sum, lv["metric_count"] = None, 0
         if carry.episode_returns:
-            total, count = np.sum(carry.episode_returns, 0)
+            total, count = np.sum(carry.ended_episodes(), 0)
             with np.errstate(invalid="ignore", divide="ignore"):  # no episode ended: NaN
                 row["episode_return"] = total / count
             carry.episode_returns = []

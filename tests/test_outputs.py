@@ -63,6 +63,43 @@ def test_csv_header_is_the_union_of_metrics(tmp_path):
     assert not list(tmp_path.rglob("*.tmp"))
 
 
+def test_train_rows_average_the_returns_of_episodes_ended_at_different_steps(tmp_path):
+    """Kitchen envs end on success, each at its own step: the loop's device sums (programs.
+    accumulate), kept in the carry until a row reads them, give each seed's mean return."""
+    from types import SimpleNamespace
+
+    from dear_jax.carry import Carry
+    from dear_jax.devices import Hosts
+    from dear_jax.programs import accumulate
+    from dear_jax.progress import Progress, TrainLog
+
+    hosts = Hosts(None, 2)
+    carry = Carry(hosts, agent=None, buffer=None, key=None, state=None, ts=None,
+                  returns=jnp.zeros((2, 2)), seed_frames=0, log_every=1)  # fmt: skip
+    # Seed 0: env 0 ends at step 2 (1 + 2), env 1 at step 3 (3 + 0 + 4); seed 1: nothing ends.
+    rewards = [[[1.0, 3.0], [5.0, 5.0]], [[2.0, 0.0], [5.0, 5.0]], [[9.0, 4.0], [5.0, 5.0]]]
+    lasts = [[[0, 0], [0, 0]], [[1, 0], [0, 0]], [[0, 1], [0, 0]]]
+    firsts = [[[0, 0], [0, 0]], [[0, 0], [0, 0]], [[1, 0], [0, 0]]]  # env 0 starts anew
+    for reward, last, first in zip(rewards, lasts, firsts, strict=True):
+        ts = SimpleNamespace(reward=jnp.array(reward), last=jnp.array(last, bool),
+                             first=jnp.array(first, bool))  # fmt: skip
+        carry.returns, ended_returns = accumulate(carry.returns, ts)
+        if np.any(last):
+            carry.episode_returns.append((ended_returns, np.sum(last, 1)))
+    np.testing.assert_array_equal(
+        carry.ended_episodes(), [[[3.0, 0.0], [1, 0]], [[7.0, 0.0], [1, 0]]]
+    )
+    carry.counters["frame"], carry.counters["iteration"], carry.episodes_pending = 3, 3, True
+    with RunLogger(tmp_path, 2, tensorboard=False) as log:
+        TrainLog(
+            log, Progress(False, 10, 0), hosts, 2, 1, 0.0, iteration=0, host_seconds=dict
+        ).write_if_due(carry)
+    cols = read_csv(tmp_path / "seed_0" / "train.csv")
+    np.testing.assert_array_equal(cols["episode_return"], [5.0])  # (3 + 7) / 2
+    assert np.isnan(read_csv(tmp_path / "seed_1" / "train.csv")["episode_return"][0])
+    assert carry.episode_returns == []
+
+
 def test_write_rejects_bad_kind_and_shape(tmp_path):
     with RunLogger(tmp_path, 2, tensorboard=False) as log:
         with pytest.raises(ValueError, match="valid: train, eval"):

@@ -67,13 +67,21 @@ class Carry:
         self.episode_returns = []
         self.episodes_pending = False  # an episode ended (on any process) since the last row
 
+    def add_ended(self, returns, ended: np.ndarray) -> None:
+        """Keep a step's ended episodes for the next train row: `returns` [S] (on the device:
+        read only when a row or a checkpoint needs it) the sums of their returns per seed
+        (programs.accumulate), `ended` [S, E] this process's envs that ended them."""
+        if ended.any():
+            self.episode_returns.append((returns, ended.sum(1)))
+
     def ended_episodes(self) -> list[np.ndarray]:
         """[2, S] per step that ended episodes: their returns summed and their count, for each
         seed of this process."""
-        return [
-            np.stack([r if isinstance(r, np.ndarray) else self.hosts.read(r), n])
+        self.episode_returns = [
+            (r if isinstance(r, np.ndarray) else self.hosts.read(r), n)
             for r, n in self.episode_returns
         ]
+        return [np.stack(pair) for pair in self.episode_returns]
 
     def _saved_on_host(self, x) -> bool:
         """Env state leaves saved with this process's host values: numpy ones and, with several

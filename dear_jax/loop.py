@@ -124,10 +124,11 @@ class Loop:
         return jax.tree.map(lambda x: self.hosts.place(x, NamedSharding(self.mesh, P())), tree)
 
     def host_seconds(self) -> dict[str, float]:
-        """Host seconds since the last call: the env thread's stages (`env_physics`,
-        `env_draw`, `env_post`: envs.Env.take_host_seconds) and the main thread's wait for them
-        (`wait_env`). The steps overlap the updates: where `wait_env` is small, the accelerator
-        sets the pace; where it is large, the env does."""
+        """Host seconds since the last call: the env thread's stages (`env_action`,
+        `env_physics`, `env_draw`, `env_post`: envs.Env.take_host_seconds) and the main
+        thread's wait for the env's step (`wait_env`). Where `env_action` is large, the env
+        waits for the accelerator; where the other three fill the iteration, the accelerator
+        waits for the env (docs/design.md)."""
         taken = {f"env_{k}": s for k, s in self.env.take_host_seconds().items()}
         taken["wait_env"], self.wait_env_s = self.wait_env_s, 0.0
         return taken
@@ -277,10 +278,9 @@ class Loop:
             counters["frame"] += frames
             progress.advance(frames)
         ended = np.asarray(c.state.last)
-        if ended.any():
-            # Read at the next log row: reading them now would wait for this step's updates
-            # before the next action, every step an episode ends (the kitchen's, on success).
-            c.episode_returns.append((ended_returns, ended.sum(1)))
+        # Read at the next log row: reading them now would wait for this step's updates before
+        # the next action, every step an episode ends (the kitchen's, on success).
+        c.add_ended(ended_returns, ended)
         ended_all = int(hosts.agree([ended.sum()]).sum())
         if ended_all:
             lv["episodes_ended"] += ended_all

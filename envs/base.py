@@ -255,6 +255,7 @@ class Env:
         # Every device holds all videos (and the mask noise's key): each looks up its own seeds'
         # background frames.
         everywhere = None if sharding is None else jax.sharding.NamedSharding(sharding.mesh, P())
+        self._everywhere = everywhere
         self._backgrounds = (
             jnp.asarray(videos) if sharding is None else jax.device_put(videos, everywhere)
         )
@@ -283,7 +284,7 @@ class Env:
             **({} if sharding is None else {"out_shardings": (sharding, sharding, everywhere)}),
         )
         self._rng = np.random.RandomState(seed)
-        self._host_s = {"physics": 0.0, "draw": 0.0, "post": 0.0}  # take_host_seconds
+        self._host_s = dict.fromkeys(("action", "physics", "draw", "post"), 0.0)
         self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="env")
         self._pool = RenderPool(
             task.render_factory(render.mesh_faces),
@@ -361,19 +362,25 @@ class Env:
     def _advance(self, phys, action, reset, starts):
         """(physics state, reward [S,E]) one agent step on; envs in `reset` start anew."""
         t0 = time.perf_counter()
+        if self.physics.on_host:  # the policy's actions, computed after the queued updates
+            action = np.asarray(action)
+        t1 = time.perf_counter()
         if reset.all():
-            return self.physics.init(*starts), np.zeros(self.shape, np.float32)
-        phys, reward = self.physics.step(phys, action)
-        if starts is not None:
-            phys = self.physics.where(reset, self.physics.init(*starts), phys)
-        self._host_s["physics"] += time.perf_counter() - t0
+            phys, reward = self.physics.init(*starts), np.zeros(self.shape, np.float32)
+        else:
+            phys, reward = self.physics.step(phys, action)
+            if starts is not None:
+                phys = self.physics.where(reset, self.physics.init(*starts), phys)
+        self._host_s["action"] += t1 - t0
+        self._host_s["physics"] += time.perf_counter() - t1
         return phys, reward
 
     def take_host_seconds(self) -> dict[str, float]:
-        """Seconds the steps since the last call spent, by stage, on the host: "physics" (CPU
-        physics; MJX: its dispatch and the wait for the states to draw), "draw" (the render
-        pool's frames and labels) and "post" (the frames' upload and their device program's
-        dispatch); then starts counting again."""
+        """Seconds the steps since the last call spent, by stage, on the host: "action" (CPU
+        physics: the wait for the actions, which the accelerator computes after the updates
+        queued before them), "physics" (MJX: its dispatch and the wait for the states to draw),
+        "draw" (the render pool's frames and labels) and "post" (the frames' upload and their
+        device program's dispatch); then starts counting again. Call it with no step in flight."""
         taken, self._host_s = self._host_s, dict.fromkeys(self._host_s, 0.0)
         return taken
 
@@ -422,8 +429,8 @@ class Env:
             last,
             success,
         )
-        if self.sharding is not None:
-            per_env = jax.device_put(per_env, self.sharding)
+        if self.sharding is not None:  # the key where `_post` leaves it: one compile
+            per_env, key = jax.device_put((per_env, key), (self.sharding, self._everywhere))
         stack, ts, key = self._post(*per_env, self._backgrounds, stack, key)
         self._host_s["physics"] += t1 - t0
         self._host_s["draw"] += t2 - t1

@@ -65,39 +65,51 @@ def test_csv_header_is_the_union_of_metrics(tmp_path):
 
 def test_train_rows_average_the_returns_of_episodes_ended_at_different_steps(tmp_path):
     """Kitchen envs end on success, each at its own step: the loop's device sums (programs.
-    accumulate), kept in the carry until a row reads them, give each seed's mean return."""
+    accumulate), kept in the carry until a row reads them, give each seed's mean return; pending
+    sums survive a checkpoint's extra, as do those a run saved as host arrays."""
     from types import SimpleNamespace
 
     from dear_jax.carry import Carry
+    from dear_jax.checkpoint import _decode_arrays, _jsonable
     from dear_jax.devices import Hosts
     from dear_jax.programs import accumulate
     from dear_jax.progress import Progress, TrainLog
 
     hosts = Hosts(None, 2)
-    carry = Carry(hosts, agent=None, buffer=None, key=None, state=None, ts=None,
-                  returns=jnp.zeros((2, 2)), seed_frames=0, log_every=1)  # fmt: skip
-    # Seed 0: env 0 ends at step 2 (1 + 2), env 1 at step 3 (3 + 0 + 4); seed 1: nothing ends.
-    rewards = [[[1.0, 3.0], [5.0, 5.0]], [[2.0, 0.0], [5.0, 5.0]], [[9.0, 4.0], [5.0, 5.0]]]
-    lasts = [[[0, 0], [0, 0]], [[1, 0], [0, 0]], [[0, 1], [0, 0]]]
-    firsts = [[[0, 0], [0, 0]], [[0, 0], [0, 0]], [[1, 0], [0, 0]]]  # env 0 starts anew
+
+    def carry():
+        return Carry(hosts, agent=None, buffer=None, key=None, state=None, ts=None,
+                     returns=jnp.zeros((2, 3)), seed_frames=0, log_every=1)  # fmt: skip
+
+    c = carry()
+    # 2 seeds x 3 envs. Seed 0: env 0 ends at step 2 (1 + 2), env 1 at step 3 (3 + 0 + 4), env 2
+    # never; seed 1: env 2 ends at step 3 (6 + 6 + 6).
+    rewards = [[[1, 3, 8], [5, 5, 6]], [[2, 0, 8], [5, 5, 6]], [[9, 4, 8], [5, 5, 6]]]
+    lasts = [[[0, 0, 0], [0, 0, 0]], [[1, 0, 0], [0, 0, 0]], [[0, 1, 0], [0, 0, 1]]]
+    firsts = [[[0, 0, 0], [0, 0, 0]], [[0, 0, 0], [0, 0, 0]], [[1, 0, 0], [0, 0, 0]]]
     for reward, last, first in zip(rewards, lasts, firsts, strict=True):
-        ts = SimpleNamespace(reward=jnp.array(reward), last=jnp.array(last, bool),
+        ts = SimpleNamespace(reward=jnp.array(reward, jnp.float32), last=jnp.array(last, bool),
                              first=jnp.array(first, bool))  # fmt: skip
-        carry.returns, ended_returns = accumulate(carry.returns, ts)
-        if np.any(last):
-            carry.episode_returns.append((ended_returns, np.sum(last, 1)))
-    np.testing.assert_array_equal(
-        carry.ended_episodes(), [[[3.0, 0.0], [1, 0]], [[7.0, 0.0], [1, 0]]]
-    )
-    carry.counters["frame"], carry.counters["iteration"], carry.episodes_pending = 3, 3, True
+        c.returns, ended_returns = accumulate(c.returns, ts)
+        c.add_ended(ended_returns, np.array(last, bool))
+    expected = [[[3.0, 0.0], [1, 0]], [[7.0, 18.0], [1, 1]]]
+    np.testing.assert_array_equal(c.ended_episodes(), expected)
+    # A checkpoint's extra (json) and back; a run saved before holds them as [2, S] host arrays.
+    extra = c.extra(env_rng={}, eval_env_rng={}, replay_on_disk=False)
+    older = dict(extra, episode_returns=[np.array(e, np.float64) for e in expected])
+    for saved in (extra, older):
+        resumed = carry()
+        resumed.load_host_values(_decode_arrays(_jsonable(saved, "extra")), 10)
+        np.testing.assert_array_equal(resumed.ended_episodes(), expected)
+        assert resumed.episodes_pending
+    c.counters["frame"], c.counters["iteration"], c.episodes_pending = 3, 3, True
     with RunLogger(tmp_path, 2, tensorboard=False) as log:
         TrainLog(
             log, Progress(False, 10, 0), hosts, 2, 1, 0.0, iteration=0, host_seconds=dict
-        ).write_if_due(carry)
-    cols = read_csv(tmp_path / "seed_0" / "train.csv")
-    np.testing.assert_array_equal(cols["episode_return"], [5.0])  # (3 + 7) / 2
-    assert np.isnan(read_csv(tmp_path / "seed_1" / "train.csv")["episode_return"][0])
-    assert carry.episode_returns == []
+        ).write_if_due(c)
+    returns = [read_csv(tmp_path / f"seed_{s}" / "train.csv")["episode_return"] for s in (0, 1)]
+    np.testing.assert_array_equal(returns, [[5.0], [18.0]])  # (3 + 7) / 2; 18 / 1
+    assert c.episode_returns == []
 
 
 def test_write_rejects_bad_kind_and_shape(tmp_path):

@@ -73,7 +73,7 @@ def tiny_config(**overrides):
 
 # Columns that hold wall-clock measurements; every other column of a resumed run's logs must equal
 # the uninterrupted run's.
-HOST_STAGES = ("env_physics_ms", "env_draw_ms", "env_post_ms", "wait_env_ms")
+HOST_STAGES = ("env_action_ms", "env_physics_ms", "env_draw_ms", "env_post_ms", "wait_env_ms")
 TIMING_COLUMNS = {
     "fps",
     "wall_s",
@@ -162,8 +162,8 @@ def test_outputs_exist_and_parse(run):
         # happen within the iteration (the env thread's one after the other, so their sum too).
         per_iteration = train_log["iteration_ms"]
         stages = np.stack([train_log[k] for k in HOST_STAGES])
-        assert np.all(stages >= 0) and np.all(stages[:2] > 0)  # every row's steps drew frames
-        assert np.all(stages[:3].sum(0) <= per_iteration) and np.all(stages[3] <= per_iteration)
+        assert np.all(stages >= 0) and np.all(stages[1:4] > 0)  # every row's steps drew frames
+        assert np.all(stages[:4].sum(0) <= per_iteration) and np.all(stages[4] <= per_iteration)
         eval_log = read_csv(workdir / f"seed_{seed}" / "eval.csv")
         assert {
             "episode_return",

@@ -378,7 +378,7 @@ class Env:
     def take_host_seconds(self) -> dict[str, float]:
         """Seconds the steps since the last call spent, by stage, on the host: "action" (CPU
         physics: the wait for the actions, which the accelerator computes after the updates
-        queued before them), "physics" (MJX: its dispatch and the wait for the states to draw),
+        queued before them), "physics" (CPU physics; MJX: its dispatch and the wait for the states),
         "draw" (the render pool's frames and labels) and "post" (the frames' upload and their
         device program's dispatch); then starts counting again. Call it with no step in flight."""
         taken, self._host_s = self._host_s, dict.fromkeys(self._host_s, 0.0)

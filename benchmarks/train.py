@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.common import save_json
-from dear_jax import experiment, replay, train, update
+from dear_jax import experiment, replay, summary, train, update
 from dear_jax.config import check_override_keys, load_config
 from dear_jax.logger import format_table, read_csv
 from dear_jax.programs import build_programs
@@ -112,15 +112,9 @@ def throughput(config, warmup_frames) -> dict:
     # holding up the loop) fall inside those intervals. Over the measured span: frames / time.
     span = np.diff(frames, prepend=0)[after] * config.seeds
     span_fps = float(span.sum() / (span / fps[after]).sum()) if after.any() else float("nan")
-    # The loop's own account of an iteration (dear_jax.loop.Loop.host_seconds): its wall time,
-    # the env thread's stages and the main thread's wait for them, ms, the mean over the rows.
-    host_ms = {
-        k[: -len("_ms")]: float(np.mean(v[after])) if after.any() else float("nan")
-        for k, v in logs.items()
-        if k.endswith("_ms")
-    }
     return dict(
-        host_ms_per_iteration=host_ms,
+        # The loop's own account of an iteration (dear_jax.loop.Loop.host_seconds), ms.
+        host_ms_per_iteration=summary.stage_means(logs, after),
         aggregate_fps=float(np.mean(fps[after])) if after.any() else float("nan"),
         median_row_fps=float(np.median(fps[after])) if after.any() else float("nan"),
         span_fps_with_evaluations=span_fps,

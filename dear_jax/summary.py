@@ -20,6 +20,34 @@ def _best(values: np.ndarray) -> float:
     return float(np.nanmax(values)) if np.isfinite(values).any() else math.nan
 
 
+# The train log's account of an iteration (dear_jax.loop.Loop.host_seconds), as the summary
+# words it: column -> words for its ms.
+STAGES = {
+    "env_action_ms": "waited {:.1f} ms for actions",
+    "env_physics_ms": "stepped {:.1f}",
+    "env_draw_ms": "drew {:.1f}",
+    "env_post_ms": "uploaded {:.1f}",
+}
+
+
+def stage_means(train_log: dict[str, np.ndarray], rows=slice(None)) -> dict[str, float]:
+    """ms per iteration, the mean over the train log's `rows`, of its `iteration_ms` and the
+    host's stages (every `*_ms` column)."""
+    return {
+        k: float(np.nanmean(v[rows]))
+        for k, v in train_log.items()
+        if k.endswith("_ms") and np.isfinite(v[rows]).any()
+    }
+
+
+def _stages_line(ms: dict[str, float]) -> str:
+    """Where the training's iterations went, as the summary says it (empty without the log)."""
+    if "iteration_ms" not in ms:
+        return ""
+    stages = ", ".join(words.format(ms[k]) for k, words in STAGES.items() if k in ms)
+    return f"; {ms['iteration_ms']:.1f} ms an iteration: the env thread {stages}"
+
+
 def _distraction_line(spec: envs.EnvSpec) -> str:
     """What the run's frames were distracted by, as the summary says it."""
     if spec.distraction == "none":
@@ -72,6 +100,8 @@ def write_summary(
             success = evals.get("success", np.array([np.nan]))
             per_seed[-1].update(final_success=float(success[-1]), best_success=_best(success))
             rows[-1].append(f"{success[-1]:.2f}")
+    train_path = workdir / runs[0].name / "train.csv"  # the stages are the same for every lane
+    ms = stage_means(read_csv(train_path)) if train_path.exists() else {}
     for label in dict.fromkeys(lane.label for lane in runs):  # mean over each setting's seeds
         group = [p for p, lane in zip(per_seed, runs) if lane.label == label]
         finals = np.array([p["final_return"] for p in group])
@@ -94,6 +124,7 @@ def write_summary(
         "updates_per_seed": counters["updates"],
         "wall_s": wall,
         "aggregate_fps": fps,
+        "host_ms_per_iteration": ms,
         "backend": spec.backend,
         "device": jax.devices()[0].device_kind,
         "conv_stack": networks.stack_for(config.agent.conv_stack),
@@ -129,7 +160,7 @@ def write_summary(
     text = (
         f"# {config.agent.method} on {config.env.task}\n\n"
         f"{until}{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, "
-        f"{wall:.0f} s of training ({fps:.0f} frames/s in all) on {on} "
+        f"{wall:.0f} s of training ({fps:.0f} frames/s in all{_stages_line(ms)}) on {on} "
         f"({spec.backend} physics, {summary['conv_stack']} conv stacks{kernels}, evaluations on "
         f"{summary['eval_device']}{evaluators}); {_distraction_line(spec)}{held}; render "
         f"settings {summary['render']}; commit {summary['provenance']['commit']}, jax "

@@ -186,6 +186,11 @@ def test_outputs_exist_and_parse(run):
     assert (summary["distraction_types"], summary["backgrounds"]) == ([], "none")
     assert (summary["conv_stack"], summary["kernels"]) == ("xla", "")
     assert "(cpu physics, xla conv stacks, evaluations on" in text
+    # Where the iterations went: the train log's stages, seed 0's rows averaged.
+    stages = summary["host_ms_per_iteration"]
+    seed0 = read_csv(workdir / "seed_0" / "train.csv")
+    assert stages["env_draw_ms"] == pytest.approx(np.mean(seed0["env_draw_ms"]))
+    assert f"{stages['iteration_ms']:.1f} ms an iteration: the env thread waited " in text
     # Where the run comes from: this checkout's commit, the device, the library versions.
     import jax
 

@@ -38,6 +38,7 @@ RESUMABLE_CHANGES = (
     "profile.at_frame",
     "profile.iterations",
     "env.render.num_workers",
+    "env.render.as_stepped",
     "env.eval_backend",
     "env.physics_threads",
     "env.eval_physics_threads",

@@ -33,6 +33,7 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import functools
+import threading
 import time
 from typing import Any
 
@@ -345,19 +346,66 @@ class Env:
         self._distractor.step()
         if reset.any():
             self._distractor.reset(reset.reshape(-1))
+        perturb = self._distractor.perturb()
         finish = functools.partial(
             self._finish,
             first=reset,
             step=step,
             stack=state.stack,
             key=state.key,
-            perturb=self._distractor.perturb(),
+            perturb=perturb,
             bg_index=self._distractor.background_index(),
         )
         advance = functools.partial(self._advance, state.physics, action, reset, starts)
+        if self.physics.on_host and self.render_settings.as_stepped and not reset.all():
+            drawn = functools.partial(
+                self._advance_drawn, state.physics, action, reset, starts, perturb=perturb
+            )
+            return self._executor.submit(lambda: finish(*drawn()))
         if self.physics.on_host:
             return self._executor.submit(lambda: finish(*advance()))
         return self._executor.submit(finish, *advance())
+
+    def _advance_drawn(self, phys, action, reset, starts, *, perturb):
+        """`_advance` (CPU physics, not every env restarting) with the frames drawn as the
+        physics threads step each render worker's envs (RenderSettings.as_stepped): (physics
+        state, reward, (rgb, labels))."""
+        t0 = time.perf_counter()
+        action = np.asarray(action)
+        t1 = time.perf_counter()
+        num_envs, qpos = self.shape[1], np.empty((self.batch, self._model.nq))
+        restart = reset.reshape(-1)
+        start_qpos = None if starts is None else starts[0].reshape(self.batch, -1)
+        lock = threading.Lock()
+        with self._pool.drawing(self.batch) as draw:
+            sizes = [p.stop - p.start for p in draw.parts]
+            part_of, left = np.repeat(np.arange(len(sizes)), sizes), list(sizes)
+
+            def stepped(envs, new):  # on a physics thread: its block of envs is stepped
+                rows = [int(s) * num_envs + int(e) for s, e in envs]
+                stepped_qpos = new["qpos"].reshape(self.batch, -1)
+                qpos[rows] = stepped_qpos[rows]
+                if start_qpos is not None:
+                    qpos[rows] = np.where(restart[rows, None], start_qpos[rows], qpos[rows])
+                with lock:
+                    done = []
+                    for i in part_of[rows]:
+                        left[i] -= 1
+                        if not left[i]:
+                            done.append(i)
+                for i in done:
+                    part = draw.parts[i]
+                    draw.send(i, qpos[part], perturb={k: v[part] for k, v in perturb.items()})
+
+            phys, reward = self.physics.step(phys, action, stepped)
+            if starts is not None:
+                phys = self.physics.where(reset, self.physics.init(*starts), phys)
+            t2 = time.perf_counter()
+            drawn = draw.result()
+        self._host_s["action"] += t1 - t0
+        self._host_s["physics"] += t2 - t1  # the drawing of the envs stepped first beside it
+        self._host_s["draw"] += time.perf_counter() - t2  # the rest of the drawing
+        return phys, reward, drawn
 
     def _advance(self, phys, action, reset, starts):
         """(physics state, reward [S,E]) one agent step on; envs in `reset` start anew."""
@@ -402,11 +450,16 @@ class Env:
         )
         self._distractor.set_state(state["distractor"])
 
-    def _finish(self, phys, reward, *, first, step, stack, key, perturb, bg_index):
+    def _finish(self, phys, reward, drawn=None, *, first, step, stack, key, perturb, bg_index):
+        """The step's timestep from its physics state and reward; `drawn`: its (rgb, labels),
+        if drawn already (`_advance_drawn`)."""
         t0 = time.perf_counter()
-        qpos = np.asarray(self.physics.qpos(phys)).reshape(self.batch, -1)
-        t1 = time.perf_counter()
-        rgb, labels = self._pool.render(qpos, perturb=perturb)
+        if drawn is None:
+            qpos = np.asarray(self.physics.qpos(phys)).reshape(self.batch, -1)
+            t1 = time.perf_counter()
+            rgb, labels = self._pool.render(qpos, perturb=perturb)
+        else:
+            t1, (rgb, labels) = t0, drawn
         t2 = time.perf_counter()
         h, w, _ = self.spec.frame_shape
         video, video_frame = bg_index

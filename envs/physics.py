@@ -312,10 +312,10 @@ class CpuPhysics:
                 mujoco.mj_step(m, d, self.n_sub_steps - 1)
         mujoco.mj_step1(m, d)
 
-    def _step_envs(self, d, state, new, views, action, envs) -> None:
+    def _step_envs(self, d, state, new, views, action, envs, stepped=None) -> None:
         """Step the envs [(s, e), ...] one agent step on in `d`, writing their new state into
         `new` and their reward views after each of the `action_repeat` control steps into
-        `views` ([S, E, R] leaves)."""
+        `views` ([S, E, R] leaves); then `stepped(envs, new)`, if given."""
         for s, e in envs:
             self._load(d, state, (s, e))
             # step1 refreshes the position/velocity stage for the loaded state: dm_control's
@@ -329,8 +329,13 @@ class CpuPhysics:
                 write_view(views, (s, e, r), d)
             for k in new:
                 new[k][s, e] = getattr(d, k)
+        if stepped is not None:
+            stepped(envs, new)
 
-    def step(self, state: CpuState, action) -> tuple[CpuState, np.ndarray]:
+    def step(self, state: CpuState, action, stepped=None) -> tuple[CpuState, np.ndarray]:
+        """One agent step of every env; `stepped(envs, new)`: called on a physics thread as soon
+        as each thread's block of envs ([(s, e), ...], contiguous in row-major order) has its
+        new state in `new` (the next state's arrays, being filled)."""
         action = np.asarray(action, np.float64)
         num_s, num_e = state.qpos.shape[:2]
         new = {k: np.copy(v) for k, v in dataclasses.asdict(state).items()}
@@ -338,11 +343,11 @@ class CpuPhysics:
         views = jax.tree.map(lambda x: np.empty(shape + x.shape, x.dtype), self._view)
         envs = list(np.ndindex(num_s, num_e))
         if self._pool is None:
-            self._step_envs(self._datas[0], state, new, views, action, envs)
+            self._step_envs(self._datas[0], state, new, views, action, envs, stepped)
         else:  # contiguous blocks of envs, one per thread
             blocks = np.array_split(envs, self.threads)
             parts = [
-                self._pool.submit(self._step_envs, d, state, new, views, action, block)
+                self._pool.submit(self._step_envs, d, state, new, views, action, block, stepped)
                 for d, block in zip(self._datas, blocks, strict=True)
             ]
             # Every block ends before any error is raised: no thread still steps its MjData

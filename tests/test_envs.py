@@ -291,3 +291,28 @@ def test_cpu_physics_steps_on_the_env_thread(finger_env):
         del env.physics.step
     assert len(threads) == 1 and threads[0] is not threading.current_thread()
     assert not np.asarray(ts.first).any()
+
+
+def test_frames_drawn_as_stepped_equal_those_drawn_after():
+    """RenderSettings.as_stepped: each render worker draws its envs as soon as the physics
+    threads have stepped them; the frames, labels and states are those of drawing them all
+    afterwards, an env restarting alone included (the kitchen's envs end on success)."""
+    action = jax.random.uniform(jax.random.key(1), (2, 3, 6), minval=-1.0, maxval=1.0)
+    runs = []
+    for as_stepped in (False, True):
+        render = envs.RenderSettings(num_workers=2, as_stepped=as_stepped)
+        with envs.make("walker-walk", num_seeds=2, envs_per_seed=3, backend="cpu",
+                       render=render, physics_threads=4) as env:  # fmt: skip
+            state, _ = env.reset(jax.random.key(5))
+            steps = []
+            for t in range(3):
+                if t == 2:  # env (1, 0) alone restarts (its episode "ended")
+                    state = state.replace(last=np.array([[False] * 3, [True, False, False]]))
+                state, ts = env.step(state, action * (t + 1))
+                steps.append((np.asarray(ts.frame), np.asarray(ts.true_mask), state.physics.qpos))
+            runs.append(steps)
+    for (frame_a, mask_a, qpos_a), (frame_b, mask_b, qpos_b) in zip(*runs, strict=True):
+        np.testing.assert_array_equal(qpos_a, qpos_b)
+        np.testing.assert_array_equal(frame_a, frame_b)
+        np.testing.assert_array_equal(mask_a, mask_b)
+    assert not np.array_equal(runs[0][1][0], runs[0][2][0])  # the frames change step to step

@@ -381,21 +381,17 @@ class Env:
             sizes = [p.stop - p.start for p in draw.parts]
             part_of, left = np.repeat(np.arange(len(sizes)), sizes), list(sizes)
 
-            def stepped(envs, new):  # on a physics thread: its block of envs is stepped
-                rows = [int(s) * num_envs + int(e) for s, e in envs]
-                stepped_qpos = new["qpos"].reshape(self.batch, -1)
-                qpos[rows] = stepped_qpos[rows]
-                if start_qpos is not None:
-                    qpos[rows] = np.where(restart[rows, None], start_qpos[rows], qpos[rows])
+            def stepped(env, new):  # on a physics thread: env (s, e) has its new state
+                row = env[0] * num_envs + env[1]
+                restarts = start_qpos is not None and restart[row]
+                qpos[row] = start_qpos[row] if restarts else new["qpos"][env]
+                i = part_of[row]
                 with lock:
-                    done = []
-                    for i in part_of[rows]:
-                        left[i] -= 1
-                        if not left[i]:
-                            done.append(i)
-                for i in done:
-                    part = draw.parts[i]
-                    draw.send(i, qpos[part], perturb={k: v[part] for k, v in perturb.items()})
+                    left[i] -= 1
+                    if left[i]:
+                        return
+                part = draw.parts[i]
+                draw.send(i, qpos[part], perturb={k: v[part] for k, v in perturb.items()})
 
             phys, reward = self.physics.step(phys, action, stepped)
             if starts is not None:

@@ -281,6 +281,8 @@ class Drawing:
     def send(self, i: int, qpos, *, mocap_pos=None, mocap_quat=None, perturb=None) -> None:
         """Worker i draws its part's samples: qpos [n, nq] (and their perturbations, mocap)."""
         pool, part = self.pool, self.parts[i]
+        if self._waited:
+            raise RuntimeError(f"part {i} sent after the batch was collected")
         if len(qpos) != part.stop - part.start:
             raise ValueError(f"part {i} has {part.stop - part.start} samples, got {len(qpos)}")
         if not len(qpos):
@@ -304,10 +306,10 @@ class Drawing:
         if self._waited:
             return
         self._waited, errors = True, []
-        for i in self._busy:
+        for i in self._busy:  # every worker's answer read, so that none is left in its pipe
             try:
                 self.pool._receive(i)
-            except RuntimeError as err:
+            except (RuntimeError, TimeoutError) as err:
                 errors.append(err)
         if errors:
             raise errors[0]

@@ -424,7 +424,9 @@ class Env:
         physics: the wait for the actions, which the accelerator computes after the updates
         queued before them), "physics" (CPU physics; MJX: its dispatch and the wait for the states),
         "draw" (the render pool's frames and labels) and "post" (the frames' upload and their
-        device program's dispatch); then starts counting again. Call it with no step in flight."""
+        device program's dispatch; with `as_stepped` the drawing runs beside the physics and
+        "draw" is what is left of it); then starts counting again. Call it with no step in
+        flight."""
         taken, self._host_s = self._host_s, dict.fromkeys(self._host_s, 0.0)
         return taken
 

@@ -14,6 +14,10 @@ import os
 import shutil
 import tempfile
 
+# Every test draws with EGL (a GPU's, or Mesa's on CPU-only machines), whichever module imports
+# mujoco first: the README's test command works without exporting it.
+os.environ.setdefault("MUJOCO_GL", "egl")
+
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     _cache = tempfile.mkdtemp(prefix="dear_jax_tests_jax_cache_")
     atexit.register(shutil.rmtree, _cache, ignore_errors=True)

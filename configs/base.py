@@ -110,9 +110,6 @@ def get_config() -> ConfigDict:
     # Meshes of more faces drawn simplified to about this many (0: as shipped, or >= 1000): only
     # the kitchen's arm has such meshes (envs/kitchen.py, build_render_model).
     c.env.render.mesh_faces = 0
-    # CPU physics: draw each render worker's envs as soon as the physics threads have stepped
-    # them, beside the others' physics (envs/render.py, RenderSettings.as_stepped).
-    c.env.render.as_stepped = False
 
     c.agent = ConfigDict()
     c.agent.method = "dear"  # "drqv2" | "dear" | "sear" | "ted"

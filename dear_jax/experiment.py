@@ -23,6 +23,10 @@ from envs import distractions, render
 
 log = logging.getLogger("dear_jax")
 
+# Fields since removed that never changed what a run learns: the config.json of runs made
+# before still names them, and a resume or a comparison of configs passes over them.
+REMOVED_FIELDS = ("env.render.as_stepped",)
+
 # Config fields a resumed run may change: how long it runs, what and how often it logs, evaluates
 # and saves, and how fast it runs; never what it learns. Every other field, new ones included, is
 # part of the checkpoint's fingerprint, and a resume that changes one is refused.
@@ -38,7 +42,6 @@ RESUMABLE_CHANGES = (
     "profile.at_frame",
     "profile.iterations",
     "env.render.num_workers",
-    "env.render.as_stepped",
     "env.eval_backend",
     "env.physics_threads",
     "env.eval_physics_threads",
@@ -55,6 +58,7 @@ RESUMABLE_CHANGES = (
     "replay.disk",
     "devices",
     "devices_per_seed",
+    *REMOVED_FIELDS,
 )
 
 

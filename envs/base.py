@@ -33,7 +33,6 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import functools
-import threading
 import time
 from typing import Any
 
@@ -346,62 +345,19 @@ class Env:
         self._distractor.step()
         if reset.any():
             self._distractor.reset(reset.reshape(-1))
-        perturb = self._distractor.perturb()
         finish = functools.partial(
             self._finish,
             first=reset,
             step=step,
             stack=state.stack,
             key=state.key,
-            perturb=perturb,
+            perturb=self._distractor.perturb(),
             bg_index=self._distractor.background_index(),
         )
         advance = functools.partial(self._advance, state.physics, action, reset, starts)
-        if self.physics.on_host and self.render_settings.as_stepped and not reset.all():
-            drawn = functools.partial(
-                self._advance_drawn, state.physics, action, reset, starts, perturb=perturb
-            )
-            return self._executor.submit(lambda: finish(*drawn()))
         if self.physics.on_host:
             return self._executor.submit(lambda: finish(*advance()))
         return self._executor.submit(finish, *advance())
-
-    def _advance_drawn(self, phys, action, reset, starts, *, perturb):
-        """`_advance` (CPU physics, not every env restarting) with the frames drawn as the
-        physics threads step each render worker's envs (RenderSettings.as_stepped): (physics
-        state, reward, (rgb, labels))."""
-        t0 = time.perf_counter()
-        action = np.asarray(action)
-        t1 = time.perf_counter()
-        num_envs, qpos = self.shape[1], np.empty((self.batch, self._model.nq))
-        restart = reset.reshape(-1)
-        start_qpos = None if starts is None else starts[0].reshape(self.batch, -1)
-        lock = threading.Lock()
-        with self._pool.drawing(self.batch) as draw:
-            sizes = [p.stop - p.start for p in draw.parts]
-            part_of, left = np.repeat(np.arange(len(sizes)), sizes), list(sizes)
-
-            def stepped(env, new):  # on a physics thread: env (s, e) has its new state
-                row = env[0] * num_envs + env[1]
-                restarts = start_qpos is not None and restart[row]
-                qpos[row] = start_qpos[row] if restarts else new["qpos"][env]
-                i = part_of[row]
-                with lock:
-                    left[i] -= 1
-                    if left[i]:
-                        return
-                part = draw.parts[i]
-                draw.send(i, qpos[part], perturb={k: v[part] for k, v in perturb.items()})
-
-            phys, reward = self.physics.step(phys, action, stepped)
-            if starts is not None:
-                phys = self.physics.where(reset, self.physics.init(*starts), phys)
-            t2 = time.perf_counter()
-            drawn = draw.result()
-        self._host_s["action"] += t1 - t0
-        self._host_s["physics"] += t2 - t1  # the drawing of the envs stepped first beside it
-        self._host_s["draw"] += time.perf_counter() - t2  # the rest of the drawing
-        return phys, reward, drawn
 
     def _advance(self, phys, action, reset, starts):
         """(physics state, reward [S,E]) one agent step on; envs in `reset` start anew."""
@@ -424,9 +380,7 @@ class Env:
         physics: the wait for the actions, which the accelerator computes after the updates
         queued before them), "physics" (CPU physics; MJX: its dispatch and the wait for the states),
         "draw" (the render pool's frames and labels) and "post" (the frames' upload and their
-        device program's dispatch; with `as_stepped` the drawing runs beside the physics and
-        "draw" is what is left of it); then starts counting again. Call it with no step in
-        flight."""
+        device program's dispatch); then starts counting again. Call it with no step in flight."""
         taken, self._host_s = self._host_s, dict.fromkeys(self._host_s, 0.0)
         return taken
 
@@ -448,16 +402,13 @@ class Env:
         )
         self._distractor.set_state(state["distractor"])
 
-    def _finish(self, phys, reward, drawn=None, *, first, step, stack, key, perturb, bg_index):
-        """The step's timestep from its physics state and reward; `drawn`: its (rgb, labels),
-        if drawn already (`_advance_drawn`)."""
+    def _finish(self, phys, reward, *, first, step, stack, key, perturb, bg_index):
+        """The step's state and timestep from its physics state and reward: frames drawn, then
+        uploaded with the step's other host arrays."""
         t0 = time.perf_counter()
-        if drawn is None:
-            qpos = np.asarray(self.physics.qpos(phys)).reshape(self.batch, -1)
-            t1 = time.perf_counter()
-            rgb, labels = self._pool.render(qpos, perturb=perturb)
-        else:
-            t1, (rgb, labels) = t0, drawn
+        qpos = np.asarray(self.physics.qpos(phys)).reshape(self.batch, -1)
+        t1 = time.perf_counter()
+        rgb, labels = self._pool.render(qpos, perturb=perturb)
         t2 = time.perf_counter()
         h, w, _ = self.spec.frame_shape
         video, video_frame = bg_index

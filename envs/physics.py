@@ -44,10 +44,8 @@ import concurrent.futures
 import contextlib
 import copy
 import dataclasses
-import functools
 import io
 import logging
-import threading
 
 import jax
 import jax.numpy as jnp
@@ -332,45 +330,21 @@ class CpuPhysics:
             for k in new:
                 new[k][s, e] = getattr(d, k)
 
-    def _step_in_order(self, d, state, new, views, action, envs, take, stepped) -> None:
-        """Step the next env of the shared iterator `envs` (under the lock `take`) until none is
-        left, calling `stepped((s, e), new)` after each."""
-        while True:
-            with take:
-                env = next(envs, None)
-            if env is None:
-                return
-            self._step_envs(d, state, new, views, action, [env])
-            stepped(env, new)
-
-    def step(self, state: CpuState, action, stepped=None) -> tuple[CpuState, np.ndarray]:
-        """One agent step of every env. With `stepped`, the threads take the envs one by one in
-        row-major order and call `stepped((s, e), new)` as soon as that env's new state is in
-        `new` (the next state's arrays, being filled), so the first rows are ready first."""
+    def step(self, state: CpuState, action) -> tuple[CpuState, np.ndarray]:
         action = np.asarray(action, np.float64)
         num_s, num_e = state.qpos.shape[:2]
         new = {k: np.copy(v) for k, v in dataclasses.asdict(state).items()}
         shape = (num_s, num_e, self.action_repeat)
         views = jax.tree.map(lambda x: np.empty(shape + x.shape, x.dtype), self._view)
         envs = list(np.ndindex(num_s, num_e))
-        if stepped is not None:  # any env may step in any MjData: each loads its own state
-            queue, take = iter(envs), threading.Lock()
-            jobs = [
-                functools.partial(
-                    self._step_in_order, d, state, new, views, action, queue, take, stepped
-                )
-                for d in self._datas
-            ]
+        if self._pool is None:
+            self._step_envs(self._datas[0], state, new, views, action, envs)
         else:  # contiguous blocks of envs, one per thread
             blocks = np.array_split(envs, self.threads)
-            jobs = [
-                functools.partial(self._step_envs, d, state, new, views, action, block)
+            parts = [
+                self._pool.submit(self._step_envs, d, state, new, views, action, block)
                 for d, block in zip(self._datas, blocks, strict=True)
             ]
-        if self._pool is None:
-            jobs[0]()
-        else:
-            parts = [self._pool.submit(job) for job in jobs]
             # Every block ends before any error is raised: no thread still steps its MjData
             # when the next step hands it new work.
             concurrent.futures.wait(parts)

@@ -108,9 +108,6 @@ class RenderSettings:
     # False: no segmentation pass, labels all 0 (LABEL_BACKGROUND), for an env that needs no
     # agent mask and composites no background (dear_jax.experiment.make_env decides, by method).
     labels: bool = True
-    # CPU physics: each worker draws its part of the batch as soon as the physics threads have
-    # stepped its envs, beside the other envs' physics, instead of once all are stepped.
-    as_stepped: bool = False
     # For measurements only (benchmarks/render.py), never set by configs:
     # visuals: effects other than the quality's (None = the quality's);
     # in_place: draw each sample straight into its place in a sheet-sized MuJoCo buffer (the

@@ -7,7 +7,6 @@ shared-memory block; only the small inputs (qpos, perturbations) are pickled.
 
 from __future__ import annotations
 
-import contextlib
 import signal
 import threading
 import traceback
@@ -215,29 +214,38 @@ class RenderPool:
         for name, arr in [("mocap_pos", mocap_pos), ("mocap_quat", mocap_quat), *perturb.items()]:
             if arr is not None and np.shape(arr)[0] != batch:
                 raise ValueError(f"{name} has leading dim {np.shape(arr)[0]}, qpos has {batch}")
-        with self.drawing(batch) as draw:
-            for i, part in enumerate(draw.parts):
-                draw.send(
-                    i,
-                    qpos[part],
-                    mocap_pos=None if mocap_pos is None else np.asarray(mocap_pos)[part],
-                    mocap_quat=None if mocap_quat is None else np.asarray(mocap_quat)[part],
-                    perturb={k: v[part] for k, v in perturb.items()},
-                )
-            return draw.result()
-
-    @contextlib.contextmanager
-    def drawing(self, batch: int):
-        """A batch of `batch` samples drawn part by part (`Drawing`): worker i draws the rows
-        `parts[i]`, from when its part is sent, so parts can go out as their states are ready."""
+        h, w = self.settings.height, self.settings.width
         with self._lock:
             self._ensure_capacity(batch)
             bounds = np.linspace(0, batch, len(self._conns) + 1).round().astype(int)
-            draw = Drawing(self, batch, [slice(lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:])])
-            try:
-                yield draw
-            finally:
-                draw.wait()
+            busy = []
+            for i, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
+                if hi <= lo:
+                    continue
+                part = slice(lo, hi)
+                self._conns[i].send(
+                    (
+                        "render",
+                        self._shm.name,
+                        self._capacity,
+                        int(lo),
+                        qpos[part],
+                        None if mocap_pos is None else np.asarray(mocap_pos)[part],
+                        None if mocap_quat is None else np.asarray(mocap_quat)[part],
+                        {k: v[part] for k, v in perturb.items()},
+                    )
+                )
+                busy.append(i)
+            errors = []
+            for i in busy:
+                try:
+                    self._receive(i)
+                except RuntimeError as err:
+                    errors.append(err)
+            if errors:
+                raise errors[0]
+            rgb, labels = _views(self._shm, self._capacity, h, w)
+            return rgb[:batch].copy(), labels[:batch].copy()
 
     def close(self) -> None:
         for conn in self._conns:
@@ -267,58 +275,3 @@ class RenderPool:
     def __del__(self) -> None:
         if getattr(self, "_conns", None):
             self.close()
-
-
-class Drawing:
-    """One batch being drawn (RenderPool.drawing): `send` each worker its part (from any thread,
-    each part once), then `result`."""
-
-    def __init__(self, pool: RenderPool, batch: int, parts: list[slice]):
-        self.pool, self.batch, self.parts = pool, batch, parts
-        self._busy: list[int] = []
-        self._waited = False
-
-    def send(self, i: int, qpos, *, mocap_pos=None, mocap_quat=None, perturb=None) -> None:
-        """Worker i draws its part's samples: qpos [n, nq] (and their perturbations, mocap)."""
-        pool, part = self.pool, self.parts[i]
-        if self._waited:
-            raise RuntimeError(f"part {i} sent after the batch was collected")
-        if len(qpos) != part.stop - part.start:
-            raise ValueError(f"part {i} has {part.stop - part.start} samples, got {len(qpos)}")
-        if not len(qpos):
-            return
-        pool._conns[i].send(
-            (
-                "render",
-                pool._shm.name,
-                pool._capacity,
-                int(part.start),
-                np.asarray(qpos, np.float64),
-                mocap_pos,
-                mocap_quat,
-                perturb or {},
-            )
-        )
-        self._busy.append(i)
-
-    def wait(self) -> None:
-        """Every part sent has been drawn (the first worker's error raised)."""
-        if self._waited:
-            return
-        self._waited, errors = True, []
-        for i in self._busy:  # every worker's answer read, so that none is left in its pipe
-            try:
-                self.pool._receive(i)
-            except (RuntimeError, TimeoutError) as err:
-                errors.append(err)
-        if errors:
-            raise errors[0]
-
-    def result(self) -> tuple[np.ndarray, np.ndarray]:
-        """(rgb uint8 [B,H,W,3], labels uint8 [B,H,W]) once every part was sent and drawn."""
-        if sorted(self._busy) != [i for i, p in enumerate(self.parts) if p.stop > p.start]:
-            raise RuntimeError(f"parts {sorted(self._busy)} of {len(self.parts)} were sent")
-        self.wait()
-        h, w = self.pool.settings.height, self.pool.settings.width
-        rgb, labels = _views(self.pool._shm, self.pool._capacity, h, w)
-        return rgb[: self.batch].copy(), labels[: self.batch].copy()

@@ -291,36 +291,3 @@ def test_cpu_physics_steps_on_the_env_thread(finger_env):
         del env.physics.step
     assert len(threads) == 1 and threads[0] is not threading.current_thread()
     assert not np.asarray(ts.first).any()
-
-
-@pytest.mark.parametrize(
-    "threads, workers, shape", [(4, 2, (2, 3)), (1, 2, (2, 3)), (8, 4, (1, 2))]
-)
-def test_frames_drawn_as_stepped_equal_those_drawn_after(threads, workers, shape):
-    """RenderSettings.as_stepped: each render worker draws its envs as soon as the physics
-    threads have stepped them; the frames, labels and states are those of drawing them all
-    afterwards, an env restarting alone included (the kitchen's envs end on success). Also with
-    one physics thread, and with more threads and workers than envs."""
-    action = jax.random.uniform(jax.random.key(1), shape + (6,), minval=-1.0, maxval=1.0)
-    runs = []
-    for as_stepped in (False, True):
-        render = envs.RenderSettings(num_workers=workers, as_stepped=as_stepped)
-        with envs.make("walker-walk", num_seeds=shape[0], envs_per_seed=shape[1], backend="cpu",
-                       render=render, physics_threads=threads) as env:  # fmt: skip
-            state, _ = env.reset(jax.random.key(5))
-            if as_stepped:  # the steps below must draw part by part, not after
-                env._pool.render = None
-            steps = []
-            for t in range(3):
-                if t == 2:  # env (-1, 0) alone restarts (its episode "ended")
-                    last = np.zeros(shape, bool)
-                    last[-1, 0] = True
-                    state = state.replace(last=last)
-                state, ts = env.step(state, action * (t + 1))
-                steps.append((np.asarray(ts.frame), np.asarray(ts.true_mask), state.physics.qpos))
-            runs.append(steps)
-    for (frame_a, mask_a, qpos_a), (frame_b, mask_b, qpos_b) in zip(*runs, strict=True):
-        np.testing.assert_array_equal(qpos_a, qpos_b)
-        np.testing.assert_array_equal(frame_a, frame_b)
-        np.testing.assert_array_equal(mask_a, mask_b)
-    assert not np.array_equal(runs[0][1][0], runs[0][2][0])  # the frames change step to step

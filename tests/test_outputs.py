@@ -873,7 +873,7 @@ def paper_run(workdir, spec, seed, frames, seeds=1, summary=True, **fields):
 def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
     """`report grid`: a run counts in the cell of configs/paper.py whose config it has, but for
     its seeds, envs per seed, dtype and replay (a field it lacks: its old behaviour,
-    experiment.ADDED_FIELDS). A seed trained to the end twice counts once; a run stopped short is
+    experiment.ADDED_FIELDS; a field since removed: passed over). A seed trained to the end twice counts once; a run stopped short is
     listed with its frames (a checkpoint: a resume command); free config.seed values fill the
     missing seeds that no resume brings, one seed-run each; every other run is named with the
     field that keeps it out."""
@@ -883,7 +883,15 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
 
     runs = [
         run("w_dear_s0", "walker,dear", 0, 1_000_000),
-        run("w_dear_s0_again", "walker,dear", 0, 1_000_000, envs_per_seed=16),
+        # made when the config had a field since removed (experiment.REMOVED_FIELDS)
+        run(
+            "w_dear_s0_again",
+            "walker,dear",
+            0,
+            1_000_000,
+            envs_per_seed=16,
+            **{"env.render.as_stepped": False},
+        ),
         run("w_dear_s1", "walker,dear", 1, 500_000, **{"agent.compute_dtype": "bfloat16"}),
         run("w_dear_s4", "walker,dear", 4, 0, summary=False, **{"replay.capacity": 1000}),
         run("w_dear_refcos", "walker,dear", 5, 1_000_000, **{"agent.ortho_form": "reference_code"}),

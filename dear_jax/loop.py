@@ -320,6 +320,7 @@ class Loop:
             config.log_every_frames,
             t_start,
             iteration=counters["iteration"],
+            updates=counters["updates"],
             host_seconds=self.host_seconds,
         )
         self.host_seconds()  # the steps of the env's reset and of earlier runs are not counted

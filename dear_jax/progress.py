@@ -4,6 +4,7 @@ rows (`TrainLog`: one per log interval, once an update or an episode has ended s
 from __future__ import annotations
 
 import logging
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -58,7 +59,10 @@ class TrainLog:
     """The train log's rows: the training metrics averaged since the last row, the mean return of
     the episodes ended since then, the rate in frames per second over all lanes, and where an
     iteration's time went on the host (`host_seconds`: a callable returning the seconds spent
-    since its last call by stage, logged as `<stage>_ms` per iteration)."""
+    since its last call by stage, logged as `<stage>_ms` per iteration, beside `iteration_ms` and
+    the row's `iterations`). A row whose interval holds this process's compilations (its first
+    row, and the row of its first update: `updates` is the count it starts from) leaves those
+    timings empty: they would describe the compiler, not an iteration."""
 
     def __init__(
         self,
@@ -69,11 +73,14 @@ class TrainLog:
         every_frames: int,
         t0: float,
         iteration: int,
+        updates: int,
         host_seconds: Callable[[], dict[str, float]],
     ):
         self.logger, self.progress, self.hosts = logger, progress, hosts
         self.num_lanes, self.every_frames, self.last_t = num_lanes, every_frames, t0
         self.last_iteration, self.host_seconds = iteration, host_seconds
+        self.first_updates = self.last_updates = updates
+        self.rows = 0  # rows this process wrote
 
     def write_if_due(self, carry) -> None:
         """A row, if the log interval has passed and something happened since the last one
@@ -87,12 +94,19 @@ class TrainLog:
         carry.episodes_pending = False
         now = time.perf_counter()
         iterations = max(counters["iteration"] - self.last_iteration, 1)
+        timings = {
+            "iteration_ms": (now - self.last_t) * 1e3 / iterations,
+            **{f"{k}_ms": s * 1e3 / iterations for k, s in self.host_seconds().items()},
+        }
+        first_update = self.last_updates == self.first_updates < counters["updates"]
+        if self.rows == 0 or first_update:
+            timings = dict.fromkeys(timings, math.nan)
         row = {
             "episode": counters["episode"],
             "updates": counters["updates"],
             "fps": (frame - lv["last_log_frame"]) * self.num_lanes / max(now - self.last_t, 1e-9),
-            "iteration_ms": (now - self.last_t) * 1e3 / iterations,
-            **{f"{k}_ms": s * 1e3 / iterations for k, s in self.host_seconds().items()},
+            "iterations": iterations,
+            **timings,
         }
         if lv["metric_count"]:
             row.update(
@@ -114,5 +128,6 @@ class TrainLog:
             extra={"console": self.progress.bar is None},
         )
         self.last_t, lv["last_log_frame"] = now, frame
-        self.last_iteration = counters["iteration"]
+        self.last_iteration, self.last_updates = counters["iteration"], counters["updates"]
+        self.rows += 1
         lv["next_log"] = frame + self.every_frames

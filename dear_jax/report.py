@@ -642,7 +642,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
     used, whose workdir name (the cell's "name", then _sSEED) is not in `taken`."""
     from configs import paper
     from configs.base import get_config
-    from dear_jax.experiment import ADDED_FIELDS, RESUMABLE_CHANGES
+    from dear_jax.experiment import ADDED_FIELDS, REMOVED_FIELDS, RESUMABLE_CHANGES
 
     kept = grid_run_fields()  # a resume restarts a run with what it chose
     # A field a run's config lacks: what the code did before the field, else today's default.
@@ -687,6 +687,8 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
             raise FileNotFoundError(f"{path} not found: give the workdir of a run")
         config = json.loads(path.read_text())
         fields = {**defaults, **lanes.flatten(config)}
+        for key in REMOVED_FIELDS:  # no resume command may name them
+            fields.pop(key, None)
         same = [c for c in cells.values() if c["ref"]["env.task"] == fields["env.task"]]
         same = [c for c in same if c["method"] == fields["agent.method"]]
         if not same:

@@ -31,13 +31,17 @@ STAGES = {
 
 
 def stage_means(train_log: dict[str, np.ndarray], rows=slice(None)) -> dict[str, float]:
-    """ms per iteration, the mean over the train log's `rows`, of its `iteration_ms` and the
-    host's stages (every `*_ms` column)."""
-    return {
-        k: float(np.nanmean(v[rows]))
-        for k, v in train_log.items()
-        if k.endswith("_ms") and np.isfinite(v[rows]).any()
-    }
+    """ms per iteration of the train log's `iteration_ms` and the host's stages (every `*_ms`
+    column), over its `rows` that have them, each row weighted by its `iterations` (a log
+    without that column: equally)."""
+    weights = train_log.get("iterations")
+    means = {}
+    for k, v in train_log.items():
+        timed = np.isfinite(v[rows]) if k.endswith("_ms") else False
+        if np.any(timed):
+            w = np.ones(timed.shape) if weights is None else weights[rows]
+            means[k] = float(np.average(v[rows][timed], weights=w[timed]))
+    return means
 
 
 def _stages_line(ms: dict[str, float]) -> str:
@@ -45,7 +49,7 @@ def _stages_line(ms: dict[str, float]) -> str:
     if "iteration_ms" not in ms:
         return ""
     stages = ", ".join(words.format(ms[k]) for k, words in STAGES.items() if k in ms)
-    return f"; {ms['iteration_ms']:.1f} ms an iteration: the env thread {stages}"
+    return f"; {ms['iteration_ms']:.1f} ms an iteration: the env {stages}"
 
 
 def _distraction_line(spec: envs.EnvSpec) -> str:

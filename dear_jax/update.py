@@ -277,6 +277,8 @@ def act(
     from fold_in(hold_key, the block of K agent steps per env this step is in) rather than from
     `key`, so each env keeps its noise (scaled by the current std) or its uniform action for K
     steps: exploration correlated over time. With K = 1, or no `hold_key`, every step draws anew.
+    The block follows the seed's steps taken over its N envs: where envs restart (and take no
+    step) the blocks of the others last a little longer than K steps.
     """
     nets = make_networks(cfg)
     z = nets.encoder.apply({"params": state.params["encoder"]}, obs)

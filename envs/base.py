@@ -361,13 +361,13 @@ class Env:
 
     def _advance(self, phys, action, reset, starts):
         """(physics state, reward [S,E]) one agent step on; envs in `reset` start anew."""
-        t0 = time.perf_counter()
-        if self.physics.on_host:  # the policy's actions, computed after the queued updates
-            action = np.asarray(action)
-        t1 = time.perf_counter()
-        if reset.all():
+        t0 = t1 = time.perf_counter()
+        if reset.all():  # no env reads the actions
             phys, reward = self.physics.init(*starts), np.zeros(self.shape, np.float32)
         else:
+            if self.physics.on_host:  # the policy's actions, computed after the queued updates
+                action = np.asarray(action)
+                t1 = time.perf_counter()
             phys, reward = self.physics.step(phys, action)
             if starts is not None:
                 phys = self.physics.where(reset, self.physics.init(*starts), phys)
@@ -419,8 +419,8 @@ class Env:
             success = (np.asarray(reward).reshape(self.shape) > 0) & ~first
             last = last | success
             reward = success.astype(np.float32)
-        # The step's host arrays go to the device in one transfer call and are used by one
-        # program: on the env thread every dispatch is a wait beside the training's.
+        # The step's host arrays are the arguments of one program (sharded: placed by one
+        # transfer call first): on the env thread every dispatch is a wait beside the training's.
         per_env = (
             np.reshape(rgb, self.shape + (h, w, 3)),
             np.reshape(labels, self.shape + (h, w)),

@@ -66,7 +66,7 @@ def test_csv_header_is_the_union_of_metrics(tmp_path):
 def test_train_rows_average_the_returns_of_episodes_ended_at_different_steps(tmp_path):
     """Kitchen envs end on success, each at its own step: the loop's device sums (programs.
     accumulate), kept in the carry until a row reads them, give each seed's mean return; pending
-    sums survive a checkpoint's extra, as do those a run saved as host arrays."""
+    sums survive a checkpoint's extra."""
     from types import SimpleNamespace
 
     from dear_jax.carry import Carry
@@ -94,22 +94,39 @@ def test_train_rows_average_the_returns_of_episodes_ended_at_different_steps(tmp
         c.add_ended(ended_returns, np.array(last, bool))
     expected = [[[3.0, 0.0], [1, 0]], [[7.0, 18.0], [1, 1]]]
     np.testing.assert_array_equal(c.ended_episodes(), expected)
-    # A checkpoint's extra (json) and back; a run saved before holds them as [2, S] host arrays.
+    # A checkpoint's extra (json) and back.
     extra = c.extra(env_rng={}, eval_env_rng={}, replay_on_disk=False)
-    older = dict(extra, episode_returns=[np.array(e, np.float64) for e in expected])
-    for saved in (extra, older):
-        resumed = carry()
-        resumed.load_host_values(_decode_arrays(_jsonable(saved, "extra")), 10)
-        np.testing.assert_array_equal(resumed.ended_episodes(), expected)
-        assert resumed.episodes_pending
+    resumed = carry()
+    resumed.load_host_values(_decode_arrays(_jsonable(extra, "extra")), 10)
+    np.testing.assert_array_equal(resumed.ended_episodes(), expected)
+    assert resumed.episodes_pending
     c.counters["frame"], c.counters["iteration"], c.episodes_pending = 3, 3, True
     with RunLogger(tmp_path, 2, tensorboard=False) as log:
         TrainLog(
-            log, Progress(False, 10, 0), hosts, 2, 1, 0.0, iteration=0, host_seconds=dict
+            log, Progress(False, 10, 0), hosts, 2, 1, 0.0, iteration=0, updates=0, host_seconds=dict
         ).write_if_due(c)
     returns = [read_csv(tmp_path / f"seed_{s}" / "train.csv")["episode_return"] for s in (0, 1)]
     np.testing.assert_array_equal(returns, [[5.0], [18.0]])  # (3 + 7) / 2; 18 / 1
     assert c.episode_returns == []
+
+
+def test_stage_means_weigh_rows_by_their_iterations():
+    """The summary's ms per iteration: rows of more iterations weigh more; untimed rows (NaN:
+    a process's compilations) and columns other than `*_ms` are left out; a log without
+    `iterations` (older runs) weighs its rows equally."""
+    from dear_jax.summary import stage_means
+
+    log = {
+        "iteration_ms": np.array([np.nan, 10.0, 20.0]),
+        "env_draw_ms": np.array([np.nan, 4.0, 8.0]),
+        "iterations": np.array([50.0, 1.0, 3.0]),
+        "fps": np.array([1.0, 2.0, 3.0]),
+    }
+    assert stage_means(log) == {"iteration_ms": 17.5, "env_draw_ms": 7.0}
+    assert stage_means(log, slice(0, 2)) == {"iteration_ms": 10.0, "env_draw_ms": 4.0}
+    del log["iterations"]
+    assert stage_means(log) == {"iteration_ms": 15.0, "env_draw_ms": 6.0}
+    assert stage_means({"iteration_ms": np.array([np.nan])}) == {}
 
 
 def test_write_rejects_bad_kind_and_shape(tmp_path):
@@ -892,7 +909,13 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
             envs_per_seed=16,
             **{"env.render.as_stepped": False},
         ),
-        run("w_dear_s1", "walker,dear", 1, 500_000, **{"agent.compute_dtype": "bfloat16"}),
+        run(
+            "w_dear_s1",
+            "walker,dear",
+            1,
+            500_000,
+            **{"agent.compute_dtype": "bfloat16", "env.render.as_stepped": False},
+        ),
         run("w_dear_s4", "walker,dear", 4, 0, summary=False, **{"replay.capacity": 1000}),
         run("w_dear_refcos", "walker,dear", 5, 1_000_000, **{"agent.ortho_form": "reference_code"}),
         run("w_dear_full", "walker,dear,medium-full", 6, 1_000_000),

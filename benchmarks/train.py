@@ -288,15 +288,18 @@ def main():
     if args.vary:
         result["variants"] = []
         rows = []
-        for round_ in range(args.rounds):
-            for config_set in combinations:
-                varied = bench_config(args)
-                for item in config_set:
-                    set_field(varied, item)
-                tp = throughput(varied, args.warmup_frames)
-                result["variants"].append(dict(set=config_set, round=round_, **tp))
-                rows.append([" ".join(config_set), round_, f"{tp['aggregate_fps']:.0f}"])
-                save()
+        todo = [(r, config_set) for r in range(args.rounds) for config_set in combinations]
+        for round_, config_set in todo:
+            varied = bench_config(args)
+            for item in config_set:
+                set_field(varied, item)
+            tp = throughput(varied, args.warmup_frames)
+            result["variants"].append(dict(set=config_set, round=round_, **tp))
+            rows.append([" ".join(config_set), round_, f"{tp['aggregate_fps']:.0f}"])
+            save()
+            if tp["updates_per_seed"] is None:  # a signal stopped it: so it stops the rest
+                print(f"stopped: {len(todo) - len(rows)} setting(s) not measured")
+                break
         print(f"\nEnd to end ({device.device_kind}), env frames/s in all:")
         print(format_table(["setting", "round", "frames/s"], rows))
     elif "throughput" not in args.skip:

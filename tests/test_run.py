@@ -913,6 +913,31 @@ def test_benchmarks_vary_fields_over_every_combination():
         variants([["env.physics_threads"]])
 
 
+def test_benchmarks_vary_stops_at_a_signal(tmp_path, monkeypatch, capsys):
+    """A setting cut short by a signal (a time limit's SIGTERM) keeps its rows, and the settings
+    after it are not started: the command ends instead of measuring on past its limit."""
+    import sys
+
+    from benchmarks import train as bench
+
+    measured = []
+
+    def throughput(config, warmup_frames):  # the second setting is stopped
+        measured.append(config.env.physics_threads)
+        return {"aggregate_fps": 1.0, "updates_per_seed": None if len(measured) == 2 else 5}
+
+    monkeypatch.setattr(bench, "throughput", throughput)
+    out = tmp_path / "vary.json"
+    argv = ["train.py", "--config", "configs/smoke.py", "--skip", "split", "--out", str(out)]
+    argv += ["--vary", "env.physics_threads", "1", "2", "3", "--rounds", "2"]
+    monkeypatch.setattr(sys, "argv", argv)
+    bench.main()
+    assert measured == [1, 2]
+    saved = json.loads(out.read_text())["variants"]
+    assert [v["set"] for v in saved] == [["env.physics_threads=1"], ["env.physics_threads=2"]]
+    assert "stopped: 4 setting(s) not measured" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize(
     "overrides, message",
     [

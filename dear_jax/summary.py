@@ -33,14 +33,15 @@ STAGES = {
 def stage_means(train_log: dict[str, np.ndarray], rows=slice(None)) -> dict[str, float]:
     """ms per iteration of the train log's `iteration_ms` and the host's stages (every `*_ms`
     column), over its `rows` that have them, each row weighted by its `iterations` (a log
-    without that column: equally)."""
-    weights = train_log.get("iterations")
+    without that column: equally; rows written before it, by older code: left out)."""
+    weights = train_log.get("iterations", np.ones(len(train_log["frame"])))[rows]
     means = {}
     for k, v in train_log.items():
-        timed = np.isfinite(v[rows]) if k.endswith("_ms") else False
-        if np.any(timed):
-            w = np.ones(timed.shape) if weights is None else weights[rows]
-            means[k] = float(np.average(v[rows][timed], weights=w[timed]))
+        if not k.endswith("_ms"):
+            continue
+        timed = np.isfinite(v[rows]) & np.isfinite(weights)
+        if timed.any():
+            means[k] = float(np.average(v[rows][timed], weights=weights[timed]))
     return means
 
 

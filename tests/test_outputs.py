@@ -117,16 +117,17 @@ def test_stage_means_weigh_rows_by_their_iterations():
     from dear_jax.summary import stage_means
 
     log = {
-        "iteration_ms": np.array([np.nan, 10.0, 20.0]),
-        "env_draw_ms": np.array([np.nan, 4.0, 8.0]),
-        "iterations": np.array([50.0, 1.0, 3.0]),
-        "fps": np.array([1.0, 2.0, 3.0]),
+        "frame": np.array([10, 20, 30, 40]),
+        "iteration_ms": np.array([99.0, np.nan, 10.0, 20.0]),
+        "env_draw_ms": np.array([99.0, np.nan, 4.0, 8.0]),
+        "iterations": np.array([np.nan, 50.0, 1.0, 3.0]),  # row 0: written by older code
+        "fps": np.array([1.0, 1.0, 2.0, 3.0]),
     }
     assert stage_means(log) == {"iteration_ms": 17.5, "env_draw_ms": 7.0}
-    assert stage_means(log, slice(0, 2)) == {"iteration_ms": 10.0, "env_draw_ms": 4.0}
+    assert stage_means(log, slice(0, 3)) == {"iteration_ms": 10.0, "env_draw_ms": 4.0}
     del log["iterations"]
-    assert stage_means(log) == {"iteration_ms": 15.0, "env_draw_ms": 6.0}
-    assert stage_means({"iteration_ms": np.array([np.nan])}) == {}
+    assert stage_means(log) == {"iteration_ms": 43.0, "env_draw_ms": 37.0}
+    assert stage_means({"frame": np.array([1]), "iteration_ms": np.array([np.nan])}) == {}
 
 
 def test_write_rejects_bad_kind_and_shape(tmp_path):

@@ -31,20 +31,29 @@ def test_the_readmes_loss_snippet_computes_what_it_says():
     assert float(names["loss"]) == pytest.approx(1.0 + 0.25 * 4 * np.log(2) + 100.0 * 0.5, rel=1e-6)
 
 
-def test_own_agent_learns_the_mask_and_beta_separates_the_halves():
-    """examples/own_agent.py: from the same start, both runs learn the task and the mask, and
-    only the one with DEAR's orthogonality weight drives |cos(z_A, z_E)| down (measured: 0.12 at
-    the start; 0.015 with beta = 100 and 0.19 without, after 60 steps)."""
+def test_own_agent_reads_the_square_and_beta_separates_the_halves():
+    """examples/own_agent.py, 200 steps of batch 16, from the same start with beta = 100 and
+    beta = 0 (held-out batch of 128; seeds 0-2 measured on a 2-core CPU, jax 0.10.2): the head
+    reads the square's column better than any frame-blind predictor (best logged task loss
+    0.003-0.016 against 0.090); without the orthogonality term the decoder finds the square
+    (mask loss 77-104 against the frame-blind 239); with it |cos(z_A, z_E)| falls from ~0.1 to
+    0.014-0.033, while without it it stays at 0.13-0.14."""
     sys.path.insert(0, str(ROOT / "examples"))
     try:
         import own_agent
     finally:
         sys.path.remove(str(ROOT / "examples"))
-    runs = {b: own_agent.train(steps=60, beta=b, batch_size=16, log_every=60) for b in (100.0, 0.0)}
-    (start, dear), (start_0, plain) = runs[100.0], runs[0.0]
-    assert start == start_0  # the same seed: the same parameters and first batch
-    for first, last in ((start, dear), (start_0, plain)):
-        assert last["step"] == 60
-        assert last["mask"] < 0.5 * first["mask"] and last["task"] < 0.25 * first["task"]
-    assert dear["abs_cos_agent_env"] < min(0.05, start["abs_cos_agent_env"] / 4)
-    assert plain["abs_cos_agent_env"] > 3 * dear["abs_cos_agent_env"]
+    blind = own_agent.frame_blind_losses()
+    assert blind["mask"] == pytest.approx(1024 * 0.2337, rel=1e-3)  # H(1/16) per pixel
+    assert blind["task"] == pytest.approx(624 / 12 / 576)  # columns uniform on 0..24, / 24
+    runs = {
+        b: own_agent.train(steps=200, beta=b, batch_size=16, log_every=50) for b in (100.0, 0.0)
+    }
+    dear, plain = runs[100.0], runs[0.0]
+    assert dear[0] == plain[0]  # the same seed: the same parameters, measured on the same batch
+    assert [r["step"] for r in dear] == [0, 50, 100, 150, 200]
+    for run in (dear, plain):
+        assert min(r["task"] for r in run[1:]) < 0.5 * blind["task"]
+    assert plain[-1]["mask"] < 0.6 * blind["mask"]
+    assert dear[-1]["abs_cos_agent_env"] < min(0.05, dear[0]["abs_cos_agent_env"] / 2)
+    assert plain[-1]["abs_cos_agent_env"] > 2 * dear[-1]["abs_cos_agent_env"]

@@ -229,7 +229,9 @@ def _cosine(task, seeds) -> dict:
     if np.isnan(d).any() or np.isnan(s).any():
         return dict(claim=claim, task=task, evidence="-", verdict="no data: logs without |cos|")
     ratio = s.mean() / d.mean()
-    evidence = f"DEAR {d.mean():.1e}, SEAR {s.mean():.1e}: {ratio:.1f}x{note}"
+    evidence = (
+        f"DEAR {d.mean():.1e}, SEAR {s.mean():.1e}: {ratio:.1f}x (asked: >= {COS_RATIO:g}x){note}"
+    )
     holds = ratio >= COS_RATIO
     verdict = f"{'holds' if holds else 'does not hold'} ({_separate(s, d)})"
     return dict(claim=claim, task=task, evidence=evidence, verdict=verdict)

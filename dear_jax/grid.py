@@ -367,7 +367,10 @@ def main(argv=None) -> list[dict] | None:
         jobs = report.grid_jobs(grid, args.frames, str(root), extra, args.seeds_per_run)
     except ValueError as e:
         parser.error(str(e))
-    print(f"{len(jobs)} runs to complete the grid, {len(places)} at a time:")
+    if not jobs:
+        print("The grid is complete: no seed-run is missing.")
+    else:
+        print(f"{len(jobs)} runs to complete the grid, {len(places)} at a time:")
     for job in jobs:
         length = "" if job.seconds is None else f" (~{job.seconds / 60:.0f} min of training)"
         print(f"  {job.name}{length}: python run.py {shlex.join(job.args)}")
@@ -375,7 +378,10 @@ def main(argv=None) -> list[dict] | None:
     if known:
         some = f"{len(known)} of the {len(jobs)} runs (no length known for the rest)"
         runs = f"{len(jobs)} runs" if len(known) == len(jobs) else some
-        print(f"~{sum(known) / 3600:.1f} h of training in all, {runs}")
+        print(
+            f"~{sum(known) / 3600:.1f} h of training in all, {runs}, at the pace of the runs "
+            "named on their own devices"
+        )
     if args.dry_run or not jobs:
         return None
     queue = Queue(

@@ -908,7 +908,11 @@ def grid_table(
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m dear_jax.report", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="python -m dear_jax.report",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("params", help="parameter counts per method and module")
     p.add_argument("--action-dim", type=int, default=6, help="|A| (walker: 6)")

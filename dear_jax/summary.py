@@ -23,7 +23,7 @@ def _best(values: np.ndarray) -> float:
 # The train log's account of an iteration (dear_jax.loop.Loop.host_seconds), as the summary
 # words it: column -> words for its ms.
 STAGES = {
-    "env_action_ms": "waited {:.1f} ms for actions",
+    "env_action_ms": "waited {:.1f} ms for the agent's actions (queued behind its updates)",
     "env_physics_ms": "stepped {:.1f}",
     "env_draw_ms": "drew {:.1f}",
     "env_post_ms": "uploaded {:.1f}",
@@ -162,14 +162,15 @@ def write_summary(
     on = summary["device"] if devices == 1 else f"{devices} x {summary['device']}"
     if config.devices_per_seed > 1:
         on += f", {config.devices_per_seed} per {unit}"
+    prov = summary["provenance"]
     text = (
         f"# {config.agent.method} on {config.env.task}\n\n"
         f"{until}{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, "
         f"{wall:.0f} s of training ({fps:.0f} frames/s in all{_stages_line(ms)}) on {on} "
         f"({spec.backend} physics, {summary['conv_stack']} conv stacks{kernels}, evaluations on "
         f"{summary['eval_device']}{evaluators}); {_distraction_line(spec)}{held}; render "
-        f"settings {summary['render']}; commit {summary['provenance']['commit']}, jax "
-        f"{summary['provenance']['jax']}\n\n{table}\n"
+        f"settings {summary['render']}; commit {prov['commit']}, jax {prov['jax']}, flax "
+        f"{prov['flax']}, mujoco {prov['mujoco']}\n\n{table}\n"
     )
     write_text_atomic(workdir / "summary.md", text)
     write_text_atomic(workdir / "summary.json", json.dumps(summary, indent=1))

@@ -351,6 +351,22 @@ def test_bad_settings_are_refused_by_name(tmp_path, capsys):
     assert "--set 'agent.alpha=0'" in capsys.readouterr().err
 
 
+def test_a_complete_grid_says_so_and_starts_nothing(tmp_path, capsys):
+    """Every seed of the cells asked for at the frames asked for: the queue says the grid is
+    complete (no job listed, no training time) and returns without starting anything."""
+    root = tmp_path / "runs"
+    for seed in range(3):
+        paper_run(root / f"walker_dear_s{seed}", "walker,dear", seed, 1_000_000)
+    assert (
+        grid.main(["--root", str(root), "--tasks", "walker", "--methods", "dear", "--gpus", "0"])
+        is None
+    )
+    out = capsys.readouterr().out
+    assert out.splitlines()[0] == "The grid is complete: no seed-run is missing."
+    assert "python run.py" not in out and "of training in all" not in out
+    assert sorted(p.name for p in root.iterdir()) == [f"walker_dear_s{i}" for i in range(3)]
+
+
 def test_a_dry_run_prints_the_queue_of_the_runs_under_root(tmp_path, capsys):
     """The runs under --root count: a finished one is skipped, a stopped one resumed. A new
     seed-run's length comes from the finished one; the total counts the runs of known length."""
@@ -369,4 +385,7 @@ def test_a_dry_run_prints_the_queue_of_the_runs_under_root(tmp_path, capsys):
     assert lines[1].startswith(resume) and lines[1].endswith(f"--workdir {stopped.resolve()}")
     assert lines[2].endswith(f"--workdir {root.resolve()}/walker_dear_s2")  # the third seed
     assert lines[2].startswith("  walker_dear_s2 (~20 min of training): python run.py")
-    assert lines[3] == "~0.3 h of training in all, 1 of the 2 runs (no length known for the rest)"
+    assert lines[3] == (
+        "~0.3 h of training in all, 1 of the 2 runs (no length known for the rest), at the pace "
+        "of the runs named on their own devices"
+    )

@@ -826,7 +826,7 @@ def test_the_papers_claims_are_checked_per_task_on_the_seeds(tmp_path):
     assert drqv2["verdict"] == "holds"  # 20k <= 0.75 x 30k, its median's lower bound
     # |cos| of the last evaluation: DEAR 1e-3 x (1, 2, 3), SEAR 2e-2 x (1, 2, 3)
     cos = row("DEAR's |cos| far below SEAR's")
-    assert cos["evidence"] == "DEAR 2.0e-03, SEAR 4.0e-02: 20.0x"
+    assert cos["evidence"] == "DEAR 2.0e-03, SEAR 4.0e-02: 20.0x (asked: >= 10x)"
     assert cos["verdict"] == "holds (seeds separate)"
 
     # Higher thresholds: at 260 every DEAR and TED seed first reaches it at 30k (ratio 1.00);
@@ -1158,7 +1158,7 @@ def test_claims_compare_both_sides_at_the_shortest_runs_last_evaluation(tmp_path
     )
     assert ahead["verdict"] == "does not hold (seeds separate)"  # 250.16 > 250
     assert rows["DEAR's |cos| far below SEAR's"]["evidence"].endswith(
-        "2.0x, at 20k (the shortest run's last evaluation)"
+        "2.0x (asked: >= 10x), at 20k (the shortest run's last evaluation)"
     )
     # Runs that end at the same evaluation say nothing of frames.
     same = {

@@ -213,6 +213,11 @@ def test_outputs_exist_and_parse(run):
     provenance = summary["provenance"]
     assert provenance["commit"] == commit() != "unknown"
     assert (provenance["jax"], provenance["platform"]) == (jax.__version__, "cpu")
+    import flax
+    import mujoco
+
+    versions = f"jax {jax.__version__}, flax {flax.__version__}, mujoco {mujoco.__version__}"
+    assert versions in text  # summary.md names them, as summary.json does
     assert summary["stopped"] is None
     assert summary["eval_device"] == "cpu"  # "auto", resolved on this CPU-only machine
     assert first["frames_per_seed"] == 240

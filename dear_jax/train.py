@@ -16,6 +16,7 @@ each seed gets the key it gets on one device, so its run is the same bit for bit
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import pathlib
 import sys
@@ -69,6 +70,17 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
         if (workdir / "checkpoints").is_dir():  # a changed config is refused before anything
             ckpt = open_checkpoints()
             _check_resumable(ckpt, hosts)
+            finished = _finished(config, workdir, ckpt)
+            if finished is not None:
+                log.info(
+                    "%s trained to %s frames per seed and ran its closing evaluation: nothing "
+                    "to do (raise total_frames to train on)",
+                    workdir,
+                    f"{finished['frames_per_seed']:,}",
+                )
+                if not hosts.index and (workdir / "summary.md").is_file():
+                    print((workdir / "summary.md").read_text())
+                return finished
         env = stack.enter_context(
             make_env(
                 config,
@@ -156,6 +168,19 @@ def _checkpointer(config, workdir: pathlib.Path, stack: contextlib.ExitStack) ->
     )
     stack.callback(ckpt.close)
     return ckpt
+
+
+def _finished(config: ConfigDict, workdir: pathlib.Path, ckpt: Checkpointer) -> dict | None:
+    """The summary of the run in `workdir` if it has trained to config.total_frames and run its
+    closing evaluation (a rerun would only redo that evaluation), else None. A run's summary says
+    it finished (not "stopped") only once its closing evaluation has ended."""
+    latest = ckpt.latest_step()
+    path = workdir / "summary.json"
+    if latest is None or latest < config.total_frames or not path.is_file():
+        return None
+    summary = json.loads(path.read_text())
+    done = summary.get("stopped") is None and summary.get("frames_per_seed", 0) >= latest
+    return summary if done else None
 
 
 def _check_resumable(ckpt: Checkpointer, hosts: Hosts) -> None:

@@ -6,6 +6,7 @@ import json
 import os
 import pathlib
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -302,6 +303,30 @@ def test_resumed_run_equals_the_uninterrupted_one(run):
     chunk = replay_disk.chunk_rows_for(c.replay.chunk_entries, c.envs_per_seed, 10**9)
     names = [p.name for p in (workdir / "replay" / "seed_0").iterdir()]
     assert replay_disk.file_name(0, chunk) in names and len(names) >= 3
+
+
+def test_a_finished_run_rerun_does_nothing_but_print_its_summary(run, tmp_path, monkeypatch):
+    """Rerun with the config it finished under, a run that trained to total_frames and ran its
+    closing evaluation builds nothing and changes no file: it returns its summary. Trained
+    further (a larger total_frames), or stopped before its summary said it finished (a signal,
+    or killed before the closing evaluation ended), it resumes."""
+    workdir = tmp_path / "done"
+    shutil.copytree(run[0], workdir)
+    files = {p: p.read_bytes() for p in workdir.rglob("*") if p.is_file()}
+
+    def no_env(*args, **kwargs):
+        raise AssertionError("a finished run built its envs")
+
+    monkeypatch.setattr(train, "make_env", no_env)
+    summary = train.train(tiny_config(total_frames=280), workdir)
+    assert summary == json.loads((workdir / "summary.json").read_text())
+    assert summary["frames_per_seed"] == 280 and summary["stopped"] is None
+    assert {p: p.read_bytes() for p in workdir.rglob("*") if p.is_file()} == files
+    ckpt = Checkpointer(workdir / "checkpoints", fingerprint={})
+    assert train._finished(tiny_config(total_frames=320), workdir, ckpt) is None
+    for changed in ({"stopped": "SIGTERM"}, {"frames_per_seed": 240}):
+        (workdir / "summary.json").write_text(json.dumps({**summary, **changed}))
+        assert train._finished(tiny_config(total_frames=280), workdir, ckpt) is None
 
 
 def test_evaluating_in_the_foreground_and_tracing_change_nothing_but_timing(run):

@@ -59,10 +59,16 @@ def grid_image(frames: np.ndarray, masks: np.ndarray, scale: int = 2, gap: int =
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description="Write a PNG grid of frames and agent masks.")
+    parser = argparse.ArgumentParser(
+        prog="python -m envs.preview", description="Write a PNG grid of frames and agent masks."
+    )
     parser.add_argument("task", help="registry name, e.g. walker-walk")
     parser.add_argument("--out", required=True, help="PNG file to write")
-    parser.add_argument("--distraction", default="none", help="none | easy | medium | hard")
+    parser.add_argument(
+        "--distraction",
+        default="none",
+        help="none | easy | medium | hard; with -full (medium-full), the full suite's types",
+    )
     parser.add_argument(
         "--distraction-types",
         default="background",
@@ -87,24 +93,28 @@ def main(argv=None) -> None:
     import envs
     from envs import distractions
 
-    try:
-        distractions.parse_types(args.distraction_types)
-    except ValueError as e:
+    distraction, types = args.distraction, args.distraction_types
+    if distraction.endswith("-full"):  # configs/paper.py's name of the full suite's level
+        distraction, types = distraction.removesuffix("-full"), "all"
+    try:  # bad input: one line, as run.py says it
+        distractions.parse_types(types)
+        env = envs.make(
+            args.task,
+            num_seeds=1,
+            envs_per_seed=args.envs,
+            backend=args.backend,
+            distraction=distraction,
+            distraction_types=types,
+            dynamic=args.dynamic,
+            background_dir=args.background_dir,
+            split=args.split,
+            mask=args.mask,
+            mask_drop_prob=args.mask_drop_prob,
+            seed=args.seed,
+        )
+    except (ValueError, FileNotFoundError, NotADirectoryError) as e:
         parser.error(str(e))
-    with envs.make(
-        args.task,
-        num_seeds=1,
-        envs_per_seed=args.envs,
-        backend=args.backend,
-        distraction=args.distraction,
-        distraction_types=args.distraction_types,
-        dynamic=args.dynamic,
-        background_dir=args.background_dir,
-        split=args.split,
-        mask=args.mask,
-        mask_drop_prob=args.mask_drop_prob,
-        seed=args.seed,
-    ) as env:
+    with env:
         frames, masks, steps = collect(env, args.frames, args.every, args.seed)
     image = grid_image(frames, masks)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)

@@ -27,10 +27,14 @@ def test_preview_draws_the_papers_background_only_setting_by_default(tmp_path):
     rgb, mask = _preview(tmp_path, "background", "--distraction", "medium")
     np.testing.assert_array_equal(mask, plain_mask)
     assert not np.array_equal(rgb, plain_rgb)
-    _, full_mask = _preview(
+    full_rgb, full_mask = _preview(
         tmp_path, "all", "--distraction", "medium", "--distraction-types", "all"
     )
     assert not np.array_equal(full_mask, plain_mask)
+    # configs/paper.py's name of that setting, "medium-full", draws the same pictures.
+    named_rgb, named_mask = _preview(tmp_path, "named", "--distraction", "medium-full")
+    np.testing.assert_array_equal(named_rgb, full_rgb)
+    np.testing.assert_array_equal(named_mask, full_mask)
 
 
 def test_preview_refuses_an_unknown_distraction_type(tmp_path, capsys):
@@ -39,3 +43,18 @@ def test_preview_refuses_an_unknown_distraction_type(tmp_path, capsys):
             ["walker-walk", "--out", str(tmp_path / "x.png"), "--distraction-types", "fog"]
         )
     assert "unknown 'fog' in distraction types" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["walker"], "unknown task 'walker'; valid tasks: ball_in_cup-catch"),
+        (["walker-walk", "--mask", "fuzzy"], "unknown mask 'fuzzy'; valid: true, noisy"),
+    ],
+)
+def test_preview_says_what_is_wrong_in_one_line(tmp_path, capsys, args, message):
+    with pytest.raises(SystemExit) as exit_:
+        preview.main([*args, "--out", str(tmp_path / "x.png")])
+    assert exit_.value.code == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith(f"python -m envs.preview: error: {message}")

@@ -80,18 +80,20 @@ def check_fits(
     action_dim: int,
     available: int | None = None,
     headroom: float = 0.8,
+    lanes: str = "seeds",
 ) -> int:
-    """Raise MemoryError, saying how much is needed, unless the buffers fit in `headroom` of memory."""
+    """Raise MemoryError, saying how much is needed, unless the buffers fit in `headroom` of memory.
+    `lanes` names what the `num_seeds` buffers are, e.g. "lanes (2 seeds x 3 settings)"."""
     need = replay_bytes(num_seeds, capacity, frame_shape, action_dim)
     have = available_bytes() if available is None else available
     if need > headroom * have:
         gib = 2**30
         fits = int(headroom * have / need * capacity)
         raise MemoryError(
-            f"replay for {num_seeds} seeds x {capacity:,} entries needs {need / gib:.2f} GiB "
-            f"({need / num_seeds / gib:.2f} GiB per seed), but only {have / gib:.2f} GiB is free on "
+            f"replay for {num_seeds} {lanes} x {capacity:,} entries needs {need / gib:.2f} GiB "
+            f"({need / num_seeds / gib:.2f} GiB each), but only {have / gib:.2f} GiB is free on "
             f"{jax.devices()[0].platform} and {headroom:.0%} of it may be used; lower "
-            f"replay.capacity to at most {fits:,} or run fewer seeds"
+            f"replay.capacity to at most {fits:,} or run fewer {'seeds' if lanes == 'seeds' else 'seeds or settings'}"
         )
     return need
 

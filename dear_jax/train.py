@@ -206,8 +206,16 @@ def _check_fits(config: ConfigDict, spec, mesh) -> None:
             f"agent.nstep={config.agent.nstep} is longer than an episode of {spec.name} "
             f"({spec.episode_steps} agent steps); lower agent.nstep"
         )
-    lanes_per_device = lanes.num_lanes(config) // seed_groups(mesh)
-    replay.check_fits(lanes_per_device, config.replay.capacity, spec.frame_shape, spec.action_dim)
+    runs = lanes.lanes(config)
+    settings = len(runs) // config.seeds
+    what = f"lanes ({config.seeds} seeds x {settings} settings)" if settings > 1 else "seeds"
+    replay.check_fits(
+        len(runs) // seed_groups(mesh),
+        config.replay.capacity,
+        spec.frame_shape,
+        spec.action_dim,
+        lanes=what,
+    )
 
 
 def _evaluator(config: ConfigDict, where: str, processes: int, spec, mesh, hosts: Hosts):

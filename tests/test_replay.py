@@ -164,6 +164,12 @@ def test_capacity_check_says_how_much_is_needed():
     with pytest.raises(MemoryError, match=r"needs 32\.90 GiB .* replay.capacity to at most 48,633"):
         replay.check_fits(5, 250_000, (84, 84, 3), 6, available=8 * 2**30)
     assert replay.check_fits(1, 1000, (84, 84, 3), 6, available=8 * 2**30) == need // 1250
+    # A sweep's buffers are its lanes: the message counts and remedies those.
+    sweep = "lanes (2 seeds x 3 settings)"
+    with pytest.raises(
+        MemoryError, match=r"for 6 lanes \(2 seeds x 3 settings\) .* seeds or settings$"
+    ):
+        replay.check_fits(6, 250_000, (84, 84, 3), 6, available=8 * 2**30, lanes=sweep)
 
 
 def _one_env_replay(episode_lengths, rows):

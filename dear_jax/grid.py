@@ -22,7 +22,8 @@ the next starts. A job's console goes to --root as NAME.out. At --time-limit (90
 seconds; no job starts in its last --start-margin, a minute by default: give a job's length where
 a stopped job cannot resume; `auto`: a job starts only where a minute plus 1.1x its length fit,
 its length at the training pace of its cell's finished runs of as many lanes, else of its task
-and method's in other settings (`report.grid_jobs`; their periodic checkpoints' share too unless
+and method's in other settings, else at most that of runs of other lane counts
+(`report.grid_jobs`; their periodic checkpoints' share too unless
 --set checkpoint_every_frames=0; a job without one needs MARGIN of `auto:MARGIN`, a minute by
 default), and where the next job does not fit, a later one that does goes first), or on SIGTERM,
 SIGINT (Ctrl-C) or SIGHUP, every running job gets SIGTERM, saves a checkpoint and its summary,
@@ -372,15 +373,19 @@ def main(argv=None) -> list[dict] | None:
     else:
         print(f"{len(jobs)} runs to complete the grid, {len(places)} at a time:")
     for job in jobs:
-        length = "" if job.seconds is None else f" (~{job.seconds / 60:.0f} min of training)"
+        at_most = "at most " if job.at_most else ""
+        length = (
+            "" if job.seconds is None else f" ({at_most}~{job.seconds / 60:.0f} min of training)"
+        )
         print(f"  {job.name}{length}: python run.py {shlex.join(job.args)}")
     known = [job.seconds for job in jobs if job.seconds is not None]
     if known:
         some = f"{len(known)} of the {len(jobs)} runs (no length known for the rest)"
         runs = f"{len(jobs)} runs" if len(known) == len(jobs) else some
+        at_most = "at most " if any(job.at_most for job in jobs) else ""
         print(
-            f"~{sum(known) / 3600:.1f} h of training in all, {runs}, at the pace of the runs "
-            "named on their own devices"
+            f"{at_most}~{sum(known) / 3600:.1f} h of training in all, {runs}, at the pace of the "
+            "runs named on their own devices"
         )
     if args.dry_run or not jobs:
         return None

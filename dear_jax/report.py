@@ -780,12 +780,13 @@ def _is_zero(text: str) -> bool:
 @dataclasses.dataclass(frozen=True)
 class Job:
     """A seed-run of the grid: its workdir's name, `run.py`'s arguments and, for a new seed-run,
-    the seconds it should take (`grid_jobs`; None: no finished run of its lanes, of its cell or
-    of its task and method, to go by)."""
+    the seconds it should take (`grid_jobs`; None: no finished run of its cell or of its task
+    and method to go by), `at_most` where they are a bound from runs of other lane counts."""
 
     name: str
     args: tuple[str, ...]
     seconds: float | None = None
+    at_most: bool = False
 
 
 def grid_jobs(
@@ -804,7 +805,10 @@ def grid_jobs(
     (whatever their devices; start-up and the closing evaluation not in it), their periodic
     checkpoints' share left out where `overrides` set checkpoint_every_frames=0; a cell without
     such runs goes by those of its task and method in other settings, whatever differs (meant for
-    the full suite's cell and the weight ablations', whose work is the paper setting's)."""
+    the full suite's cell and the weight ablations', whose work is the paper setting's). Without
+    runs of as many lanes either, a bound (`at_most`) from those of other lane counts, the
+    smallest over counts: K lanes take no longer than a run of more lanes, nor than K / W times
+    a run of W lanes (lanes share the device's work, so they train at least as fast together)."""
     if seeds_per_run < 1:
         raise ValueError(f"seeds per run must be at least 1, got {seeds_per_run}")
     cells = grid["cells"]
@@ -832,6 +836,19 @@ def grid_jobs(
         paces = [p + (c if saves else 0.0) for width, p, c in paces if width == lanes]
         return float(np.median(paces)) * frames if paces else None
 
+    def bound_of(paces, lanes: int) -> float | None:  # at most, by runs of other lane counts
+        widths = {width for width, *_ in paces}
+        bounds = [length_of(paces, w) * max(1.0, lanes / w) for w in widths]
+        return min(bounds) if bounds else None
+
+    def estimate(r, lanes: int) -> tuple[float | None, bool]:  # (seconds, whether at most)
+        for of, at_most in ((length_of, False), (bound_of, True)):
+            for paces in (r["paces"], r["related_paces"]):
+                seconds = of(paces, lanes)
+                if seconds is not None:
+                    return seconds, at_most
+        return None, False
+
     jobs = [
         Job(pathlib.Path(args[-1]).name, (*spec(r), *length(r), *args))
         for r in cells
@@ -845,11 +862,8 @@ def grid_jobs(
                 name = f"{r['name']}_s{n}"
                 seed = (f"--config.seed={n}", f"--config.seeds={count}")
                 workdir = ("--workdir", f"{root}/{name}")
-                seconds = length_of(r["paces"], count)
-                if seconds is None:
-                    seconds = length_of(r["related_paces"], count)
                 args = (*spec(r), *seed, *length(r), *overrides, *workdir)
-                jobs.append(Job(name, args, seconds))
+                jobs.append(Job(name, args, *estimate(r, count)))
     names = [job.name for job in jobs]  # resumed workdirs of one name in several folders
     return [
         dataclasses.replace(job, name=f"{job.name}_{names[:i].count(job.name) + 1}")

@@ -255,6 +255,16 @@ def test_a_jobs_length_comes_from_its_cells_finished_runs_of_as_many_lanes(tmp_p
     assert {job.seconds for job in jobs if job.name.startswith("finger_drqv2")} == {None}
     three = report.grid_jobs(cells, 1_000_000, seeds_per_run=3)
     assert [job.seconds for job in three if "ted" in job.name] == [pytest.approx(3000.0)]
+    assert not any(job.at_most for job in [*jobs, *three])
+    # No runs of as many lanes: at most the smallest bound from the others. Three missing seeds
+    # as 2 + 1 lanes: 2 lanes take no longer than 2x one lane's 900 s nor the 3 lanes' 3,000.
+    two = report.grid_jobs(cells, 1_000_000, seeds_per_run=2)
+    two = [(job.seconds, job.at_most) for job in two if "ted" in job.name]
+    assert two == [(pytest.approx(1800.0), True), (pytest.approx(900.0), False)]
+    # Five missing as 5 lanes: 5x 900 (4,500) against 5/3 x 3,000 (5,000).
+    eleven = report.grid_rows(runs, ["finger"], ["ted"], seeds=11)
+    (five,) = report.grid_jobs(eleven, 1_000_000, seeds_per_run=5)
+    assert (five.seconds, five.at_most) == (pytest.approx(4500.0), True)
     # A cell without such runs goes by its task and method's runs in other settings (here the
     # paper's, for the full suite's cell), until it has its own.
     (job,) = report.grid_jobs(report.grid_rows(runs, ["finger,medium-full"], ["ted"], 1), 500_000)

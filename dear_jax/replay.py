@@ -83,7 +83,8 @@ def check_fits(
     lanes: str = "seeds",
 ) -> int:
     """Raise MemoryError, saying how much is needed, unless the buffers fit in `headroom` of memory.
-    `lanes` names what the `num_seeds` buffers are, e.g. "lanes (2 seeds x 3 settings)"."""
+    `lanes` names what the `num_seeds` buffers are, e.g. "lanes (2 seeds x 3 settings)" or
+    "seeds per device (4 over 2 devices)"."""
     need = replay_bytes(num_seeds, capacity, frame_shape, action_dim)
     have = available_bytes() if available is None else available
     if need > headroom * have:
@@ -93,7 +94,7 @@ def check_fits(
             f"replay for {num_seeds} {lanes} x {capacity:,} entries needs {need / gib:.2f} GiB "
             f"({need / num_seeds / gib:.2f} GiB each), but only {have / gib:.2f} GiB is free on "
             f"{jax.devices()[0].platform} and {headroom:.0%} of it may be used; lower "
-            f"replay.capacity to at most {fits:,} or run fewer {'seeds' if lanes == 'seeds' else 'seeds or settings'}"
+            f"replay.capacity to at most {fits:,} or run fewer {'seeds or settings' if 'settings' in lanes else 'seeds'}"
         )
     return need
 

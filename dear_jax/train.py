@@ -206,15 +206,13 @@ def _check_fits(config: ConfigDict, spec, mesh) -> None:
             f"agent.nstep={config.agent.nstep} is longer than an episode of {spec.name} "
             f"({spec.episode_steps} agent steps); lower agent.nstep"
         )
-    runs = lanes.lanes(config)
-    settings = len(runs) // config.seeds
-    what = f"lanes ({config.seeds} seeds x {settings} settings)" if settings > 1 else "seeds"
+    n, groups = lanes.num_lanes(config), seed_groups(mesh)
+    sweep = n > config.seeds
+    what = f"lanes ({config.seeds} seeds x {n // config.seeds} settings)" if sweep else "seeds"
+    if groups > 1:
+        what += f" per device ({n} over {groups} devices)"
     replay.check_fits(
-        len(runs) // seed_groups(mesh),
-        config.replay.capacity,
-        spec.frame_shape,
-        spec.action_dim,
-        lanes=what,
+        n // groups, config.replay.capacity, spec.frame_shape, spec.action_dim, lanes=what
     )
 
 

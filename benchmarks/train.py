@@ -12,9 +12,9 @@
 Prints tables and writes JSON to benchmarks/results/train_<device>.json (or --out).
 
 `--vary KEY V1 V2 ...` (repeatable) measures the throughput of every combination of the values
-in one process, in turn `--rounds` times (an A/B on the same machine state; programs compile
-once where only env fields vary), e.g. `--vary env.physics_threads 1 4 --vary
-env.switch_interval_ms 0 0.1`.
+in one process, in turn `--rounds` times, every other round in reverse (an A/B on the same
+machine state; programs compile once where only env fields vary), e.g. `--vary
+env.physics_threads 1 4 --vary env.switch_interval_ms 0 0.1`.
 The PyTorch pipeline of the reference's shape: `python -m benchmarks.torch_reference pipeline`.
 """
 
@@ -288,7 +288,13 @@ def main():
     if args.vary:
         result["variants"] = []
         rows = []
-        todo = [(r, config_set) for r in range(args.rounds) for config_set in combinations]
+        # Every other round in reverse (A B C, C B A, ...): a drift of the machine over the
+        # rounds then weighs on every combination alike.
+        todo = [
+            (r, config_set)
+            for r in range(args.rounds)
+            for config_set in (combinations if r % 2 == 0 else combinations[::-1])
+        ]
         for round_, config_set in todo:
             varied = bench_config(args)
             for item in config_set:

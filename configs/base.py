@@ -107,6 +107,7 @@ def get_config() -> ConfigDict:
     # kitchen (its default: docs/method.md, decision 16). See envs/render.py.
     c.env.render.quality = "dm_control"
     c.env.render.num_workers = 0  # 0 = min(cores, 8) per environment batch
+    c.env.render.envs_per_worker = 0  # with num_workers 0: fewer workers below this many envs each
     # Meshes of more faces drawn simplified to about this many (0: as shipped, or >= 1000): only
     # the kitchen's arm has such meshes (envs/kitchen.py, build_render_model).
     c.env.render.mesh_faces = 0

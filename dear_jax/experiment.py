@@ -42,6 +42,7 @@ RESUMABLE_CHANGES = (
     "profile.at_frame",
     "profile.iterations",
     "env.render.num_workers",
+    "env.render.envs_per_worker",
     "env.eval_backend",
     "env.physics_threads",
     "env.eval_physics_threads",

@@ -292,6 +292,7 @@ class Env:
             agent_geom_ids=task.agent_geom_ids(render_model),
             floor_geom_ids=task.floor_geom_ids(render_model),
             settings=render,
+            batch=self.batch,
         )
 
     def _upload(self, x) -> jax.Array:

@@ -99,7 +99,10 @@ class RenderSettings:
     width: int = 84
     height: int = 84
     quality: str = "dm_control"  # QUALITIES: "dm_control" (its picture) | "fast" (no effects)
-    num_workers: int = 0  # 0 -> min(cores this process may use, 8)
+    num_workers: int = 0  # 0 -> min(cores this process may use, 8), capped by envs_per_worker
+    # With num_workers 0: at least this many envs per worker (fewer workers for small batches:
+    # each worker holds a GL context on the GPU the updates run on); 0: no cap.
+    envs_per_worker: int = 0
     # Samples drawn before one readback (one "sheet"). 0 -> auto: 64.
     tiles_per_sheet: int = 0
     # Drawn meshes of more faces simplified to about this many (`simplify_meshes`); 0: as
@@ -120,17 +123,24 @@ class RenderSettings:
             raise ValueError(
                 f"unknown render quality {self.quality!r}; valid: {', '.join(QUALITIES)}"
             )
+        for name in ("num_workers", "envs_per_worker"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be 0 (auto) or more, got {getattr(self, name)}")
         if self.mesh_faces < 0 or 0 < self.mesh_faces < MIN_MESH_FACES:
             raise ValueError(
                 f"mesh_faces must be 0 (meshes as shipped) or >= {MIN_MESH_FACES}, got "
                 f"{self.mesh_faces}"
             )
 
-    def resolved_workers(self) -> int:
+    def resolved_workers(self, batch: int | None = None) -> int:
+        """The pool's number of workers for batches of `batch` samples (None: not known)."""
         if self.num_workers > 0:
             return self.num_workers
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-        return min(cores or 1, 8)
+        workers = min(cores or 1, 8)
+        if self.envs_per_worker > 0 and batch:
+            workers = min(workers, -(-batch // self.envs_per_worker))
+        return workers
 
     def resolved_visuals(self) -> Visuals:
         return self.visuals or QUALITY_VISUALS[self.quality]

@@ -111,6 +111,7 @@ class RenderPool:
 
     model_fn: picklable zero-argument callable returning a mujoco.MjModel (each worker calls it).
     camera: camera id or name. agent_geom_ids / floor_geom_ids: geom ids for the labels.
+    batch: the samples of a usual `render` call, if known (`RenderSettings.resolved_workers`).
     """
 
     def __init__(
@@ -121,6 +122,7 @@ class RenderPool:
         agent_geom_ids,
         floor_geom_ids,
         settings: RenderSettings = RenderSettings(),
+        batch: int | None = None,
     ):
         self.settings = settings
         self._lock = threading.Lock()
@@ -141,7 +143,7 @@ class RenderPool:
         ctx.set_forkserver_preload(["envs.render_pool", "envs.registry"])
         self._conns: list[connection.Connection] = []
         self._procs = []
-        for _ in range(settings.resolved_workers()):
+        for _ in range(settings.resolved_workers(batch)):
             parent, child = ctx.Pipe()
             proc = ctx.Process(
                 target=_worker_main, args=(child, model_fn, init_kwargs), daemon=True

@@ -254,8 +254,11 @@ def test_auto_reset(finger_env):
 
 
 def test_reset_is_reproducible_from_the_key():
-    make = functools.partial(_make, "walker-walk")
+    # Its pool sized by the batch: 2 envs at 2 per worker take one worker, whatever the cores.
+    render = envs.RenderSettings(envs_per_worker=2)
+    make = functools.partial(_make, "walker-walk", render=render)
     with make() as env:
+        assert env._pool.num_workers == 1
         state_a, ts_a = env.reset(jax.random.key(7))
         state_b, ts_b = env.reset(jax.random.key(7))
         state_c, _ = env.reset(jax.random.key(8))

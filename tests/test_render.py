@@ -163,6 +163,28 @@ def test_quality_is_one_named_choice():
         R.RenderSettings(quality="pretty")
 
 
+def test_the_number_of_workers_follows_the_settings_the_cores_and_the_batch(monkeypatch):
+    """num_workers > 0 is taken as it is; 0 is min(cores, 8), and with envs_per_worker K no more
+    than one worker per K samples of the pool's batch (when it is known)."""
+    monkeypatch.setattr(R.os, "sched_getaffinity", lambda pid: set(range(16)), raising=False)
+    assert R.RenderSettings(num_workers=3).resolved_workers(batch=1) == 3
+    assert R.RenderSettings().resolved_workers(batch=5) == 8
+    capped = R.RenderSettings(envs_per_worker=8)
+    assert [capped.resolved_workers(b) for b in (None, 1, 5, 16, 17, 48, 160)] == [
+        8,
+        1,
+        1,
+        2,
+        3,
+        6,
+        8,
+    ]
+    monkeypatch.setattr(R.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    assert capped.resolved_workers(48) == 2 and R.RenderSettings().resolved_workers() == 2
+    with pytest.raises(ValueError, match="envs_per_worker must be 0 \\(auto\\) or more, got -1"):
+        R.RenderSettings(envs_per_worker=-1)
+
+
 @pytest.mark.parametrize("task", ["walker", "cup"])
 def test_pool_equals_single_process_renderer(task):
     """Two spawned workers, shared memory, one tile per sheet: bit-identical to mujoco.Renderer

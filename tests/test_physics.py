@@ -112,7 +112,9 @@ def test_cpu_threads_step_each_env_as_one_thread_does(task):
                     p.where(reset, p.init(qpos, qvel), s) for p, s in zip((one, three), states)
                 ]
         assert np.abs(states[0].qpos - qpos).max() > 0.01  # the envs moved
-        assert len(stepped_on) == 3 and all(n.startswith("physics") for n in stepped_on)
+        # On the pool's threads, never the caller's (which of them takes a block is the pool's
+        # choice: a thread done with its block may take the next before another starts).
+        assert stepped_on and all(n.startswith("physics") for n in stepped_on)
     finally:
         one.close()
         three.close()

@@ -36,10 +36,8 @@ sequence of episodes.
 
 from __future__ import annotations
 
-import multiprocessing
 import os
 import pickle
-import signal
 import threading
 import time
 import traceback
@@ -49,6 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dear_jax.video import side_by_side, write_video
+from envs import forkserver
 
 POLICY_PLACES = ("cpu", "accelerator")  # where an evaluation process runs its policy
 # The parameters an evaluation reads (the critic's and the TED classifier's are not sent).
@@ -157,7 +156,7 @@ class EvalProcess:
     policy program, its dtype): the run's resolved eval_device (`experiment.eval_device`).
 
     The child builds the config's eval env and the policy, then serves requests until
-    this side closes the pipe (or exits, even by SIGKILL). It ignores SIGINT and SIGTERM: the
+    this side closes the pipe (or exits, even by SIGKILL). It ignores the stop signals: the
     training process handles those, and lets the evaluations in flight or queued end before it
     checkpoints.
     An evaluation here always runs to its end (`stop` is not read). Calls from several threads
@@ -171,8 +170,7 @@ class EvalProcess:
             raise ValueError(f"policy_on={policy_on!r}: valid: {', '.join(POLICY_PLACES)}")
         # Never fork a process that holds CUDA: the process's fork server (as the render
         # workers', envs/render_pool.py) holds none and forks it with jax and the envs imported.
-        ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["dear_jax.evaluator"])
+        ctx = forkserver.context("dear_jax.evaluator")
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
             target=_serve,
@@ -237,7 +235,7 @@ class EvalProcess:
                 pass
             self._proc.join(timeout=30)
         if self._proc.is_alive():
-            self._proc.terminate()
+            self._proc.kill()  # it ignores SIGTERM
             self._proc.join()
         self._conn.close()
 
@@ -290,8 +288,7 @@ class EvalProcesses:
 def _serve(conn, config_bytes: bytes, stream: int, policy_on: str) -> None:
     """The child: build the eval env and the policy (on the host's CPU, or on the accelerator),
     then answer requests."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    forkserver.ignore_stop_signals()
     config = pickle.loads(config_bytes)
     on_accelerator = policy_on == "accelerator"
     if on_accelerator:  # beside the training's preallocated pool: only what it uses

@@ -56,9 +56,9 @@ import time
 
 from dear_jax import lanes, report
 from dear_jax.logger import format_table
+from dear_jax.signals import SIGNALS
 
 REPO = pathlib.Path(__file__).resolve().parents[1]  # run.py and configs/ are here
-SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 STOPPED = (143, 130, -signal.SIGTERM, -signal.SIGINT)  # how a run ends when asked to stop
 START_MARGIN_S = 60.0  # no job starts this close to the time limit
 FIT_FACTOR = 1.1  # --start-margin auto: a job's length by earlier runs, times this, must fit

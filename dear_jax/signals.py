@@ -1,7 +1,9 @@
-"""SIGTERM and SIGINT ask a run to stop: it checkpoints at the end of its current step and exits.
+"""SIGTERM, SIGINT (Ctrl-C) and SIGHUP (a closed terminal) ask a run to stop: it checkpoints at the
+end of its current step and exits.
 
-`StopRequest` replaces both handlers while a run lasts (main thread only; elsewhere it does
-nothing) and restores the previous ones after. The first signal only sets a flag that the loop
+`StopRequest` replaces their handlers while a run lasts (main thread only; elsewhere it does
+nothing) and restores the previous ones after; a SIGHUP the process started ignoring (`nohup`)
+stays ignored. The first signal only sets a flag that the loop
 reads once per step (and every step of an evaluation); a second one stops at once with
 StoppedAtOnce (a KeyboardInterrupt), without a checkpoint (the previous checkpoint stays intact: saves are atomic).
 """
@@ -11,7 +13,7 @@ from __future__ import annotations
 import signal
 import threading
 
-SIGNALS = (signal.SIGTERM, signal.SIGINT)
+from envs.forkserver import STOP_SIGNALS as SIGNALS
 
 
 class Stopped(Exception):
@@ -35,7 +37,7 @@ class StoppedAtOnce(KeyboardInterrupt):
 
 
 class StopRequest:
-    """Context manager: `signum` is None until SIGTERM or SIGINT arrives."""
+    """Context manager: `signum` is None until a stop signal (`SIGNALS`) arrives."""
 
     def __init__(self):
         self.signum: int | None = None
@@ -56,6 +58,11 @@ class StopRequest:
     def __enter__(self) -> StopRequest:
         if threading.current_thread() is threading.main_thread():
             for sig in SIGNALS:
+                if (
+                    sig == getattr(signal, "SIGHUP", None)
+                    and signal.getsignal(sig) == signal.SIG_IGN
+                ):
+                    continue  # nohup's: the run outlives its terminal
                 self._previous[sig] = signal.signal(sig, self._handle)
         return self
 

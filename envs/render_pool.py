@@ -7,16 +7,16 @@ shared-memory block; only the small inputs (qpos, perturbations) are pickled.
 
 from __future__ import annotations
 
-import signal
 import threading
 import traceback
 from collections.abc import Callable
-from multiprocessing import connection, get_context, resource_tracker, shared_memory
+from multiprocessing import connection, resource_tracker, shared_memory
 from typing import Any
 
 import mujoco
 import numpy as np
 
+from envs import forkserver
 from envs.render import PERTURB_KEYS, RenderSettings, TileRenderer
 
 _WORKER_TIMEOUT_S = 600.0
@@ -34,11 +34,10 @@ def _attach_shm(name: str) -> shared_memory.SharedMemory:
 
 
 def _worker_main(conn, model_fn, init_kwargs) -> None:
-    # Ctrl-C and SIGTERM sent to the whole process group are the parent's to handle: it finishes
-    # its step, checkpoints and then closes the pool. A worker also ends when the parent's end of
+    # A stop signal sent to the whole process group is the parent's to handle: it finishes its
+    # step, checkpoints and then closes the pool. A worker also ends when the parent's end of
     # the pipe closes (EOF below), so it never outlives the parent.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    forkserver.ignore_stop_signals()
     renderer = None
     shm = None
     try:
@@ -139,8 +138,7 @@ class RenderPool:
         # process with its modules imported; importing them starts no JAX backend) forks each
         # worker: on a 2-core machine a later 1-worker walker env was made and reset in 1.0 s
         # instead of the 3.0-3.6 s of spawning an interpreter that imports them.
-        ctx = get_context("forkserver")
-        ctx.set_forkserver_preload(["envs.render_pool", "envs.registry"])
+        ctx = forkserver.context("envs.render_pool", "envs.registry")
         self._conns: list[connection.Connection] = []
         self._procs = []
         for _ in range(settings.resolved_workers(batch)):

@@ -163,6 +163,45 @@ def test_quality_is_one_named_choice():
         R.RenderSettings(quality="pretty")
 
 
+_FORKSERVER_SIGNALS = """
+import multiprocessing.forkserver, multiprocessing.resource_tracker, os, signal, time
+from envs import forkserver
+child = forkserver.context().Process(target=time.sleep, args=(2.0,))
+child.start()
+server = multiprocessing.forkserver._forkserver._forkserver_pid
+tracker = multiprocessing.resource_tracker._resource_tracker._pid
+for pid in (server, tracker):
+    for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
+        os.kill(pid, sig)
+time.sleep(0.5)
+for pid in (server, tracker):
+    os.kill(pid, 0)  # ProcessLookupError if it died
+assert child.is_alive(), child.exitcode
+child.join()
+print("exit", child.exitcode, signal.pthread_sigmask(signal.SIG_BLOCK, ()))
+"""
+
+
+def test_the_fork_server_outlives_a_stop_signal_to_the_process_group():
+    """The render workers' and evaluation processes' fork server, and multiprocessing's resource
+    tracker, never see the stop signals: a signal to the whole group leaves them serving, and the
+    fork server's children read as alive until they end (had it died, is_alive() would say its
+    children died with exit code 255); this process's own signal mask is as it was."""
+    import subprocess
+    import sys
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    out = subprocess.run(
+        [sys.executable, "-c", _FORKSERVER_SIGNALS],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.split() == ["exit", "0", "set()"]
+
+
 def test_the_number_of_workers_follows_the_settings_the_cores_and_the_batch(monkeypatch):
     """num_workers > 0 is taken as it is; 0 is min(cores, 8), and with envs_per_worker K no more
     than one worker per K samples of the pool's batch (when it is known)."""

@@ -756,7 +756,7 @@ def test_input_the_run_finds_bad_says_one_line(tmp_path, flag, message):
     assert re.match(message, out.stderr.strip().splitlines()[-1])
 
 
-def test_a_second_signal_stops_at_once():
+def test_a_second_signal_stops_at_once_and_sighup_asks_for_a_stop():
     """The first SIGTERM asks for a stop at the end of the step; a second stops at once with
     StoppedAtOnce, a KeyboardInterrupt that names the signal (run.py: one line, 128 + signal)."""
     from dear_jax import signals
@@ -770,6 +770,19 @@ def test_a_second_signal_stops_at_once():
             time.sleep(1)
     assert raised.value.signum == signal.SIGTERM and isinstance(raised.value, KeyboardInterrupt)
     assert str(raised.value) == "a second SIGTERM: stopped at once"
+    # A closed terminal's SIGHUP asks for a stop too, unless the process ignores it (nohup).
+    with signals.StopRequest() as stop:
+        os.kill(os.getpid(), signal.SIGHUP)
+        time.sleep(0.05)
+        assert stop.signum == signal.SIGHUP and stop.name == "SIGHUP"
+    before = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        with signals.StopRequest() as stop:
+            os.kill(os.getpid(), signal.SIGHUP)
+            time.sleep(0.05)
+            assert not stop and signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGHUP, before)
 
 
 def test_config_by_bare_name_and_unknown_names():

@@ -82,7 +82,9 @@ def _check(config) -> None:
     writes anything."""
     root = logging.getLogger()
     level = root.level
-    root.setLevel(logging.WARNING)  # libraries' notes (imports, backends) are for the log
+    # Libraries' notes (imports, backends) are for the log; the trainer's warnings come again,
+    # in the console's format, when train() checks the config once more.
+    root.setLevel(logging.ERROR)
     try:
         with contextlib.redirect_stdout(io.StringIO()):
             from dear_jax.experiment import validate

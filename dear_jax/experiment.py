@@ -186,6 +186,18 @@ def validate(config: ConfigDict) -> None:
             f"one batch (agent.batch_size={a.batch_size}); set replay.seed_frames >= "
             f"{a.batch_size * config.env.action_repeat}"
         )
+    if r.seed_frames >= config.total_frames:  # a check of the envs and evaluations, or a slip
+        log.warning(
+            "replay.seed_frames=%d is not below total_frames=%d: this run collects frames and "
+            "never updates the agent; lower replay.seed_frames or raise total_frames to train",
+            r.seed_frames,
+            config.total_frames,
+        )
+    if a.encoder == "pool" and a.latent_dim % 2:
+        raise ValueError(
+            f"agent.latent_dim={a.latent_dim} must be even: the latent splits into halves "
+            "(z_E, z_A)"
+        )
     if a.batch_size > r.capacity:
         raise ValueError(
             f"agent.batch_size={a.batch_size} is larger than the replay "

@@ -3,6 +3,7 @@
 import contextlib
 import copy
 import json
+import logging
 import os
 import pathlib
 import re
@@ -998,6 +999,10 @@ def test_benchmarks_vary_stops_at_a_signal(tmp_path, monkeypatch, capsys):
             r"agent.nstep=21 is longer than an episode of walker-walk \(20 agent steps\)",
         ),
         (
+            {"agent.latent_dim": 255},
+            r"agent.latent_dim=255 must be even: the latent splits into halves",
+        ),
+        (
             {"agent.kernels": "BLOK=64"},
             r"agent.kernels: kernel constant 'BLOK=64': give NAME=INT with NAME one of BLOCK, ",
         ),
@@ -1007,6 +1012,16 @@ def test_configs_that_cannot_work_are_refused_by_name(overrides, message, tmp_pa
     with pytest.raises(ValueError, match=message):
         train.train(tiny_config(**overrides), tmp_path)
     assert not (tmp_path / "checkpoints").exists()  # refused before anything was allocated
+
+
+def test_a_run_too_short_to_update_says_so(caplog):
+    """A run that ends before its first update (a check of the envs and evaluations, or a slip)
+    is told so when it starts; one that updates is not."""
+    with caplog.at_level(logging.WARNING, logger="dear_jax"):
+        experiment.validate(tiny_config(total_frames=120))
+        experiment.validate(tiny_config(total_frames=160))
+    (warning,) = [r.getMessage() for r in caplog.records if "seed_frames" in r.getMessage()]
+    assert warning.startswith("replay.seed_frames=120 is not below total_frames=120: this run ")
 
 
 def test_kernel_constants_with_the_xla_stack_are_named_as_doing_nothing(caplog):

@@ -141,13 +141,27 @@ def lane_config(config: ConfigDict, lane: Lane) -> ConfigDict:
     return c
 
 
+def not_a_run(workdir: pathlib.Path, missing: str = "config.json") -> FileNotFoundError:
+    """The error for a folder given as a run's workdir that lacks `missing`; for a folder of
+    runs, it names them."""
+    runs = sorted(p.parent.name for p in workdir.glob("*/config.json"))
+    if runs:
+        named = ", ".join(runs[:3]) + (", ..." if len(runs) > 3 else "")
+        hint = f"{workdir} holds {len(runs)} runs ({named}): give them, e.g. {workdir / '*'}/"
+    elif missing == "summary.json":
+        hint = "run.py writes it at a run's end, or when it is stopped"
+    else:
+        hint = "give the workdir of a run"
+    return FileNotFoundError(f"{workdir / missing} not found: {hint}")
+
+
 def groups(workdir: str | pathlib.Path) -> dict[str, list[pathlib.Path]]:
     """A run workdir's lane folders grouped by setting ("" without a sweep), in lane order,
     from the config.json the trainer wrote there."""
     workdir = pathlib.Path(workdir)
     path = workdir / "config.json"
     if not path.is_file():
-        raise FileNotFoundError(f"{path} not found: is {workdir} a run's workdir?")
+        raise not_a_run(workdir)
     config = ConfigDict(json.loads(path.read_text()))
     if "seeds" not in config:
         raise ValueError(f"{path} has no 'seeds' field: it is not a config the trainer wrote")

@@ -185,10 +185,7 @@ def _run_files(workdir: pathlib.Path) -> tuple[dict, dict]:
     """A run workdir's config.json and summary.json."""
     for name in ("config.json", "summary.json"):
         if not (workdir / name).is_file():
-            raise FileNotFoundError(
-                f"{workdir / name} not found: give the workdir of a run (run.py writes "
-                "summary.json at its end, or when it is stopped)"
-            )
+            raise lanes.not_a_run(workdir, name)
     return tuple(json.loads((workdir / n).read_text()) for n in ("config.json", "summary.json"))
 
 
@@ -684,7 +681,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
         name = f"{workdir.parent.name}/{workdir.name}"
         path = workdir / "config.json"
         if not path.is_file():
-            raise FileNotFoundError(f"{path} not found: give the workdir of a run")
+            raise lanes.not_a_run(workdir)
         config = json.loads(path.read_text())
         fields = {**defaults, **lanes.flatten(config)}
         for key in REMOVED_FIELDS:  # no resume command may name them

@@ -1244,8 +1244,15 @@ def test_plot_errors(tmp_path, capsys):
     (empty / "config.json").write_text('{"seeds": 1}')
     with pytest.raises(FileNotFoundError, match=r"expected .*seed_0.eval\.csv"):
         plot.plot([empty])
-    with pytest.raises(FileNotFoundError, match="config.json not found"):
+    with pytest.raises(FileNotFoundError, match="config.json not found: give the workdir of a run"):
         plot.plot([tmp_path / "nowhere"])
+    # A folder of runs given as one: the error names them and how to give them.
+    with pytest.raises(
+        FileNotFoundError, match=r"holds 1 runs \(empty\): give them, e\.g\. .*/\*/"
+    ):
+        plot.plot([tmp_path])
+    with pytest.raises(FileNotFoundError, match="summary.json not found: run.py writes it at"):
+        report.pooled_rows([empty], threshold=None)
     with pytest.raises(SystemExit):
         plot.main([str(empty)])
     assert "seed_0/eval.csv" in capsys.readouterr().err

@@ -242,8 +242,9 @@ def pools(workdirs, defaults: dict, ignored: tuple[str, ...]) -> list[Pool]:
                 if first != workdir:
                     raise ValueError(
                         f"{first} and {workdir} both trained seed {seed[1]} of config.seed="
-                        f"{seed[0]} of the same experiment: the same seed twice. Give each run "
-                        "of an experiment its own --config.seed"
+                        f"{seed[0]} of the same experiment: the same seed twice. Report one of "
+                        "them (leave the other out); give each new run of an experiment its own "
+                        "--config.seed"
                     )
                 pool.seeds.append((workdir, lane_dir))
 

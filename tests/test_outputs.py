@@ -642,7 +642,10 @@ def test_seeds_of_one_experiment_pool_over_workdirs(tmp_path):
     out = report.main(["curves", str(a), str(b), str(drq), "--out", str(tmp_path / "p.png")])
     assert cv2.imread(str(out)).std() > 0
     twice = full("a_again", "dear", 0)
-    with pytest.raises(ValueError, match="both trained seed 0 of config.seed=0 .* the same seed"):
+    with pytest.raises(
+        ValueError,
+        match="both trained seed 0 of config.seed=0 .* the same seed twice. Report one of them",
+    ):
         plot.pools([a, twice])
     # One workdir named twice (overlapping globs; relative and absolute) counts once.
     (once,) = plot.pools([a, a, a.resolve()])

@@ -106,6 +106,8 @@ def main(argv):
     workdir = _WORKDIR.value or str(pathlib.Path("runs") / name)
     process = _start_processes()
     new = not pathlib.Path(workdir).exists()
+    if not new and not pathlib.Path(workdir).is_dir():
+        sys.exit(f"error: --workdir {workdir} is a file: give a folder (a new one, or a run's)")
     try:
         lock = WorkdirLock(workdir, process)
         lock.acquire()  # before the slow imports: a second run on a workdir fails at once

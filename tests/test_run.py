@@ -734,6 +734,20 @@ def test_bad_input_says_one_line_and_leaves_nothing(tmp_path, flags, message):
     assert not workdir.exists()
 
 
+def test_a_file_given_as_workdir_is_refused_and_kept(tmp_path):
+    path = tmp_path / "notes.txt"
+    path.write_text("mine")
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "run.py"), "--config=smoke", f"--workdir={path}"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    expected = f"error: --workdir {path} is a file: give a folder (a new one, or a run's)"
+    assert (out.returncode, out.stderr.strip()) == (1, expected)
+    assert path.read_text() == "mine"
+
+
 @pytest.mark.parametrize(
     "flag, message",
     [

@@ -108,6 +108,7 @@ def main(argv):
     new = not pathlib.Path(workdir).exists()
     if not new and not pathlib.Path(workdir).is_dir():
         sys.exit(f"error: --workdir {workdir} is a file: give a folder (a new one, or a run's)")
+    console.setup(None, verbose=_VERBOSE.value)  # the console's format from here (log.txt: below)
     try:
         lock = WorkdirLock(workdir, process)
         lock.acquire()  # before the slow imports: a second run on a workdir fails at once

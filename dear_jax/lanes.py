@@ -149,7 +149,10 @@ def not_a_run(workdir: pathlib.Path, missing: str = "config.json") -> FileNotFou
         named = ", ".join(runs[:3]) + (", ..." if len(runs) > 3 else "")
         hint = f"{workdir} holds {len(runs)} runs ({named}): give them, e.g. {workdir / '*'}/"
     elif missing == "summary.json":
-        hint = "run.py writes it at a run's end, or when it is stopped"
+        hint = (
+            "run.py writes it at a run's end, or when it is stopped (a run killed outright: "
+            "rerun its command, which resumes it from its last checkpoint)"
+        )
     else:
         hint = "give the workdir of a run"
     return FileNotFoundError(f"{workdir / missing} not found: {hint}")

@@ -131,6 +131,7 @@ def main(argv):
     from dear_jax.signals import Stopped, StoppedAtOnce
     from dear_jax.train import train
 
+    refused = False
     try:
         train(_CONFIG.value, workdir)
     except Stopped as e:
@@ -145,9 +146,14 @@ def main(argv):
         sys.exit(128 + e.signum)
     except (IncompatibleCheckpointError, DiskSpaceError, ConfigError, MemoryError) as e:
         logging.getLogger("dear_jax").error("error: %s", e)  # the message says what to do
+        refused = True
         sys.exit(2)
     finally:
         lock.release()
+        path = pathlib.Path(workdir)
+        if refused and new and [p.name for p in path.iterdir()] == [console.LOG_FILE]:
+            (path / console.LOG_FILE).unlink()  # refused before it wrote anything but its log
+            path.rmdir()
 
 
 if __name__ == "__main__":

@@ -760,15 +760,18 @@ def test_a_file_given_as_workdir_is_refused_and_kept(tmp_path):
 )
 def test_input_the_run_finds_bad_says_one_line(tmp_path, flag, message):
     """What only the run can check (the replay against free memory, an n-step return against
-    the episode): one line naming the problem and its fix, exit status 2, no traceback."""
+    the episode): one line naming the problem and its fix, exit status 2, no traceback; a new
+    workdir is not left behind."""
+    workdir = tmp_path / "run"
     out = subprocess.run(
-        [sys.executable, str(ROOT / "run.py"), "--config=smoke", flag, f"--workdir={tmp_path}"],
+        [sys.executable, str(ROOT / "run.py"), "--config=smoke", flag, f"--workdir={workdir}"],
         capture_output=True,
         text=True,
         timeout=300,
     )
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert re.match(message, out.stderr.strip().splitlines()[-1])
+    assert not workdir.exists()
 
 
 def test_a_second_signal_stops_at_once_and_sighup_asks_for_a_stop():

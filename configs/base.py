@@ -107,7 +107,11 @@ def get_config() -> ConfigDict:
     # kitchen (its default: docs/method.md, decision 16). See envs/render.py.
     c.env.render.quality = "dm_control"
     c.env.render.num_workers = 0  # 0 = min(cores, 8) per environment batch
-    c.env.render.envs_per_worker = 0  # with num_workers 0: fewer workers below this many envs each
+    # With num_workers 0: at least this many envs per worker (0: no cap), each worker a GL
+    # context on the GPU the updates run on. One walker seed of 16 envs on 2 workers rather than
+    # 8: 958-968 env frames/s against 886-941 on an H200; 5 seeds of 16 (8 workers against 5)
+    # level (benchmarks/RESULTS.md, "End to end").
+    c.env.render.envs_per_worker = 8
     # Meshes of more faces drawn simplified to about this many (0: as shipped, or >= 1000): only
     # the kitchen's arm has such meshes (envs/kitchen.py, build_render_model).
     c.env.render.mesh_faces = 0

@@ -40,6 +40,10 @@ def make(task: str, method: str) -> ConfigDict:
     # 2,554 per second and the DEAR loop 590 -> 732 env frames/s on an H200 (benchmarks/RESULTS.md,
     # "Franka Kitchen rendering"). Physics keeps the shipped meshes. 0 draws them as shipped.
     c.env.render.mesh_faces = 4000
+    # The kitchen's heavier pictures want every worker: 3 seeds x 16 envs on 8 workers drew 852-867
+    # env frames/s, on 6 or 3 (8 or 16 envs each) 830-854 (benchmarks/RESULTS.md, "Kitchen end
+    # to end").
+    c.env.render.envs_per_worker = 0
     c.env.episode_frames = 0  # the task's 280 steps
     c.agent.method = method
     return c

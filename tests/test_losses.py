@@ -111,9 +111,12 @@ def test_reconstruction_loss_clips_prediction_and_scales_target():
     obs = jnp.array([0, 255], jnp.uint8).reshape(1, 1, 1, 2)  # targets -0.5 and 0.5
     recon = jnp.array([0.0, 2.0]).reshape(1, 1, 1, 2)  # 2.0 is clipped to 0.5
     np.testing.assert_allclose(losses.reconstruction_loss(recon, obs), 0.25, rtol=1e-6)
-    # The clip stops the gradient of the out-of-range prediction.
-    g = jax.grad(losses.reconstruction_loss)(recon, obs)
-    np.testing.assert_allclose(np.asarray(g).ravel(), [1.0, 0.0], rtol=1e-6)
+    # Against targets of -0.5: 0 -> 0.25, 2.0 clipped to 0.5 -> 1.0; the clip stops the gradient
+    # of the out-of-range prediction (2 (0 + 0.5) = 1 for the other; 2 (2 + 0.5) = 5 unclipped).
+    dark = jnp.zeros((1, 1, 1, 2), jnp.uint8)
+    np.testing.assert_allclose(losses.reconstruction_loss(recon, dark), 1.25, rtol=1e-6)
+    g = jax.grad(losses.reconstruction_loss)(recon, dark)
+    np.testing.assert_array_equal(np.asarray(g).ravel(), [1.0, 0.0])
 
 
 def test_ted_loss_is_mean_bce():

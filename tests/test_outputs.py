@@ -316,6 +316,27 @@ def test_checkpoint_round_trip_is_bit_identical(tmp_path, agent_state):
     )
 
 
+def test_checkpoint_keeps_host_arrays_and_zero_size_leaves(tmp_path):
+    """numpy arrays in `extra` (host RNG states, CPU physics) come back bit for bit, float64
+    included; a zero-size leaf (not stored: orbax refuses it) comes back as the template's; a
+    float64 numpy leaf of the state comes back as float32, as jax.numpy would make it."""
+    rng_state = np.array([0.1, np.pi, -1e-300], np.float64)
+    counts = np.array([[2**62, -1]], np.int64)
+    state = {"w": jnp.arange(3.0), "empty": jnp.zeros((0, 3)), "host": np.array([0.1, 2.5])}
+    with Checkpointer(tmp_path / "ck", fingerprint=FINGERPRINT) as ckpt:
+        ckpt.save(5, state, extra={"rng": rng_state, "physics": {"counts": counts}})
+    template = {"w": jnp.zeros(3), "empty": jnp.zeros((0, 3)), "host": np.zeros(2)}
+    with Checkpointer(tmp_path / "ck", fingerprint=FINGERPRINT) as ckpt:
+        _, restored, extra = ckpt.restore(template)
+    for got, want in ((extra["rng"], rng_state), (extra["physics"]["counts"], counts)):
+        assert got.dtype == want.dtype and got.shape == want.shape
+        assert got.tobytes() == want.tobytes()
+    np.testing.assert_array_equal(restored["w"], [0.0, 1.0, 2.0])
+    assert restored["empty"].shape == (0, 3)
+    assert restored["host"].dtype == jnp.float32
+    np.testing.assert_array_equal(restored["host"], np.float32([0.1, 2.5]))
+
+
 def test_keep_last_k_and_same_step(tmp_path, agent_state):
     with Checkpointer(tmp_path, fingerprint=FINGERPRINT, keep=2) as ckpt:
         for step in (10, 20, 30):

@@ -131,7 +131,9 @@ def test_default_frames_are_dm_controls(name):
     difference (levels of 255; these 4 random states; Mesa llvmpipe): walker <= 0.052, cup
     <= 0.078, finger <= 0.018, all from the 256-texel shadow map (with 2048 texels: 0). "fast" is
     a different picture (black sky, no shadows or reflections): 32-45 levels away. Labels are the
-    same under both qualities."""
+    same under both qualities. The bound, 0.25, is 3x the largest measured difference and below
+    what turning one effect off moves a frame (reflections 0.41, multisampling 0.67 levels on an
+    H100: benchmarks/RESULTS.md, "Render quality and speed")."""
     task = dmc.TASKS[DMC_NAMES[name]]
     assert task.camera == 0  # DrQ-v2: camera_id = 2 if domain == "quadruped" else 0
     model = task.render_model()
@@ -143,7 +145,7 @@ def test_default_frames_are_dm_controls(name):
     def frame_diff(x):
         return np.abs(x.astype(int) - ref_rgb).mean(axis=(1, 2, 3))
 
-    assert frame_diff(rgb).max() <= 3.0, frame_diff(rgb)
+    assert frame_diff(rgb).max() <= 0.25, frame_diff(rgb)
     assert frame_diff(fast_rgb).min() >= 20.0, frame_diff(fast_rgb)
     tables = label_tables(model, task.agent_geom_ids(model), task.floor_geom_ids(model))
     np.testing.assert_array_equal(labels, labels_from_segmentation(ref_seg, tables))
@@ -314,7 +316,7 @@ def test_without_labels_the_frames_are_the_same_and_the_labels_background():
 
 def test_in_place_sheet_matches_renderer_up_to_rasterisation():
     """The measuring layout (pictures drawn in place on a sheet-sized buffer): labels exact; RGB
-    off in under 1% of pixels (0.07% on Mesa llvmpipe)."""
+    off in under 0.2% of pixels (0.07% on Mesa llvmpipe)."""
     model, agent, floor, cam = task_facts("walker")
     settings = R.RenderSettings(tiles_per_sheet=20, in_place=True)
     qpos = random_qpos(model, 24, seed=3)
@@ -323,7 +325,7 @@ def test_in_place_sheet_matches_renderer_up_to_rasterisation():
     tables = label_tables(model, agent, floor)
     np.testing.assert_array_equal(labels, labels_from_segmentation(ref_seg, tables))
     diff = np.abs(rgb.astype(int) - ref_rgb)
-    assert (diff.max(-1) > 0).mean() < 0.01
+    assert (diff.max(-1) > 0).mean() < 0.002
 
 
 def test_colour_perturbation_changes_pixels_not_labels():
@@ -390,7 +392,7 @@ def test_bad_input_is_named():
         floor_geom_ids=floor,
         settings=R.RenderSettings(num_workers=1),
     ) as pool:
-        with pytest.raises(ValueError, match="valid"):
+        with pytest.raises(ValueError, match=r"unknown perturbation keys \['colour'\]; valid:"):
             pool.render(model.qpos0[None], perturb={"colour": np.zeros((1, 3))})
         with pytest.raises(ValueError, match=r"\[B, nq\]"):
             pool.render(model.qpos0)

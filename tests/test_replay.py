@@ -156,6 +156,29 @@ def test_vmapped_over_seeds():
     assert state.frames.shape == (s, 5, num_envs, *FRAME)
     np.testing.assert_array_equal(state.frames[:, 0], frame)
     np.testing.assert_array_equal(state.pos, [1, 1, 1])
+    # Seeds of their own rows (frames, rewards, episode starts): each seed's vmapped batch is its
+    # own buffer's batch under its key.
+    rng = np.random.default_rng(0)
+    for row in range(1, 7):
+        first = np.zeros((s, num_envs), bool)
+        first[1, 0] = row == 3  # seed 1's env 0 starts an episode here
+        state = jax.vmap(replay.add)(
+            state,
+            jnp.asarray(rng.integers(0, 256, (s, num_envs, *FRAME)), jnp.uint8),
+            jnp.zeros((s, num_envs, *FRAME[:2]), jnp.uint8),
+            jnp.asarray(rng.normal(size=(s, num_envs, 2)), jnp.float32),
+            jnp.asarray(rng.normal(size=(s, num_envs)), jnp.float32),
+            jnp.ones((s, num_envs)),
+            jnp.asarray(first),
+        )
+    sample = functools.partial(replay.sample, batch_size=8, nstep=2, gamma=0.9, frame_stack=3)
+    keys = jax.random.split(jax.random.key(1), s)
+    together = jax.vmap(sample)(state, keys)
+    for i in range(s):
+        alone = sample(jax.tree.map(lambda x, i=i: x[i], state), keys[i])
+        for a, b in zip(jax.tree.leaves(alone), jax.tree.leaves(together)):
+            np.testing.assert_array_equal(a, b[i])
+    assert not np.array_equal(together.obs[0], together.obs[1])
 
 
 def test_capacity_check_says_how_much_is_needed():

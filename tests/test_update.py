@@ -128,21 +128,42 @@ def test_actor_loss_reaches_no_encoder_parameter(dear):
 
 
 def test_encoder_learns_from_critic_and_aux_losses(dear):
+    """Each of the critic, mask and orthogonality losses moves the encoder's gradient: with
+    alpha = beta = 0 it is the critic's alone (and the decoder's is 0); the mask loss
+    (alpha > 0) and the orthogonality loss (beta > 0) each change it."""
     cfg, state = dear
     learner = {k: v for k, v in state.params.items() if k != "actor"}
     grad = jax.jit(jax.grad(update.learner_loss, has_aux=True), static_argnames="cfg")
-    grads, (metrics, _) = grad(
-        learner,
-        state.params["actor"],
-        state.target_critic,
-        _batch(6),
-        jax.random.key(7),
-        update.HParams(),
-        jnp.float32(0.5),
-        cfg=cfg,
-    )
-    for name in ("encoder", "critic", "mask_decoder"):
-        assert sum(float(jnp.abs(x).sum()) for x in jax.tree.leaves(grads[name])) > 0, name
+
+    def grads(alpha, beta):
+        g, (metrics, _) = grad(
+            learner,
+            state.params["actor"],
+            state.target_critic,
+            _batch(6),
+            jax.random.key(7),
+            update.HParams(alpha=alpha, beta=beta),
+            jnp.float32(0.5),
+            cfg=cfg,
+        )
+        return g, metrics
+
+    def size(tree):
+        return sum(float(jnp.abs(x).sum()) for x in jax.tree.leaves(tree))
+
+    def gap(a, b):
+        return size(jax.tree.map(lambda x, y: x - y, a, b))
+
+    critic_only, _ = grads(0.0, 0.0)
+    assert size(critic_only["encoder"]) > 0 and size(critic_only["critic"]) > 0
+    assert size(critic_only["mask_decoder"]) == 0
+    with_mask, _ = grads(0.25, 0.0)
+    with_ortho, _ = grads(0.0, 100.0)
+    dear_grads, metrics = grads(0.25, 100.0)
+    assert size(with_mask["mask_decoder"]) > 0
+    assert gap(with_mask["encoder"], critic_only["encoder"]) > 0
+    assert gap(with_ortho["encoder"], critic_only["encoder"]) > 0
+    assert gap(dear_grads["encoder"], with_mask["encoder"]) > 0
     expected = metrics["critic_loss"] + 0.25 * metrics["mask_loss"] + 100.0 * metrics["ortho_loss"]
     np.testing.assert_allclose(metrics["loss"], expected, rtol=1e-5)
 
@@ -180,10 +201,15 @@ def test_acting_phases_and_schedule(dear):
     still = update.HParams(explore_steps=16.0, std_steps=100.0, std_init=0.0, std_final=0.0)
     key = jax.random.key(14)
     uniform = jax.random.uniform(jax.random.split(key)[1], mean.shape, minval=-1.0, maxval=1.0)
+    shifted = jax.tree.map(lambda x: x + 0.5, same.params["actor"])
+    other = same.replace(params={**same.params, "actor": shifted})  # another policy
     for steps, expected in ((0, uniform), (15, uniform), (16, mean)):
         a, _ = act(same.replace(steps=jnp.int32(steps)), obs, key, still, explore=True)
         np.testing.assert_array_equal(a, expected)
+        b, _ = act(other.replace(steps=jnp.int32(steps)), obs, key, still, explore=True)
+        assert np.array_equal(a, b) == (steps < 16)  # the policy matters only after exploring
     assert not np.allclose(uniform, mean, atol=0.3)
+    assert np.all(np.abs(np.asarray(uniform)) <= 1.0)
     late = s1.replace(steps=jnp.int32(10_000))
     a2, _ = act(late, obs, jax.random.key(13), hp, explore=True)
     # After the decay, std = 0.1: actions stay near the mean.
@@ -246,11 +272,15 @@ def test_lanes_hold_keys_follow_their_seeds():
 
 
 def test_sample_action_clips_noise_and_passes_gradient_through_clamp():
-    mean = jnp.array([0.0, 0.999])
-    a = update.sample_action(mean, 10.0, jax.random.key(0), clip=0.3)
-    assert np.all(np.abs(np.asarray(a - mean)) <= 0.3 + 1e-6) and np.all(np.abs(np.asarray(a)) < 1)
+    """Noise of std 10 clipped to +-0.3; means of +-1.5 end beyond the bounds whatever the draw,
+    so they are clamped to +-(1 - 1e-6), and the gradient still reaches them (a plain clip would
+    give 0 there)."""
+    mean = jnp.array([0.0, 0.2, 1.5, -1.5])
+    a = np.asarray(update.sample_action(mean, 10.0, jax.random.key(0), clip=0.3))
+    assert np.all(np.abs(a[:2] - np.asarray(mean[:2])) <= 0.3 + 1e-6)
+    np.testing.assert_array_equal(a[2:], np.float32([1 - 1e-6, -1 + 1e-6]))
     g = jax.grad(lambda m: update.sample_action(m, 10.0, jax.random.key(0), 0.3).sum())(mean)
-    np.testing.assert_allclose(g, [1.0, 1.0])
+    np.testing.assert_array_equal(g, [1.0, 1.0, 1.0, 1.0])
 
 
 @pytest.mark.parametrize("method", update.METHODS)
@@ -299,21 +329,34 @@ def test_vmapped_seeds_every_method(method):
 
 
 def test_every_shift_impl_gives_the_same_update(dear):
-    """agent.shift_impl changes how the random shift is computed, not the update: the same state,
-    batch and key give the same new parameters and metrics (the shifted pixels are equal bit for
-    bit, tests/test_augment.py; the programs around them fuse differently, so the float sums may
-    round differently). Adam's first step is about lr x the sign of each gradient, so a gradient
-    within rounding of 0 may move its parameter by 2 lr on one side: the batch is one whose
-    gradients all keep clear of 0 (not every random batch's do)."""
+    """agent.shift_impl changes how the random shift is computed, not the update: the same
+    parameters, batch and key give the same learner loss, metrics and gradients (the shifted
+    pixels are equal bit for bit, tests/test_augment.py; the programs around them fuse
+    differently, so float sums may round differently: each gradient leaf within 1e-4 of its
+    largest entry). Gradients, not parameters after an Adam step, which moves a parameter by
+    about lr x the sign of its gradient and so turns a rounding near 0 into 2 lr."""
     cfg, state = dear
-    batch, key, hp = _batch(22), jax.random.key(8), update.HParams()
-    results = {}
-    for impl in ("pad_slice", "gather", "one_hot"):
-        c = update.AgentConfig(method="dear", shift_impl=impl, **SMALL)
-        results[impl] = _jitted_update(c)(state, batch, key, hp)  # "gather": the default's
-    for impl in ("gather", "one_hot"):
-        for a, b in zip(jax.tree.leaves(results[impl]), jax.tree.leaves(results["pad_slice"])):
-            np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-7)
+    learner = {k: v for k, v in state.params.items() if k != "actor"}
+    grad = jax.jit(jax.grad(update.learner_loss, has_aux=True), static_argnames="cfg")
+    key, hp = jax.random.key(8), update.HParams()
+    for batch in (_batch(6), _batch(22)):
+        results = {}
+        for impl in ("pad_slice", "gather", "one_hot"):
+            c = update.AgentConfig(method="dear", shift_impl=impl, **SMALL)
+            g, (metrics, _) = grad(
+                learner, state.params["actor"], state.target_critic, batch, key, hp,
+                jnp.float32(0.5), cfg=c,
+            )  # fmt: skip
+            results[impl] = (g, metrics)
+        want_g, want_m = results["pad_slice"]
+        for impl in ("gather", "one_hot"):
+            got_g, got_m = results[impl]
+            for k in want_m:
+                np.testing.assert_allclose(got_m[k], want_m[k], rtol=1e-5, err_msg=k)
+            for a, b in zip(jax.tree.leaves(got_g), jax.tree.leaves(want_g)):
+                scale = float(jnp.abs(b).max())
+                np.testing.assert_allclose(a, b, rtol=0, atol=1e-4 * scale + 1e-12, err_msg=impl)
+        assert float(want_m["critic_loss"]) > 0
     with pytest.raises(ValueError, match="unknown shift_impl 'roll'"):
         update.AgentConfig(action_dim=2, shift_impl="roll")
 

@@ -301,17 +301,20 @@ def make_env(
     hosts: Hosts | None = None,
     physics_threads: int | None = None,
     labels: bool | None = None,
+    video_seed: int | None = None,
 ) -> envs.Env:
     """The batched env of the config (`backend` overrides env.backend; seeds split over `mesh`);
     with several processes (`hosts`), of this process's lanes on its devices. physics_threads:
     CPU MuJoCo's threads (default: env.physics_threads, or one per device where that is 0).
     labels: whether the render pool draws the segmentation pass (default: where the method's
     loss reads the agent's mask; the env draws it anyway where it composites backgrounds);
-    without it the masks are all 0."""
+    without it the masks are all 0. video_seed: the built-in background videos' (default:
+    `seed`), the same on every process of the run."""
     e = config.env
     hosts = hosts or Hosts(mesh, lanes.num_lanes(config))
     physics_threads = physics_threads or e.physics_threads or hosts.num_devices
-    # Each process draws its own lanes' episode starts and distractions.
+    # Each process draws its own lanes' episode starts and distractions from the same videos.
+    video_seed = seed if video_seed is None else video_seed
     seed += HOST_SEED_STRIDE * hosts.index
     env = envs.make(
         e.task,
@@ -330,6 +333,7 @@ def make_env(
             labels=config.agent.method in update.MASK_METHODS if labels is None else labels,
         ),
         seed=seed,
+        video_seed=video_seed,
         action_repeat=e.action_repeat,
         episode_frames=e.episode_frames or None,
         sharding=hosts.local,
@@ -342,7 +346,8 @@ def make_eval_env(
     config: ConfigDict, *, mesh: Mesh | None = None, hosts: Hosts | None = None, stream: int = 0
 ) -> envs.Env:
     """The evaluation episodes' env: num_eval_episodes envs per seed of the validation split,
-    its own seed (evaluation process `stream`'s own, of `eval_processes`), env.eval_backend's
+    its own seed (evaluation process `stream`'s own, of `eval_processes`; the built-in videos
+    every stream's, so that each evaluation shows the same set), env.eval_backend's
     physics; CPU physics on env.eval_physics_threads threads (0: as many as this process may
     use cores, up to 8)."""
     usable = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else range(os.cpu_count())
@@ -352,6 +357,7 @@ def make_eval_env(
         envs_per_seed=config.num_eval_episodes,
         split="val",
         seed=config.seed + 1 + stream * EVAL_STREAM_STRIDE,
+        video_seed=config.seed + 1,
         labels=True if config.save_video else None,  # the videos show the true mask
         backend="cpu" if config.env.eval_backend == "cpu" else None,
         mesh=mesh,

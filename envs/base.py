@@ -151,6 +151,8 @@ class Env:
     task: a `DmcTask` (envs/dmc.py) or a `KitchenTask` (envs/kitchen.py); both provide the
     models, the reward, the control mapping, the episode start and the render facts. Tasks with
     `success_ends_episode` end an episode on the step their reward is 1 (success 1, discount 0).
+    `video_seed` draws the built-in background videos (without `background_dir`; None: `seed`),
+    so that envs of one run with seeds of their own (hosts, evaluation processes) share them.
     """
 
     def __init__(
@@ -169,6 +171,7 @@ class Env:
         mask_drop_prob: float = 0.8,
         render: RenderSettings | None = None,
         seed: int = 0,
+        video_seed: int | None = None,
         action_repeat: int = 2,
         solver: SolverSettings | None = None,
         episode_frames: int | None = None,
@@ -249,7 +252,7 @@ class Env:
                 split,
                 distractions.difficulty_videos(distraction),
                 size=h,
-                seed=seed,
+                seed=seed if video_seed is None else video_seed,
             )
             num_videos, num_frames = videos.shape[:2]
         # Every device holds all videos (and the mask noise's key): each looks up its own seeds'

@@ -932,6 +932,26 @@ def test_envs_step_their_physics_on_the_configured_threads():
             env.close()
 
 
+def test_every_evaluation_process_shows_the_runs_builtin_videos():
+    """Without DAVIS, the built-in background videos follow the run's seed, not an env's: the
+    evaluation processes (streams) of a run composite one validation set, though each draws
+    its own episodes; another run seed has other videos."""
+    config = tiny_config(**{"env.distraction": "medium", "env.distraction_types": "background"})
+    made = [experiment.make_eval_env(config, stream=s) for s in (0, 1)]
+    config.seed = 1
+    made.append(experiment.make_eval_env(config))
+    try:
+        first, second, other = (np.asarray(env._backgrounds) for env in made)
+        assert first.shape[0] == 8  # medium: 8 videos
+        np.testing.assert_array_equal(first, second)
+        assert not np.array_equal(first, other)
+        (_, a), (_, b) = (env.reset(jax.random.key(0)) for env in made[:2])
+        assert not np.array_equal(np.asarray(a.frame), np.asarray(b.frame))
+    finally:
+        for env in made:
+            env.close()
+
+
 def test_benchmarks_set_any_config_field_typed_and_by_known_name():
     """`--set KEY=VALUE` of benchmarks/train.py (and profile_loop.py): typed as the field is,
     unknown keys refused with the valid fields."""

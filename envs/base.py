@@ -245,14 +245,15 @@ class Env:
         render_model = task.render_model(render.mesh_faces)
         if not with_videos:
             videos = np.zeros((1, 1, h, w, 3), np.uint8)
-            num_videos, num_frames = 0, 1
+            num_videos, num_frames, lengths = 0, 1, None
         else:
-            videos = distractions.load_backgrounds(
+            videos, lengths = distractions.load_backgrounds(
                 background_dir,
                 split,
                 distractions.difficulty_videos(distraction),
                 size=h,
                 seed=seed if video_seed is None else video_seed,
+                with_lengths=True,
             )
             num_videos, num_frames = videos.shape[:2]
         # Every device holds all videos (and the mask noise's key): each looks up its own seeds'
@@ -270,6 +271,7 @@ class Env:
             batch=self.batch,
             num_videos=num_videos,
             num_frames=num_frames,
+            lengths=lengths,
             seed=seed,
             color="color" in types,
             camera_motion="camera" in types,

@@ -61,6 +61,7 @@ DIFFICULTY_SCALE = {"none": 0.0, "easy": 0.1, "medium": 0.2, "hard": 0.3}
 DIFFICULTY_VIDEOS = {"none": 0, "easy": 4, "medium": 8, "hard": None}  # None: every video
 SPLITS = ("train", "val")
 PROCEDURAL_VIDEOS = {"train": 60, "val": 30}  # as many as DAVIS-2017's train / val lists
+PROCEDURAL_FRAMES = 60  # frames of a built-in video
 DAVIS_LAYOUT = (
     "DAVIS-2017 root with JPEGImages/480p/<video>/<frame>.jpg and ImageSets/2017/train.txt, "
     "ImageSets/2017/val.txt (one video name per line)"
@@ -141,7 +142,7 @@ def davis_video_names(background_dir: str | pathlib.Path, split: str) -> list[st
     return names
 
 
-def _read_video(folder: pathlib.Path, size: int, max_frames: int) -> np.ndarray:
+def _read_video(folder: pathlib.Path, size: int, max_frames: int | None) -> np.ndarray:
     import cv2
 
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
@@ -172,13 +173,16 @@ def load_backgrounds(
     split: str,
     num_videos: int | None,
     size: int = 84,
-    max_frames: int = 100,
+    max_frames: int | None = None,
     seed: int = 0,
-) -> np.ndarray:
-    """-> uint8 [N, T, size, size, 3]: the first `num_videos` videos of the split (None = all).
+    with_lengths: bool = False,
+):
+    """-> uint8 [N, T, size, size, 3]: the first `num_videos` videos of the split (None = all),
+    each of its own frames up to `max_frames` (None: all, as the Distracting Control Suite).
 
-    Videos of different lengths are padded to the longest (capped at max_frames) by playing
-    them back and forth. background_dir None -> procedurally generated videos (logged).
+    Videos of different lengths are padded to the longest by playing them back and forth;
+    `with_lengths` also returns each video's own length (int [N]: `Distractor` draws frames
+    within it). background_dir None -> procedurally generated videos (logged), 60 frames each.
     """
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}; valid: {SPLITS}")
@@ -191,9 +195,11 @@ def load_backgrounds(
             n,
             split,
         )
-        return procedural_videos(
-            n, min(max_frames, 60), size, seed=seed + (0 if split == "train" else 1_000_003)
+        frames = min(max_frames or PROCEDURAL_FRAMES, PROCEDURAL_FRAMES)
+        videos = procedural_videos(
+            n, frames, size, seed=seed + (0 if split == "train" else 1_000_003)
         )
+        return (videos, np.full(n, frames)) if with_lengths else videos
     names = davis_video_names(background_dir, split)
     if num_videos is not None:
         if not 0 < num_videos <= len(names):
@@ -206,8 +212,9 @@ def load_backgrounds(
         if not folder.is_dir():
             raise FileNotFoundError(f"video folder {folder} is missing; expected a {DAVIS_LAYOUT}")
         videos.append(_read_video(folder, size, max_frames))
-    length = max(len(v) for v in videos)
-    return np.stack([_bounce_to_length(v, length) for v in videos])
+    lengths = np.array([len(v) for v in videos])
+    padded = np.stack([_bounce_to_length(v, lengths.max()) for v in videos])
+    return (padded, lengths) if with_lengths else padded
 
 
 def procedural_videos(
@@ -281,7 +288,9 @@ class Distractor:
     """Distraction state of a batch of B envs: colours, camera pose, background frame.
 
     model: the render model (its default colours and camera); camera: id or name.
-    num_videos / num_frames: the shape of the loaded backgrounds (0 videos: no background).
+    num_videos / num_frames: the shape of the loaded backgrounds (0 videos: no background);
+    lengths: each video's own frames (int [num_videos]; None: all num_frames), within which its
+    frames are drawn (uniformly at an episode's start) and, in dynamic mode, played.
     color / camera_motion / background switch the three kinds on or off (all on by default).
     """
 
@@ -295,6 +304,7 @@ class Distractor:
         batch: int,
         num_videos: int,
         num_frames: int,
+        lengths: np.ndarray | None = None,
         seed: int = 0,
         color: bool = True,
         camera_motion: bool = True,
@@ -306,6 +316,13 @@ class Distractor:
         self.batch = batch
         self.num_videos = num_videos if background else 0
         self.num_frames = num_frames
+        self.lengths = np.full(num_videos, num_frames) if lengths is None else np.asarray(lengths)
+        if self.lengths.shape != (num_videos,) or not np.all(
+            (self.lengths >= 1) & (self.lengths <= num_frames)
+        ):
+            raise ValueError(
+                f"lengths must be {num_videos} counts in [1, {num_frames}], got {lengths}"
+            )
         self.rng = np.random.default_rng(seed)
         self.use_color = color and self.scale > 0
         self.use_camera = camera_motion and self.scale > 0
@@ -372,7 +389,7 @@ class Distractor:
             self.roll_vel[idx] = rng.uniform(-self.max_roll_vel, self.max_roll_vel, n)
         if self.num_videos:
             self.video[idx] = rng.integers(0, self.num_videos, n)
-            self.frame[idx] = rng.integers(0, self.num_frames, n)
+            self.frame[idx] = rng.integers(0, self.lengths[self.video[idx]])
             self.direction[idx] = rng.choice([-1, 1], n)
 
     # -- within an episode -----------------------------------------------------------------
@@ -393,10 +410,11 @@ class Distractor:
             )
         if self.use_camera:
             self._step_camera(rng)
-        if self.num_videos and self.num_frames > 1:
+        if self.num_videos:  # each video bounces at its own ends
+            last = self.lengths[self.video] - 1
             nxt = self.frame + self.direction
-            low, high = nxt <= 0, nxt >= self.num_frames - 1
-            self.frame = np.clip(nxt, 0, self.num_frames - 1).astype(np.int32)
+            low, high = nxt <= 0, nxt >= last
+            self.frame = np.clip(nxt, 0, last).astype(np.int32)
             self.direction = np.where(low, 1, np.where(high, -1, self.direction)).astype(np.int32)
 
     def _step_camera(self, rng: np.random.Generator) -> None:

@@ -70,6 +70,12 @@ def test_davis_loader_reads_first_n_of_the_split_list(davis):
         green = bgs[slot, :, 40, 40, 1].astype(int)
         np.testing.assert_allclose(green, [20 * f for f in want], atol=3)
     assert D.load_backgrounds(davis, "train", num_videos=None).shape[0] == 5
+    # each video's own length, every frame read (no cap unless asked)
+    padded, lengths = D.load_backgrounds(davis, "train", 4, with_lengths=True)
+    np.testing.assert_array_equal(lengths, [6, 3, 7, 4])
+    np.testing.assert_array_equal(padded, bgs)
+    capped, lengths = D.load_backgrounds(davis, "train", 4, max_frames=5, with_lengths=True)
+    assert capped.shape[1] == 5 and list(lengths) == [5, 3, 5, 4]
     val = D.load_backgrounds(davis, "val", num_videos=None)
     np.testing.assert_allclose(val[0, 0].reshape(-1, 3).mean(0), [80, 0, 100], atol=3)
 
@@ -257,6 +263,35 @@ def test_dynamic_mode_moves_within_ranges():
     steps = np.abs(np.diff(frames, axis=0))
     assert (steps <= 1).all() and (frames >= 0).all() and (frames < 10).all()
     assert (steps == 1).mean() > 0.8, "one frame per step, bouncing at the ends"
+
+
+def test_background_frames_are_drawn_and_played_within_each_videos_own_length():
+    """Videos padded to the longest: a static episode shows a frame drawn uniformly from its
+    video's own frames (never the padding), and dynamic mode bounces at the video's own end."""
+    model, _, _ = walker()
+    static = D.Distractor(
+        model, 0, "medium", batch=4000, num_videos=2, num_frames=10, lengths=[2, 10], seed=1
+    )
+    static.reset()
+    video, frame = static.background_index()
+    short, long = frame[video == 0], frame[video == 1]
+    assert set(short) == {0, 1} and abs(short.mean() - 0.5) < 0.05
+    assert set(long) == set(range(10)) and abs(long.mean() - 4.5) < 0.3
+    playing = D.Distractor(
+        model, 0, "medium", dynamic=True, batch=64, num_videos=2, num_frames=10,
+        lengths=[3, 10], seed=2,
+    )  # fmt: skip
+    playing.reset()
+    video = playing.background_index()[0]
+    frames = []
+    for _ in range(25):
+        playing.step()
+        frames.append(playing.background_index()[1])
+    frames = np.stack(frames)
+    assert frames[:, video == 0].max() == 2 and frames[:, video == 1].max() == 9
+    assert (np.abs(np.diff(frames, axis=0)) == 1).all()
+    with pytest.raises(ValueError, match=r"lengths must be 2 counts in \[1, 10\]"):
+        D.Distractor(model, 0, "medium", batch=1, num_videos=2, num_frames=10, lengths=[3, 11])
 
 
 def test_colour_and_camera_perturbation_on_rendered_frames(walker_frames):

@@ -43,13 +43,22 @@ def _batch(seed: int, far=False) -> Batch:
     return _batches([seed], far, stacked=False)
 
 
-def test_mask_loss_reaches_only_the_agent_half(dear):
-    """Through the update's own loss (`update.learner_loss`): the mask term's gradient (the
-    gradient with alpha = 1 less the one with alpha = 0, the loss being linear in alpha) reaches
-    the decoder and the encoder's output columns of z_A, and not one column of z_E: the decoder
-    reads the agent half only. The encoder's last layer is a Dense whose kernel columns are z's
-    coordinates, z_E the first half."""
-    cfg, state = dear
+@pytest.mark.parametrize(
+    "method, weight, decoder, half",
+    [
+        ("dear", "alpha", "mask_decoder", "agent"),
+        ("sear", "alpha", "mask_decoder", "agent"),
+        ("sear", "recon_weight", "recon_decoder", "env"),
+    ],
+)
+def test_a_decoders_loss_reaches_only_its_half(method, weight, decoder, half):
+    """Through the update's own loss (`update.learner_loss`): a decoder's term (the gradient
+    with its weight 1 less the one with weight 0, the loss being linear in it) reaches the
+    decoder and the encoder's output columns of its half of z, and not one column of the other:
+    the mask decoder reads z_A, SEAR's reconstruction decoder z_E. The encoder's last layer is
+    a Dense whose kernel columns are z's coordinates, z_E the first half."""
+    cfg = update.AgentConfig(method=method, **SMALL)
+    state = _init(cfg, jax.random.key(0))
     learner = {k: v for k, v in state.params.items() if k != "actor"}
     batch = _batch(1)
 
@@ -68,14 +77,15 @@ def test_mask_loss_reaches_only_the_agent_half(dear):
             )[0]
         )(learner)
 
-    with_mask, without = (grads(update.HParams(alpha=a, beta=0.0)) for a in (1.0, 0.0))
-    mask_term = jax.tree.map(lambda a, b: np.asarray(a - b), with_mask, without)
-    kernel = mask_term["encoder"]["Dense_0"]["kernel"]
-    half = kernel.shape[-1] // 2
-    assert np.all(kernel[:, :half] == 0.0)  # z_E
-    assert np.abs(kernel[:, half:]).sum() > 0  # z_A
-    assert all(np.abs(g).sum() > 0 for g in jax.tree.leaves(mask_term["mask_decoder"]))
-    assert all(np.all(g == 0) for g in jax.tree.leaves(mask_term["critic"]))
+    on, off = (grads(update.HParams(beta=0.0, **{weight: w})) for w in (1.0, 0.0))
+    term = jax.tree.map(lambda a, b: np.asarray(a - b), on, off)
+    kernel = term["encoder"]["Dense_0"]["kernel"]
+    size = kernel.shape[-1] // 2
+    env_cols, agent_cols = kernel[:, :size], kernel[:, size:]
+    read, other = (agent_cols, env_cols) if half == "agent" else (env_cols, agent_cols)
+    assert np.all(other == 0.0) and np.abs(read).sum() > 0
+    assert all(np.abs(g).sum() > 0 for g in jax.tree.leaves(term[decoder]))
+    assert all(np.all(g == 0) for g in jax.tree.leaves(term["critic"]))
 
 
 @functools.cache

@@ -12,8 +12,10 @@ This file owns
   FLOOR pixels by (1 - floor_alpha), in jnp on the accelerator.
 
 How the Env uses it, per batch of B = S*E envs:
-    bgs = jnp.asarray(load_backgrounds(dir, split, difficulty_videos(d)))     # [N,T,84,84,3]
-    dis = Distractor(render_model, camera, d, dynamic, batch=B, num_videos=N, num_frames=T, seed)
+    bgs, lengths = load_backgrounds(dir, split, difficulty_videos(d), with_lengths=True)
+    bgs = jnp.asarray(bgs)                                    # [N,T,84,84,3], videos padded to T
+    dis = Distractor(render_model, camera, d, dynamic, batch=B, num_videos=N, num_frames=T,
+                     lengths=lengths, seed)
     reset: dis.reset(first)  (bool [B], the envs starting an episode);  step: dis.step()
     rgb, labels = pool.render(qpos, perturb=dis.perturb())
     video, frame = dis.background_index()

@@ -25,6 +25,9 @@ def timed_calls(call, iters: int) -> tuple[float, float]:
     return (time.perf_counter() - t0) / iters * 1e3, dispatch / iters * 1e3
 
 
+MEASURED_ENV = ("XLA_FLAGS", "MUJOCO_EGL_DEVICE_ID")
+
+
 def save_json(result: dict, out: str | None, default: str | None = None) -> pathlib.Path | None:
     """Write `result` to `out` (or `default`), creating folders, with the command that made it
     and its provenance (commit, date, devices, versions: `dear_jax.provenance`) first; prints
@@ -37,9 +40,9 @@ def save_json(result: dict, out: str | None, default: str | None = None) -> path
 
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    # XLA_FLAGS change what the programs compile to: the command carries them.
-    flags = os.environ.get("XLA_FLAGS")
-    env = [f"XLA_FLAGS={shlex.quote(flags)}"] if flags else []
+    # Variables that change what is measured, which the command carries: XLA_FLAGS (what the
+    # programs compile to) and MUJOCO_EGL_DEVICE_ID (the GPU the render workers draw on).
+    env = [f"{k}={shlex.quote(os.environ[k])}" for k in MEASURED_ENV if os.environ.get(k)]
     command = " ".join([*env, "python -m", _module(), shlex.join(sys.argv[1:])])
     head = {"command": command, **provenance()}
     path.write_text(json.dumps({**head, **result}, indent=1))

@@ -8,7 +8,7 @@ import sys
 from benchmarks.common import save_json
 
 
-def test_the_command_reruns_as_typed_with_its_xla_flags(tmp_path, monkeypatch):
+def test_the_command_reruns_as_typed_with_its_xla_flags_and_egl_device(tmp_path, monkeypatch):
     argv = ["--seeds", "1", "5", "--set", "agent.kernels=BLOCK=64 STAGES=2"]
     monkeypatch.setattr(sys, "argv", ["benchmarks/update.py", *argv])
     # The test run's own flags (conftest.py: several, so the command must quote them), left as
@@ -22,7 +22,13 @@ def test_the_command_reruns_as_typed_with_its_xla_flags(tmp_path, monkeypatch):
     assert result["xla_flags"] == flags and result["rows"] == [1]
     assert {"commit", "date", "device_kind", "jax"} <= set(result)
 
+    monkeypatch.setenv("MUJOCO_EGL_DEVICE_ID", "1")
+    result = json.loads(save_json({}, str(tmp_path / "egl.json")).read_text())
+    with_egl = f"XLA_FLAGS='{flags}' MUJOCO_EGL_DEVICE_ID=1 python -m benchmarks.update {args}"
+    assert result["command"] == with_egl
+
     monkeypatch.delenv("XLA_FLAGS")
+    monkeypatch.delenv("MUJOCO_EGL_DEVICE_ID")
     result = json.loads(save_json({}, str(tmp_path / "plain.json")).read_text())
     assert result["command"] == f"python -m benchmarks.update {args}"
     assert "xla_flags" not in result

@@ -25,9 +25,6 @@ def timed_calls(call, iters: int) -> tuple[float, float]:
     return (time.perf_counter() - t0) / iters * 1e3, dispatch / iters * 1e3
 
 
-MEASURED_ENV = ("XLA_FLAGS", "MUJOCO_EGL_DEVICE_ID")
-
-
 def save_json(result: dict, out: str | None, default: str | None = None) -> pathlib.Path | None:
     """Write `result` to `out` (or `default`), creating folders, with the command that made it
     and its provenance (commit, date, devices, versions: `dear_jax.provenance`) first; prints
@@ -36,12 +33,11 @@ def save_json(result: dict, out: str | None, default: str | None = None) -> path
     path = out or default
     if not path:
         return None
-    from dear_jax.provenance import provenance
+    from dear_jax.provenance import MEASURED_ENV, provenance
 
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    # Variables that change what is measured, which the command carries: XLA_FLAGS (what the
-    # programs compile to) and MUJOCO_EGL_DEVICE_ID (the GPU the render workers draw on).
+    # The command carries the variables that change what is measured.
     env = [f"{k}={shlex.quote(os.environ[k])}" for k in MEASURED_ENV if os.environ.get(k)]
     command = " ".join([*env, "python -m", _module(), shlex.join(sys.argv[1:])])
     head = {"command": command, **provenance()}

@@ -41,9 +41,15 @@ def commit() -> str:
     return "unknown"
 
 
+# Environment variables that change what a run or benchmark measures: XLA_FLAGS (what the
+# programs compile to) and MUJOCO_EGL_DEVICE_ID (the GPU the render workers draw on).
+MEASURED_ENV = ("XLA_FLAGS", "MUJOCO_EGL_DEVICE_ID")
+
+
 def provenance() -> dict:
     """commit, date (UTC), the devices JAX sees, the versions of python, jax, flax, mujoco, and
-    XLA_FLAGS where set (they change the compiled program)."""
+    where set XLA_FLAGS (they change the compiled program) and MUJOCO_EGL_DEVICE_ID (the GPU
+    that draws the frames, by default the first the process sees)."""
     import flax
     import jax
     import mujoco
@@ -60,5 +66,9 @@ def provenance() -> dict:
         jax=jax.__version__,
         flax=flax.__version__,
         mujoco=mujoco.__version__,
-        **({"xla_flags": os.environ["XLA_FLAGS"]} if os.environ.get("XLA_FLAGS") else {}),
+        **{
+            k.lower(): os.environ[k]
+            for k in ("XLA_FLAGS", "MUJOCO_EGL_DEVICE_ID")
+            if os.environ.get(k)
+        },
     )

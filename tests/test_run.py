@@ -225,13 +225,16 @@ def test_outputs_exist_and_parse(run):
     assert first["frames_per_seed"] == 240
 
 
-def test_provenance_records_xla_flags_only_where_set(monkeypatch):
+def test_provenance_records_xla_flags_and_the_egl_device_only_where_set(monkeypatch):
     from dear_jax.provenance import provenance
 
     monkeypatch.delenv("XLA_FLAGS", raising=False)
-    assert "xla_flags" not in provenance()
+    monkeypatch.delenv("MUJOCO_EGL_DEVICE_ID", raising=False)
+    assert not {"xla_flags", "mujoco_egl_device_id"} & set(provenance())
     monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_enable_triton_gemm=false")
+    monkeypatch.setenv("MUJOCO_EGL_DEVICE_ID", "1")
     assert provenance()["xla_flags"] == "--xla_gpu_enable_triton_gemm=false"
+    assert provenance()["mujoco_egl_device_id"] == "1"
 
 
 def test_frames_and_updates_follow_the_papers_ratio(run):

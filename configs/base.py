@@ -115,6 +115,12 @@ def get_config() -> ConfigDict:
     # Meshes of more faces drawn simplified to about this many (0: as shipped, or >= 1000): only
     # the kitchen's arm has such meshes (envs/kitchen.py, build_render_model).
     c.env.render.mesh_faces = 0
+    # The GPUs the render workers draw on: "auto", those that train the env's lanes (or run the
+    # evaluation's policy; MUJOCO_EGL_DEVICE_ID instead where it is set), or GPU numbers of this
+    # process, e.g. "1": a GPU the updates do not use. Drawing shares its GPU with the updates:
+    # the kitchen's DEAR loop drawn on a second GPU ran at 1,076 env frames/s against 879
+    # (benchmarks/RESULTS.md, "Kitchen end to end").
+    c.env.render.gpus = "auto"
 
     c.agent = ConfigDict()
     c.agent.method = "dear"  # "drqv2" | "dear" | "sear" | "ted"

@@ -384,7 +384,8 @@ def build(config, *, policy_on: str, env_on: str = "default", stream: int = 0):
             jax.config.update("jax_default_device", policy_device)
     else:
         policy_device = jax.devices("cpu")[0]
-    env = make_eval_env(config, hosts=Hosts(None, lanes.num_lanes(config)), stream=stream)
+    hosts = Hosts(None, lanes.num_lanes(config))
+    env = make_eval_env(config, hosts=hosts, stream=stream, device=policy_device)
     acfg = agent_config(config, env.spec.action_dim)
     programs = build_programs(acfg, hparams(config), config)
     step = programs.evaluate_step if policy_on == "accelerator" else programs.evaluate_step_host

@@ -290,6 +290,24 @@ def eval_processes(config: ConfigDict, where: str) -> int:
     return AUTO_EVAL_PROCESSES if beside_gpu else 1
 
 
+def render_gpus(setting: str, devices) -> str:
+    """env.render.gpus for an env whose lanes live on `devices` (in the order the lanes are split
+    over them): "auto" becomes their GPU numbers in this process, as MUJOCO_EGL_DEVICE_ID takes
+    them (unchanged where that variable is set or they are not GPUs); numbers are checked
+    against the GPUs this process sees."""
+    if setting != "auto":
+        seen = len([d for d in jax.local_devices() if d.platform == "gpu"])
+        if any(int(g) >= seen for g in setting.split(",")):
+            visible = f" (0-{seen - 1})" if seen else ""
+            raise ValueError(
+                f"env.render.gpus={setting!r}: this process sees {seen} GPU(s){visible}"
+            )
+        return setting
+    if os.environ.get("MUJOCO_EGL_DEVICE_ID") or any(d.platform != "gpu" for d in devices):
+        return "auto"
+    return ",".join(str(d.local_hardware_id) for d in devices)
+
+
 def make_env(
     config: ConfigDict,
     *,
@@ -302,6 +320,7 @@ def make_env(
     physics_threads: int | None = None,
     labels: bool | None = None,
     video_seed: int | None = None,
+    render_devices: list | None = None,
 ) -> envs.Env:
     """The batched env of the config (`backend` overrides env.backend; seeds split over `mesh`);
     with several processes (`hosts`), of this process's lanes on its devices. physics_threads:
@@ -309,9 +328,18 @@ def make_env(
     labels: whether the render pool draws the segmentation pass (default: where the method's
     loss reads the agent's mask; the env draws it anyway where it composites backgrounds);
     without it the masks are all 0. video_seed: the built-in background videos' (default:
-    `seed`), the same on every process of the run."""
+    `seed`), the same on every process of the run. render_devices: the devices env.render.gpus
+    "auto" draws on (default: those of this process's lanes)."""
     e = config.env
     hosts = hosts or Hosts(mesh, lanes.num_lanes(config))
+    if render_devices is None:
+        local = hosts.local
+        render_devices = jax.local_devices()[:1] if local is None else list(local.mesh.devices.flat)
+    render = envs.RenderSettings(
+        **e.render.to_dict(),
+        labels=config.agent.method in update.MASK_METHODS if labels is None else labels,
+    )
+    render = dataclasses.replace(render, gpus=render_gpus(render.gpus, render_devices))
     physics_threads = physics_threads or e.physics_threads or hosts.num_devices
     # Each process draws its own lanes' episode starts and distractions from the same videos.
     video_seed = seed if video_seed is None else video_seed
@@ -328,10 +356,7 @@ def make_env(
         split=split,
         mask=e.mask,
         mask_drop_prob=e.mask_drop_prob,
-        render=envs.RenderSettings(
-            **e.render.to_dict(),
-            labels=config.agent.method in update.MASK_METHODS if labels is None else labels,
-        ),
+        render=render,
         seed=seed,
         video_seed=video_seed,
         action_repeat=e.action_repeat,
@@ -343,13 +368,19 @@ def make_env(
 
 
 def make_eval_env(
-    config: ConfigDict, *, mesh: Mesh | None = None, hosts: Hosts | None = None, stream: int = 0
+    config: ConfigDict,
+    *,
+    mesh: Mesh | None = None,
+    hosts: Hosts | None = None,
+    stream: int = 0,
+    device: jax.Device | None = None,
 ) -> envs.Env:
     """The evaluation episodes' env: num_eval_episodes envs per seed of the validation split,
     its own seed (evaluation process `stream`'s own, of `eval_processes`; the built-in videos
     every stream's, so that each evaluation shows the same set), env.eval_backend's
     physics; CPU physics on env.eval_physics_threads threads (0: as many as this process may
-    use cores, up to 8)."""
+    use cores, up to 8). device: where the evaluation's policy runs, if not on the lanes'
+    devices (its frames are then drawn there: env.render.gpus "auto")."""
     usable = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else range(os.cpu_count())
     threads = config.env.eval_physics_threads or min(8, len(usable))
     return make_env(
@@ -363,6 +394,7 @@ def make_eval_env(
         mesh=mesh,
         hosts=hosts,
         physics_threads=threads,
+        render_devices=None if device is None else [device],
     )
 
 

@@ -134,7 +134,7 @@ def write_summary(
         "device": jax.devices()[0].device_kind,
         "conv_stack": networks.stack_for(config.agent.conv_stack),
         "kernels": config.agent.kernels,
-        "render": config.env.render.to_dict(),
+        "render": {**config.env.render.to_dict(), "gpus": spec.render_gpus},
         "render_quality": config.env.render.quality,
         "eval_device": evaluated_on,
         "eval_processes": eval_processes,

@@ -73,6 +73,7 @@ class EnvSpec:
     dynamic: bool = False
     mask: str = "true"
     physics_steps_per_agent_step: int = 1
+    render_gpus: str = "auto"  # the GPUs its render workers draw on (RenderSettings.gpus)
 
 
 @flax.struct.dataclass
@@ -239,6 +240,7 @@ class Env:
             dynamic=dynamic,
             mask=mask,
             physics_steps_per_agent_step=n_sub * action_repeat,
+            render_gpus=render.gpus,
         )
         self.render_settings = render
 

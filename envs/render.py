@@ -37,6 +37,7 @@ from __future__ import annotations
 import ctypes
 import dataclasses
 import os
+import re
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -111,6 +112,13 @@ class RenderSettings:
     # False: no segmentation pass, labels all 0 (LABEL_BACKGROUND), for an env that needs no
     # agent mask and composites no background (dear_jax.experiment.make_env decides, by method).
     labels: bool = True
+    # The GPUs the workers draw on: "auto" (MuJoCo's choice: MUJOCO_EGL_DEVICE_ID if set, else
+    # the process's first GPU; `dear_jax.experiment.make_env` makes it the GPUs of the env's
+    # lanes) or GPU numbers as MUJOCO_EGL_DEVICE_ID takes them (the process's visible GPUs, in
+    # CUDA's order), e.g. "1" or "0,1": the workers spread over them in blocks (`worker_gpus`).
+    # Drawing shares its GPU with the updates: the kitchen's loop drawn on a second GPU ran at
+    # 1,076 env frames/s against 879 (benchmarks/RESULTS.md, "Kitchen end to end").
+    gpus: str = "auto"
     # For measurements only (benchmarks/render.py), never set by configs:
     # visuals: effects other than the quality's (None = the quality's);
     # in_place: draw each sample straight into its place in a sheet-sized MuJoCo buffer (the
@@ -126,6 +134,11 @@ class RenderSettings:
         for name in ("num_workers", "envs_per_worker"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be 0 (auto) or more, got {getattr(self, name)}")
+        if self.gpus != "auto" and not re.fullmatch(r"\d+(,\d+)*", self.gpus):
+            raise ValueError(
+                f"render gpus {self.gpus!r}: 'auto' or GPU numbers separated by commas, e.g. '1' "
+                "or '0,1'"
+            )
         if self.mesh_faces < 0 or 0 < self.mesh_faces < MIN_MESH_FACES:
             raise ValueError(
                 f"mesh_faces must be 0 (meshes as shipped) or >= {MIN_MESH_FACES}, got "
@@ -141,6 +154,14 @@ class RenderSettings:
         if self.envs_per_worker > 0 and batch:
             workers = min(workers, -(-batch // self.envs_per_worker))
         return workers
+
+    def worker_gpus(self, workers: int) -> list[int | None]:
+        """The GPU each of `workers` workers draws on (None: MuJoCo's choice): worker i of W on
+        gpus[i * G // W], so that each GPU draws for the block of the batch its lanes own."""
+        if self.gpus == "auto":
+            return [None] * workers
+        gpus = [int(g) for g in self.gpus.split(",")]
+        return [gpus[i * len(gpus) // workers] for i in range(workers)]
 
     def resolved_visuals(self) -> Visuals:
         return self.visuals or QUALITY_VISUALS[self.quality]

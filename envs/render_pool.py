@@ -7,6 +7,7 @@ shared-memory block; only the small inputs (qpos, perturbations) are pickled.
 
 from __future__ import annotations
 
+import os
 import threading
 import traceback
 from collections.abc import Callable
@@ -33,7 +34,7 @@ def _attach_shm(name: str) -> shared_memory.SharedMemory:
         resource_tracker.register = register
 
 
-def _worker_main(conn, model_fn, init_kwargs) -> None:
+def _worker_main(conn, model_fn, init_kwargs, gpu: int | None) -> None:
     # A stop signal sent to the whole process group is the parent's to handle: it finishes its
     # step, checkpoints and then closes the pool. A worker also ends when the parent's end of
     # the pipe closes (EOF below), so it never outlives the parent.
@@ -41,6 +42,8 @@ def _worker_main(conn, model_fn, init_kwargs) -> None:
     renderer = None
     shm = None
     try:
+        if gpu is not None:  # read by MuJoCo's EGL backend when it makes the context
+            os.environ["MUJOCO_EGL_DEVICE_ID"] = str(gpu)
         renderer = TileRenderer(model_fn(), **init_kwargs)
         conn.send(("ok", None))
     except BaseException:  # noqa: BLE001 - any failure must reach the parent
@@ -57,7 +60,8 @@ def _worker_main(conn, model_fn, init_kwargs) -> None:
             if kind == "close":
                 break
             if kind == "info":
-                conn.send(("ok", renderer.gl_info()))
+                egl_device = os.environ.get("MUJOCO_EGL_DEVICE_ID", "")
+                conn.send(("ok", {**renderer.gl_info(), "MUJOCO_EGL_DEVICE_ID": egl_device}))
             elif kind == "render":
                 _, shm_name, capacity, lo, qpos, mocap_pos, mocap_quat, perturb = msg
                 if shm is None or shm.name != shm_name:
@@ -141,10 +145,10 @@ class RenderPool:
         ctx = forkserver.context("envs.render_pool", "envs.registry")
         self._conns: list[connection.Connection] = []
         self._procs = []
-        for _ in range(settings.resolved_workers(batch)):
+        for gpu in settings.worker_gpus(settings.resolved_workers(batch)):
             parent, child = ctx.Pipe()
             proc = ctx.Process(
-                target=_worker_main, args=(child, model_fn, init_kwargs), daemon=True
+                target=_worker_main, args=(child, model_fn, init_kwargs, gpu), daemon=True
             )
             proc.start()
             child.close()
@@ -188,7 +192,8 @@ class RenderPool:
         self._shm = shared_memory.SharedMemory(create=True, size=batch * h * w * 4)
 
     def gl_info(self) -> list[dict[str, str]]:
-        """GL vendor / renderer / version strings of every worker's context."""
+        """GL vendor / renderer / version strings of every worker's context, and the
+        MUJOCO_EGL_DEVICE_ID it was made under ("" where unset)."""
         with self._lock:
             for conn in self._conns:
                 conn.send(("info",))

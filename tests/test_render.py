@@ -398,6 +398,56 @@ def test_bad_input_is_named():
             pool.render(model.qpos0)
         info = pool.gl_info()
         assert len(info) == 1 and info[0]["GL_RENDERER"]
+        assert info[0]["MUJOCO_EGL_DEVICE_ID"] == os.environ.get("MUJOCO_EGL_DEVICE_ID", "")
+        frame = pool.render(model.qpos0[None])
+    # A worker told its GPU makes its context there and draws the same picture.
+    with RenderPool(
+        functools.partial(copy.deepcopy, model),
+        camera=cam,
+        agent_geom_ids=agent,
+        floor_geom_ids=floor,
+        settings=R.RenderSettings(num_workers=1, gpus="0"),
+    ) as pool:
+        assert pool.gl_info()[0]["MUJOCO_EGL_DEVICE_ID"] == "0"
+        for a, b in zip(pool.render(model.qpos0[None]), frame, strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_workers_draw_on_the_gpus_named_each_on_its_block_of_the_batch():
+    """Worker i of W draws on gpus[i * G // W]: the GPU whose lanes own the start of its block."""
+    assert R.RenderSettings(gpus="0,1").worker_gpus(8) == [0, 0, 0, 0, 1, 1, 1, 1]
+    assert R.RenderSettings(gpus="0,1").worker_gpus(3) == [0, 0, 1]
+    assert R.RenderSettings(gpus="3,1,2").worker_gpus(2) == [3, 1]
+    assert R.RenderSettings(gpus="1").worker_gpus(2) == [1, 1]
+    assert R.RenderSettings().worker_gpus(2) == [None, None]  # MuJoCo's choice
+    for bad in ("gpu1", "0,", "-1", ""):
+        with pytest.raises(ValueError, match="'auto' or GPU numbers separated by commas"):
+            R.RenderSettings(gpus=bad)
+
+
+def test_auto_draws_on_the_gpus_of_the_envs_lanes(monkeypatch):
+    """env.render.gpus "auto": the GPU numbers of the devices the env's lanes live on, in their
+    order; left to MuJoCo off GPUs or where MUJOCO_EGL_DEVICE_ID is set. Numbers are checked
+    against the GPUs the process sees."""
+    from types import SimpleNamespace
+
+    from dear_jax import experiment
+
+    gpus = [SimpleNamespace(platform="gpu", local_hardware_id=i) for i in range(2)]
+    monkeypatch.setattr(experiment.jax, "local_devices", lambda: gpus)
+    monkeypatch.delenv("MUJOCO_EGL_DEVICE_ID", raising=False)
+    assert experiment.render_gpus("auto", gpus[::-1]) == "1,0"
+    assert experiment.render_gpus("auto", [SimpleNamespace(platform="cpu")]) == "auto"
+    assert experiment.render_gpus("1", gpus[:1]) == "1"
+    with pytest.raises(
+        ValueError, match=r"env.render.gpus='0,2': this process sees 2 GPU\(s\) \(0-1\)"
+    ):
+        experiment.render_gpus("0,2", gpus)
+    monkeypatch.setenv("MUJOCO_EGL_DEVICE_ID", "1")
+    assert experiment.render_gpus("auto", gpus) == "auto"
+    monkeypatch.setattr(experiment.jax, "local_devices", lambda: [])
+    with pytest.raises(ValueError, match=r"sees 0 GPU\(s\)$"):
+        experiment.render_gpus("0", [])
 
 
 def test_a_worker_without_an_offscreen_buffer_names_the_setting_to_lower():

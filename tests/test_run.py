@@ -199,6 +199,7 @@ def test_outputs_exist_and_parse(run):
     assert summary["frames_per_seed"] == 280 and len(summary["per_seed"]) == 2
     assert (summary["distraction_types"], summary["backgrounds"]) == ([], "none")
     assert (summary["conv_stack"], summary["kernels"]) == ("xla", "")
+    assert summary["render"]["gpus"] == "auto"  # no GPU here: MuJoCo's EGL chooses
     assert "(cpu physics, xla conv stacks, evaluations on" in text
     # Where the iterations went: the train log's stages, seed 0's rows averaged.
     stages = summary["host_ms_per_iteration"]

@@ -293,8 +293,9 @@ def eval_processes(config: ConfigDict, where: str) -> int:
 def render_gpus(setting: str, devices) -> str:
     """env.render.gpus for an env whose lanes live on `devices` (in the order the lanes are split
     over them): "auto" becomes their GPU numbers in this process, as MUJOCO_EGL_DEVICE_ID takes
-    them (unchanged where that variable is set or they are not GPUs); numbers are checked
-    against the GPUs this process sees."""
+    them; it stays "auto" where that variable is set, where they are not GPUs, or where they
+    are the first GPU alone, MuJoCo's own choice. Numbers are checked against the GPUs this
+    process sees."""
     if setting != "auto":
         seen = len([d for d in jax.local_devices() if d.platform == "gpu"])
         if any(int(g) >= seen for g in setting.split(",")):
@@ -305,7 +306,8 @@ def render_gpus(setting: str, devices) -> str:
         return setting
     if os.environ.get("MUJOCO_EGL_DEVICE_ID") or any(d.platform != "gpu" for d in devices):
         return "auto"
-    return ",".join(str(d.local_hardware_id) for d in devices)
+    ids = [d.local_hardware_id for d in devices]
+    return "auto" if set(ids) == {0} else ",".join(map(str, ids))
 
 
 def make_env(

@@ -427,8 +427,8 @@ def test_workers_draw_on_the_gpus_named_each_on_its_block_of_the_batch():
 
 def test_auto_draws_on_the_gpus_of_the_envs_lanes(monkeypatch):
     """env.render.gpus "auto": the GPU numbers of the devices the env's lanes live on, in their
-    order; left to MuJoCo off GPUs or where MUJOCO_EGL_DEVICE_ID is set. Numbers are checked
-    against the GPUs the process sees."""
+    order; left to MuJoCo off GPUs, on the first GPU alone, or where MUJOCO_EGL_DEVICE_ID is
+    set. Numbers are checked against the GPUs the process sees."""
     from types import SimpleNamespace
 
     from dear_jax import experiment
@@ -437,6 +437,8 @@ def test_auto_draws_on_the_gpus_of_the_envs_lanes(monkeypatch):
     monkeypatch.setattr(experiment.jax, "local_devices", lambda: gpus)
     monkeypatch.delenv("MUJOCO_EGL_DEVICE_ID", raising=False)
     assert experiment.render_gpus("auto", gpus[::-1]) == "1,0"
+    assert experiment.render_gpus("auto", gpus[1:]) == "1"  # an evaluation's spare GPU
+    assert experiment.render_gpus("auto", gpus[:1]) == "auto"  # the first GPU: MuJoCo's choice
     assert experiment.render_gpus("auto", [SimpleNamespace(platform="cpu")]) == "auto"
     assert experiment.render_gpus("1", gpus[:1]) == "1"
     with pytest.raises(

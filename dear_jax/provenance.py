@@ -66,9 +66,5 @@ def provenance() -> dict:
         jax=jax.__version__,
         flax=flax.__version__,
         mujoco=mujoco.__version__,
-        **{
-            k.lower(): os.environ[k]
-            for k in ("XLA_FLAGS", "MUJOCO_EGL_DEVICE_ID")
-            if os.environ.get(k)
-        },
+        **{k.lower(): os.environ[k] for k in MEASURED_ENV if os.environ.get(k)},
     )

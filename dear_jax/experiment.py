@@ -43,6 +43,7 @@ RESUMABLE_CHANGES = (
     "profile.iterations",
     "env.render.num_workers",
     "env.render.envs_per_worker",
+    "env.render.gpus",
     "env.eval_backend",
     "env.physics_threads",
     "env.eval_physics_threads",
@@ -139,6 +140,18 @@ def validate(config: ConfigDict) -> None:
         distractions.parse_types(config.env.distraction_types)
     except ValueError as e:
         raise ValueError(f"env.distraction_types: {e}") from None
+    gpus = config.env.render.gpus
+    if gpus != "auto":
+        try:
+            render.RenderSettings(gpus=gpus)
+        except ValueError:
+            raise ValueError(
+                f"env.render.gpus={gpus!r}: 'auto' or GPU numbers separated by commas, e.g. '1'"
+            ) from None
+        seen = len([d for d in jax.local_devices() if d.platform == "gpu"])
+        if any(int(g) >= seen for g in gpus.split(",")):
+            visible = f" (0-{seen - 1})" if seen else ""
+            raise ValueError(f"env.render.gpus={gpus!r}: this process sees {seen} GPU(s){visible}")
     try:
         wideconv.parse_constants(config.agent.kernels)
     except ValueError as e:
@@ -294,15 +307,8 @@ def render_gpus(setting: str, devices) -> str:
     """env.render.gpus for an env whose lanes live on `devices` (in the order the lanes are split
     over them): "auto" becomes their GPU numbers in this process, as MUJOCO_EGL_DEVICE_ID takes
     them; it stays "auto" where that variable is set, where they are not GPUs, or where they
-    are the first GPU alone, MuJoCo's own choice. Numbers are checked against the GPUs this
-    process sees."""
+    are the first GPU alone, MuJoCo's own choice. Numbers stay as given (`validate`)."""
     if setting != "auto":
-        seen = len([d for d in jax.local_devices() if d.platform == "gpu"])
-        if any(int(g) >= seen for g in setting.split(",")):
-            visible = f" (0-{seen - 1})" if seen else ""
-            raise ValueError(
-                f"env.render.gpus={setting!r}: this process sees {seen} GPU(s){visible}"
-            )
         return setting
     if os.environ.get("MUJOCO_EGL_DEVICE_ID") or any(d.platform != "gpu" for d in devices):
         return "auto"

@@ -428,28 +428,35 @@ def test_workers_draw_on_the_gpus_named_each_on_its_block_of_the_batch():
 def test_auto_draws_on_the_gpus_of_the_envs_lanes(monkeypatch):
     """env.render.gpus "auto": the GPU numbers of the devices the env's lanes live on, in their
     order; left to MuJoCo off GPUs, on the first GPU alone, or where MUJOCO_EGL_DEVICE_ID is
-    set. Numbers are checked against the GPUs the process sees."""
+    set. Numbers given are checked against the GPUs the training process sees."""
     from types import SimpleNamespace
 
     from dear_jax import experiment
 
     gpus = [SimpleNamespace(platform="gpu", local_hardware_id=i) for i in range(2)]
-    monkeypatch.setattr(experiment.jax, "local_devices", lambda: gpus)
     monkeypatch.delenv("MUJOCO_EGL_DEVICE_ID", raising=False)
     assert experiment.render_gpus("auto", gpus[::-1]) == "1,0"
     assert experiment.render_gpus("auto", gpus[1:]) == "1"  # an evaluation's spare GPU
     assert experiment.render_gpus("auto", gpus[:1]) == "auto"  # the first GPU: MuJoCo's choice
     assert experiment.render_gpus("auto", [SimpleNamespace(platform="cpu")]) == "auto"
     assert experiment.render_gpus("1", gpus[:1]) == "1"
-    with pytest.raises(
-        ValueError, match=r"env.render.gpus='0,2': this process sees 2 GPU\(s\) \(0-1\)"
-    ):
-        experiment.render_gpus("0,2", gpus)
     monkeypatch.setenv("MUJOCO_EGL_DEVICE_ID", "1")
     assert experiment.render_gpus("auto", gpus) == "auto"
+
+    config = smoke_config.get_config()
+    for setting, message in [
+        ("0,2", r"env.render.gpus='0,2': this process sees 2 GPU\(s\) \(0-1\)$"),
+        ("gpu1", r"env.render.gpus='gpu1': 'auto' or GPU numbers separated by commas"),
+    ]:
+        config.env.render.gpus = setting
+        monkeypatch.setattr(experiment.jax, "local_devices", lambda: gpus)
+        with pytest.raises(ValueError, match=message):
+            experiment.validate(config)
+    config.env.render.gpus = "1"
+    experiment.validate(config)
     monkeypatch.setattr(experiment.jax, "local_devices", lambda: [])
     with pytest.raises(ValueError, match=r"sees 0 GPU\(s\)$"):
-        experiment.render_gpus("0", [])
+        experiment.validate(config)
 
 
 def test_a_worker_without_an_offscreen_buffer_names_the_setting_to_lower():

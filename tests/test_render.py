@@ -425,7 +425,7 @@ def test_workers_draw_on_the_gpus_named_each_on_its_block_of_the_batch():
             R.RenderSettings(gpus=bad)
 
 
-def test_auto_draws_on_the_gpus_of_the_envs_lanes(monkeypatch):
+def test_auto_draws_on_the_gpus_of_the_envs_lanes_and_numbers_are_checked(monkeypatch):
     """env.render.gpus "auto": the GPU numbers of the devices the env's lanes live on, in their
     order; left to MuJoCo off GPUs, on the first GPU alone, or where MUJOCO_EGL_DEVICE_ID is
     set. Numbers given are checked against the GPUs the training process sees."""
@@ -444,12 +444,12 @@ def test_auto_draws_on_the_gpus_of_the_envs_lanes(monkeypatch):
     assert experiment.render_gpus("auto", gpus) == "auto"
 
     config = smoke_config.get_config()
+    monkeypatch.setattr(experiment.jax, "local_devices", lambda: gpus)
     for setting, message in [
         ("0,2", r"env.render.gpus='0,2': this process sees 2 GPU\(s\) \(0-1\)$"),
         ("gpu1", r"env.render.gpus='gpu1': 'auto' or GPU numbers separated by commas"),
     ]:
         config.env.render.gpus = setting
-        monkeypatch.setattr(experiment.jax, "local_devices", lambda: gpus)
         with pytest.raises(ValueError, match=message):
             experiment.validate(config)
     config.env.render.gpus = "1"

@@ -47,7 +47,9 @@
 #                       $OUT/runs.tar.gz
 #
 # What the machine must be given (it has CUDA jax, flax, optax, orbax, opencv, matplotlib):
-# wheels in .whl/ and EGL loaders in .gl/ (any folder of wheels `pip install --no-index` takes),
+# wheels in .whl/ and EGL loaders in .gl/ (any folder of wheels `pip install --no-index` takes;
+# the pinned packages it lacks: mujoco, mujoco-mjx, ml-collections, tensorboardX, and for the
+# kitchen's simplified meshes fast-simplification),
 # dm_control's suite models in .dmc/ (benchmarks/device_dmc.sh). The tree sent there has no
 # .git: export DEAR_JAX_COMMIT=<commit> so JSON and summaries name the code's commit. JAX's
 # compilation cache is $JAX_COMPILATION_CACHE_DIR (default /tmp/jax_cache).

@@ -29,10 +29,15 @@ def mask_loss(logits: jax.Array, mask: jax.Array) -> jax.Array:
     """Binary cross-entropy of the agent-mask decoder, from logits.
 
     L = mean_b sum_{h,w,k} BCE(sigmoid(logits[b,h,w,k]), mask[b,h,w,k])
-    logits: float [B, H, W, K]; mask: {0, 1} (any dtype) [B, H, W, K]. Returns a scalar.
+    logits: float [B, H, W, K], the decoder's output before any sigmoid; mask: {0, 1} (any
+    dtype) [B, H, W, K]. Rank 4 is checked: give one image a batch axis of 1, and map extra
+    leading axes (seeds) with jax.vmap. Computed in float32 whatever the logits' dtype.
+    Returns a scalar.
     """
     chex.assert_equal_shape([logits, mask])
-    bce = sigmoid_cross_entropy(logits, mask.astype(logits.dtype))
+    chex.assert_rank(logits, 4)
+    logits = logits.astype(jnp.float32)
+    bce = sigmoid_cross_entropy(logits, mask.astype(jnp.float32))
     return jnp.mean(jnp.sum(bce.reshape(bce.shape[0], -1), axis=-1))
 
 
@@ -41,7 +46,8 @@ def sigmoid_cross_entropy(logits: jax.Array, labels: jax.Array) -> jax.Array:
     """Elementwise BCE(sigmoid(logits), labels) = softplus(logits) - logits * labels: the values
     of `optax.sigmoid_binary_cross_entropy`. Its gradient, (sigmoid(logits) - labels) for the
     logits, is computed from the inputs alone: autodiff of optax's form keeps two float32 arrays
-    of the logits' size for the backward pass (0.3 ms of a 5-seed DEAR update on an H100)."""
+    of the logits' size for the backward pass (0.3 ms of a 5-seed DEAR update on an H100).
+    Reverse mode only (jax.grad, jax.vjp): a custom VJP has no forward-mode rule."""
     return jax.nn.softplus(logits) - logits * labels
 
 
@@ -58,10 +64,15 @@ sigmoid_cross_entropy.defvjp(_sigmoid_cross_entropy_fwd, _sigmoid_cross_entropy_
 
 
 def cosine_similarity(a: jax.Array, b: jax.Array) -> jax.Array:
-    """Cosine similarity along the last axis: [..., F] x [..., F] -> [...]."""
-    dot = jnp.sum(a * b, axis=-1)
-    norm = jnp.linalg.norm(a, axis=-1) * jnp.linalg.norm(b, axis=-1)
-    return dot / jnp.maximum(norm, _COS_EPS)
+    """Cosine similarity along the last axis: [..., F] x [..., F] -> [...].
+
+    Each norm is at least _COS_EPS, clamped before its square root, so that a zero vector
+    (a ReLU latent, a padded row) gives a cosine of 0 and a finite gradient."""
+
+    def norm(x):
+        return jnp.sqrt(jnp.maximum(jnp.sum(x * x, axis=-1), _COS_EPS**2))
+
+    return jnp.sum(a * b, axis=-1) / (norm(a) * norm(b))
 
 
 def latent_cosines(z_agent: jax.Array, z_env: jax.Array) -> dict[str, jax.Array]:
@@ -93,28 +104,39 @@ def reconstruction_loss(recon: jax.Array, obs: jax.Array) -> jax.Array:
     """SEAR's image reconstruction loss.
 
     L = mean_b sum_{h,w,c} (clip(recon, -0.5, 0.5) - (obs / 255 - 0.5))^2
-    recon: float [B, H, W, C] in the [-0.5, 0.5] pixel scale; obs: uint8 [B, H, W, C].
+    recon: float [B, H, W, C] in the [-0.5, 0.5] pixel scale; obs: uint8 [B, H, W, C]. Rank 4
+    is checked, as `mask_loss`'s; computed in float32.
     """
     chex.assert_equal_shape([recon, obs])
-    target = obs.astype(recon.dtype) / 255.0 - 0.5
+    chex.assert_rank(recon, 4)
+    recon = recon.astype(jnp.float32)
+    target = obs.astype(jnp.float32) / 255.0 - 0.5
     err = jnp.square(jnp.clip(recon, -0.5, 0.5) - target)
     return jnp.mean(jnp.sum(err.reshape(err.shape[0], -1), axis=-1))
 
 
-def ted_loss(logits: jax.Array, labels: jax.Array) -> jax.Array:
-    """TED's temporal classification loss: mean binary cross-entropy from logits, [N] x [N] -> scalar."""
+def ted_loss(logits: jax.Array, labels: jax.Array, weights: jax.Array | None = None) -> jax.Array:
+    """TED's temporal classification loss: binary cross-entropy from logits, averaged over the
+    pairs, [N] x [N] -> scalar. `weights` [N] (e.g. 0 for a pair that does not exist, such as a
+    same-episode negative in an episode too short for one) make it sum(w * BCE) / sum(w)."""
     chex.assert_equal_shape([logits, labels])
-    return jnp.mean(optax.sigmoid_binary_cross_entropy(logits, labels.astype(logits.dtype)))
+    bce = optax.sigmoid_binary_cross_entropy(logits, labels.astype(logits.dtype))
+    if weights is None:
+        return jnp.mean(bce)
+    chex.assert_equal_shape([logits, weights])
+    return jnp.sum(weights * bce) / jnp.sum(weights)
 
 
 def td_target(
     reward: jax.Array, discount: jax.Array, next_q1: jax.Array, next_q2: jax.Array
 ) -> jax.Array:
-    """n-step clipped double-Q target y = R_n + gamma_n * min(Q1', Q2'), all [B].
+    """n-step clipped double-Q target y = R_n + gamma_n * min(Q1', Q2'), all [B] (squeeze a
+    critic head's [B, 1] first: shapes that differ are refused rather than broadcast).
 
     `discount` is the product gamma^n * prod(env discounts) over the n steps. The target is a
     constant for the critic (stop_gradient).
     """
+    chex.assert_equal_shape([reward, discount, next_q1, next_q2])
     return jax.lax.stop_gradient(reward + discount * jnp.minimum(next_q1, next_q2))
 
 

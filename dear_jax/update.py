@@ -405,11 +405,13 @@ def ted_classifier_loss(
     n = z.shape[0]
     labels = jnp.concatenate([jnp.ones(n), jnp.zeros(2 * n)])
     weights = jnp.concatenate([jnp.ones(2 * n), far_valid])
-    bce = optax.sigmoid_binary_cross_entropy(logits, labels)
-    count = jnp.sum(weights)  # per part, on average, where the batch is split over mean_over
+    loss = losses.ted_loss(logits, labels, weights)
+    count = jnp.sum(weights)
     if mean_over is not None:
-        count = jax.lax.pmean(count, mean_over)
-    loss = jnp.sum(weights * bce) / count
+        # Each part's sum over the pairs divided by the parts' mean count of them: the mean
+        # over the axis is then the whole batch's weighted mean.
+        mean_count = jax.lax.pmean(count, mean_over)
+        loss, count = loss * count / mean_count, mean_count
     acc = jnp.sum(weights * ((logits > 0) == (labels > 0.5))) / count
     return loss, {"ted_accuracy": acc}
 

@@ -33,6 +33,13 @@ def test_mask_loss_scales_with_pixels_not_batch():
     logits = jnp.zeros((4, 84, 84, 3))
     mask = jnp.ones((4, 84, 84, 3))
     np.testing.assert_allclose(losses.mask_loss(logits, mask), 84 * 84 * 3 * math.log(2), rtol=1e-5)
+    # bf16 logits are summed in float32: a bf16 sum of 21,168 terms of ln 2 is ~0.1% off.
+    np.testing.assert_allclose(
+        losses.mask_loss(logits.astype(jnp.bfloat16), mask), 84 * 84 * 3 * math.log(2), rtol=1e-5
+    )
+    # A batch axis is required: one image's pixels would otherwise be averaged as a batch.
+    with pytest.raises(AssertionError, match="rank"):
+        losses.mask_loss(logits[0], mask[0])
 
 
 def test_mask_loss_gradient_is_sigmoid_minus_mask_over_batch():
@@ -86,6 +93,24 @@ def test_orthogonality_loss_is_zero_for_orthogonal_halves():
 
 
 @pytest.mark.parametrize("form", losses.ORTHOGONALITY_FORMS)
+def test_a_zero_latent_row_gives_cosine_zero_and_a_finite_gradient(form):
+    """A zero row (a ReLU latent, a padded sample): its cosine is 0 and every gradient finite,
+    each norm clamped at eps as PyTorch's `F.cosine_similarity` clamps them (the reference's
+    loss), so the zero row's gradient is b / (eps |b|) over the batch."""
+    z_agent = jnp.array([[0.0, 0.0], [1.0, 0.0]])
+    z_env = jnp.array([[1.0, 1.0], [1.0, 1.0]])  # row 1: cos = 1/sqrt(2)
+    np.testing.assert_allclose(losses.cosine_similarity(z_agent, z_env), [0.0, 2**-0.5], rtol=1e-6)
+    g = jax.grad(losses.orthogonality_loss)(z_agent, z_env, form)
+    assert np.all(np.isfinite(np.asarray(g)))
+    # d cos / d a = b / (|a||b|) - cos a / |a|^2 = (1, 1)/sqrt(2) - (1, 0)/sqrt(2) = (0, 1/sqrt(2)),
+    # halved by the batch mean; the abs form's sign is cos's (+), the reference form's is -.
+    sign = 1.0 if form == "abs_cos" else -1.0
+    np.testing.assert_allclose(np.asarray(g)[1], [0.0, sign * 2**-0.5 / 2], rtol=1e-6, atol=1e-7)
+    zero_row = np.array([1.0, 1.0]) / (losses._COS_EPS * math.sqrt(2)) / 2
+    np.testing.assert_allclose(np.asarray(g)[0], sign * zero_row, rtol=1e-6)
+
+
+@pytest.mark.parametrize("form", losses.ORTHOGONALITY_FORMS)
 def test_orthogonality_gradient_reaches_agent_half_only(form):
     key_a, key_e = jax.random.split(jax.random.key(0))
     z_agent = jax.random.normal(key_a, (5, 16))
@@ -119,22 +144,36 @@ def test_reconstruction_loss_clips_prediction_and_scales_target():
     np.testing.assert_array_equal(np.asarray(g).ravel(), [1.0, 0.0])
 
 
-def test_ted_loss_is_mean_bce():
-    logits = jnp.array([0.0, math.log(3)])
-    labels = jnp.array([1.0, 1.0])  # ln 2 and -ln(3/4)
+def test_ted_loss_is_mean_bce_and_weights_drop_pairs():
+    logits = jnp.array([0.0, math.log(3), math.log(3)])
+    labels = jnp.array([1.0, 1.0, 0.0])  # ln 2, -ln(3/4) = ln(4/3), -ln(1/4) = ln 4
     np.testing.assert_allclose(
-        losses.ted_loss(logits, labels), (math.log(2) + math.log(4 / 3)) / 2, rtol=1e-6
+        losses.ted_loss(logits, labels),
+        (math.log(2) + math.log(4 / 3) + math.log(4)) / 3,
+        rtol=1e-6,
+    )
+    weights = jnp.array([1.0, 0.0, 1.0])  # the second pair does not exist
+    np.testing.assert_allclose(
+        losses.ted_loss(logits, labels, weights), (math.log(2) + math.log(4)) / 2, rtol=1e-6
     )
 
 
 def test_td_target_and_critic_loss():
+    # Sample 0 takes Q1' (the lower), sample 2 Q2' (the lower); sample 1 ends its episode.
     y = losses.td_target(
-        jnp.array([1.0, 0.5]), jnp.array([0.99, 0.0]), jnp.array([2.0, 5.0]), jnp.array([3.0, 1.0])
+        jnp.array([1.0, 0.5, 0.0]),
+        jnp.array([0.99, 0.0, 0.5]),
+        jnp.array([2.0, 5.0, 3.0]),
+        jnp.array([3.0, 1.0, 2.0]),
     )
-    np.testing.assert_allclose(y, [1.0 + 0.99 * 2.0, 0.5], rtol=1e-6)
+    np.testing.assert_allclose(y, [1.0 + 0.99 * 2.0, 0.5, 0.5 * 2.0], rtol=1e-6)
+    y = y[:2]
     q1, q2 = jnp.array([3.0, 0.5]), jnp.array([2.98, 1.5])
     expected = ((3.0 - 2.98) ** 2 + 0.0) / 2 + (0.0 + 1.0) / 2
     np.testing.assert_allclose(losses.critic_loss(q1, q2, y), expected, rtol=1e-5)
+    # A critic head's [B, 1] is refused, not broadcast against [B] rewards into [B, B].
+    with pytest.raises(AssertionError, match="shape"):
+        losses.td_target(jnp.ones(2), jnp.ones(2), jnp.ones((2, 1)), jnp.ones((2, 1)))
     # The target is a constant for the critic.
     g = jax.grad(lambda nq: losses.td_target(jnp.ones(2), jnp.ones(2), nq, nq).sum())(jnp.ones(2))
     assert np.all(np.asarray(g) == 0.0)

@@ -1,10 +1,12 @@
 """Time the jitted, seed-vmapped learner update (encoder + heads + critic, actor, target EMA).
 
 python -m benchmarks.update [--methods dear drqv2] [--seeds 1 5] [--batch 256] [--iters 20]
-    [--dtypes float32 bfloat16] [--seed-axis vmap loop] [--kernels default TAP_LOOP=1,CONV_STAGES=2]
+    [--dtypes float32 bfloat16] [--seed-axis vmap loop]
+    [--conv-stacks pallas --kernels default TAP_LOOP=1,CONV_STAGES=2]
 Prints a table and writes JSON to benchmarks/results/update_<platform>.json (or --out).
---kernels times each listed setting of the Pallas conv stacks' constants (`dear_jax.wideconv`,
-comma-separated NAME=INT; "default": as they are), in turn, for every other combination.
+--kernels (with --conv-stacks pallas) times each listed setting of the Pallas conv stacks'
+constants (`dear_jax.wideconv`, comma-separated NAME=INT; "default": as they are), in turn, for
+every other combination.
 The same update in PyTorch, timed on the same GPU: `python -m benchmarks.torch_reference update`.
 """
 

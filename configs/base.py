@@ -160,7 +160,8 @@ def get_config() -> ConfigDict:
     # The Pallas stacks' kernel constants for the update, "NAME=INT,..." (dear_jax.wideconv:
     # TUNABLE, e.g. "WGRAD_MIN_PROGRAMS=1024,BLOCK=256"); "": the module's values, the fastest
     # of the H100 sweeps. Same function (rounding aside: wideconv.WGRAD_MIN_PROGRAMS); with the
-    # XLA stack it changes nothing. `benchmarks/update.py --kernels` times settings.
+    # XLA stack it changes nothing. `benchmarks/update.py --conv-stacks pallas --kernels ...`
+    # times settings.
     c.agent.kernels = ""
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
     c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)

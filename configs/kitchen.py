@@ -10,14 +10,22 @@ holds each draw 20 agent steps, with which DEAR learned it by 80k frames (docs/m
 
 from ml_collections import ConfigDict
 
-from configs.base import get_config
+from configs import base
 
 KITCHEN_TASKS = {"light": "kitchen-light", "kettle": "kitchen-kettle"}
 
 
+def get_config(spec: str | None = None) -> ConfigDict:
+    """Not a run's config: the kitchen's runs are named in paper.py."""
+    raise ValueError(
+        "configs/kitchen.py holds the kitchen's settings, not a run: train with "
+        "--config paper.py:light,METHOD or paper.py:kettle,METHOD (METHOD: dear, sear, ted, drqv2)"
+    )
+
+
 def make(task: str, method: str) -> ConfigDict:
     """The config of one kitchen experiment: task short name ("light", "kettle"), method."""
-    c = get_config()
+    c = base.get_config()
     c.env.task = KITCHEN_TASKS[task]
     c.env.action_repeat = 1  # 40 physics steps of 2 ms per agent step, as in D4RL
     # CPU MuJoCo, stepped on threads beside the accelerator's updates, as the DMC tasks: one

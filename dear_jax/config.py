@@ -33,6 +33,10 @@ def check_override_keys(config: ConfigDict, argv: list[str]) -> None:
             node, path = node[part], [*path, part]
 
 
+# Files of configs/ that other configs build on, not runs' configs (not listed as choices).
+SETTINGS_ONLY = ("base.py", "kitchen.py")
+
+
 def resolve_config_path(name: str, configs_dir: str | pathlib.Path) -> pathlib.Path:
     """A config file from a path, or a bare name looked up in `configs_dir` (".py" optional).
 
@@ -47,7 +51,7 @@ def resolve_config_path(name: str, configs_dir: str | pathlib.Path) -> pathlib.P
             if candidate.is_file() and candidate.name != "__init__.py":
                 return candidate
     available = sorted(
-        p.name for p in configs_dir.glob("*.py") if p.name not in ("__init__.py", "base.py")
+        p.name for p in configs_dir.glob("*.py") if p.name not in ("__init__.py", *SETTINGS_ONLY)
     )
     close = difflib.get_close_matches(path.name, available, n=1)
     hint = f" Did you mean {close[0]!r}?" if close else ""

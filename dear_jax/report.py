@@ -2,9 +2,11 @@
 
     python -m dear_jax.report params [--action-dim 6]
     python -m dear_jax.report table RUN [RUN ...] [--threshold T] [--at FRAMES] [--last 11] [--out PREFIX]
-    python -m dear_jax.report curves RUN [RUN ...] [--out results/curves.png] [--band std]
+    python -m dear_jax.report curves RUN [RUN ...] [--out curves.png] [--band std]
     python -m dear_jax.report claims RUN [RUN ...] [--threshold T] [--at FRAMES] [--last 11] [--out PREFIX]
-    python -m dear_jax.report grid RUN [RUN ...] [--tasks walker cup finger] [--seeds 3] [--frames 1000000]
+    python -m dear_jax.report cosines RUN [RUN ...] [--rows R] [--at FRAMES] [--out PREFIX]
+    python -m dear_jax.report grid RUN [RUN ...] [--tasks walker cup finger] [--methods dear sear ted drqv2]
+        [--seeds 3] [--frames 1000000] [--seeds-per-run 1]
     python -m dear_jax.report evals RUN [RUN ...] [--out PREFIX]
 
 `params` prints the parameter count of every module per method (walker: |A| = 6), computed from

@@ -5,8 +5,10 @@
         [--background-dir DAVIS_ROOT] [--dynamic]
 
 Runs a few envs for a few random-action steps through `envs.make` (the same path training uses:
-physics, render pool, distraction compositing, mask variant) and writes, per env, one row of
-frames and below it one row of the training mask (white = agent) of the same frames.
+physics, render pool, distraction compositing, mask variant) with the pictures, physics backend
+and action repeat a run of the task has by default (`run_settings`: the kitchen's from
+configs/kitchen.py, the others' from configs/base.py), and writes, per env, one row of frames
+and below it one row of the training mask (white = agent) of the same frames.
 """
 
 from __future__ import annotations
@@ -38,6 +40,16 @@ def collect(env, num_frames: int, every: int, seed: int):
             masks.append(np.asarray(ts.mask[0]))
             steps.append(t)
     return np.stack(frames, axis=1), np.stack(masks, axis=1), steps
+
+
+def run_settings(task: str):
+    """The env settings a run of `task` starts from: configs/paper.py's for the kitchen's tasks
+    (its pictures, CPU physics, action repeat 1), configs/base.py's for the others."""
+    from dear_jax.config import load_config
+
+    if task.startswith("kitchen-"):
+        return load_config(f"paper.py:{task.removeprefix('kitchen-')},dear").env
+    return load_config("base.py").env
 
 
 def grid_image(frames: np.ndarray, masks: np.ndarray, scale: int = 2, gap: int = 2) -> np.ndarray:
@@ -83,7 +95,7 @@ def main(argv=None) -> None:
     parser.add_argument("--envs", type=int, default=2, help="envs shown (rows)")
     parser.add_argument("--frames", type=int, default=6, help="frames per env (columns)")
     parser.add_argument("--every", type=int, default=5, help="agent steps between columns")
-    parser.add_argument("--backend", default="auto")
+    parser.add_argument("--backend", default=None, help="cpu | mjx | auto; default: a run's")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     # The envs' notes (which background videos, which physics); libraries' only from warnings.
@@ -100,11 +112,16 @@ def main(argv=None) -> None:
         distraction, types = distraction.removesuffix("-full"), "all"
     try:  # bad input: one line, as run.py says it
         distractions.parse_types(types)
+        if args.task not in envs.names():
+            raise ValueError(f"unknown task {args.task!r}; valid tasks: {', '.join(envs.names())}")
+        settings = run_settings(args.task)
         env = envs.make(
             args.task,
             num_seeds=1,
             envs_per_seed=args.envs,
-            backend=args.backend,
+            backend=args.backend or settings.backend,
+            action_repeat=settings.action_repeat,
+            render=envs.RenderSettings(**settings.render.to_dict()),
             distraction=distraction,
             distraction_types=types,
             dynamic=args.dynamic,

@@ -58,3 +58,25 @@ def test_preview_says_what_is_wrong_in_one_line(tmp_path, capsys, args, message)
     assert exit_.value.code == 2
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert last.startswith(f"python -m envs.preview: error: {message}")
+
+
+def test_preview_draws_and_steps_as_a_run_of_the_task_does(tmp_path, monkeypatch):
+    """The kitchen's preview takes the kitchen config's pictures ("fast", simplified arm meshes),
+    CPU physics and action repeat; a DMC task's, configs/base.py's."""
+    import envs
+
+    made = {}
+
+    def make(task, **kwargs):
+        made[task] = kwargs
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(envs, "make", make)
+    for task in ("kitchen-kettle", "walker-walk"):
+        with pytest.raises(SystemExit):
+            preview.main([task, "--out", str(tmp_path / "x.png")])
+    kettle, walker = made["kitchen-kettle"], made["walker-walk"]
+    assert (kettle["render"].quality, kettle["render"].mesh_faces) == ("fast", 4000)
+    assert (kettle["backend"], kettle["action_repeat"]) == ("cpu", 1)
+    assert (walker["render"].quality, walker["render"].mesh_faces) == ("dm_control", 0)
+    assert (walker["backend"], walker["action_repeat"]) == ("cpu", 2)

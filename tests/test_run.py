@@ -35,7 +35,7 @@ from dear_jax import (
     update,
 )
 from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
-from dear_jax.config import resolve_config_path
+from dear_jax.config import load_config, resolve_config_path
 from dear_jax.devices import Hosts
 from dear_jax.logger import read_csv
 from dear_jax.programs import build_programs, hold_keys
@@ -832,6 +832,12 @@ def test_config_by_bare_name_and_unknown_names():
     assert resolve_config_path("walker_dear.py", configs) == configs / "walker_dear.py"
     assert resolve_config_path("walker_dear", configs) == configs / "walker_dear.py"
     assert resolve_config_path(str(configs / "smoke.py"), configs) == configs / "smoke.py"
+    # Files of settings other configs build on are not offered, and refuse to be a run's.
+    with pytest.raises(FileNotFoundError) as err:
+        resolve_config_path("kitchn", configs)
+    assert "paper.py" in str(err.value) and "kitchen.py" not in str(err.value)
+    with pytest.raises(ValueError, match="paper.py:light,METHOD"):
+        load_config("kitchen")
 
 
 def test_every_experiment_of_the_paper_has_a_config():

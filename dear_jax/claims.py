@@ -233,7 +233,8 @@ def _cosine(task, seeds) -> dict:
         f"DEAR {d.mean():.1e}, SEAR {s.mean():.1e}: {ratio:.1f}x (asked: >= {COS_RATIO:g}x){note}"
     )
     holds = ratio >= COS_RATIO
-    verdict = f"{'holds' if holds else 'does not hold'} ({_separate(s, d)})"
+    order = (s, d) if s.mean() >= d.mean() else (d, s)  # the higher side first
+    verdict = f"{'holds' if holds else 'does not hold'} ({_separate(*order)})"
     return dict(claim=claim, task=task, evidence=evidence, verdict=verdict)
 
 

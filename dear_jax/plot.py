@@ -84,16 +84,27 @@ def pools(workdirs: Sequence[str | os.PathLike]) -> list[lanes.Pool]:
 
 def pool_curve(pool: lanes.Pool, metric: str, x: str = "frame") -> Curve:
     """One pooled setting's metric per seed."""
-    paths = [d / "eval.csv" for _, d in pool.seeds if (d / "eval.csv").is_file()]
-    if not paths:
+    paths = [d / "eval.csv" for _, d in pool.seeds]
+    absent = [p for p in paths if not p.is_file()]
+    if absent:  # a seed left out would change the curve's n without a word
         raise FileNotFoundError(
-            f"no eval logs in {pool.workdirs[0]}: expected {pool.seeds[0][1] / 'eval.csv'} "
-            "(written after the first evaluation)"
+            f"no eval log {absent[0]} of {pool.workdirs[0]}"
+            + (f" (and {len(absent) - 1} more)" if len(absent) > 1 else "")
+            + " (written after the first evaluation)"
         )
-    x_grid, y = _series(paths, metric, x, slack(pool.config))
+    x_grid, y, ends = _series(paths, metric, x, slack(pool.config))
+    if not x_grid.size:
+        empty = [str(p) for p, end in zip(paths, ends) if not np.isfinite(end)]
+        raise ValueError(
+            f"no evaluation that every seed of {pool.workdirs[0]} has"
+            + (f": no rows in {', '.join(empty)}" if empty else "")
+        )
     method = pool.config.get("agent", {}).get("method", "?")
     curve = Curve(pool.workdirs[0], task_name(pool.config), method, x_grid, y, pool.label)
     curve.workdirs = pool.workdirs
+    # Where the line stops before its longest seed's last evaluation (a seed stopped early, or
+    # still training), the legend says so.
+    curve.cut = x == "frame" and x_grid[-1] < np.nanmax(ends) - slack(pool.config)
     return curve
 
 
@@ -104,7 +115,8 @@ def load_curves(workdir: str | os.PathLike, metric: str, x: str = "frame") -> li
 
 def _series(
     paths: list[pathlib.Path], metric: str, x: str, near: float
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(the x grid, each seed's metric on it [S, N], each seed's last x: NaN for no rows)."""
     series = []
     for path in paths:
         cols = read_csv(path)
@@ -116,6 +128,7 @@ def _series(
     if x == "frame":  # evaluations `near` frames apart or closer (10,000, 10,016) are one point
         starts = np.diff(grid, prepend=-np.inf) > near
         grid = grid[starts]
+    ends = np.array([np.nanmax(xs) if np.isfinite(xs).any() else np.nan for xs, _ in series])
     y = np.full((len(series), len(grid)), np.nan)
     for s, (xs, ys) in enumerate(series):
         ok = np.isfinite(xs)
@@ -123,7 +136,7 @@ def _series(
     if x == "frame":  # only the points every seed has: a mean over fewer seeds would jump
         shared = np.isfinite(y).all(0)
         grid, y = grid[shared], y[:, shared]
-    return grid, y
+    return grid, y, ends
 
 
 def _set_labels(curves: list[Curve]) -> None:
@@ -184,7 +197,8 @@ def plot(
             col = colour[name]
             marker = "o" if len(c.x) <= 40 else None
             runs = f", {len(c.workdirs)} runs" if len(c.workdirs) > 1 else ""
-            label = f"{name} (n={c.y.shape[0]}{runs})"
+            cut = f"; to {c.x[-1] / 1000:,.0f}k, a seed's last" if getattr(c, "cut", False) else ""
+            label = f"{name} (n={c.y.shape[0]}{runs}{cut})"
             ax.plot(c.x, mean, color=col, marker=marker, ms=3, label=label)
             ax.fill_between(c.x, lo, hi, color=col, alpha=0.2, linewidth=0)
         ax.set_title(task)

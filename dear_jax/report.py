@@ -33,7 +33,8 @@ and devices (`sources` in the CSV):
   evaluations         900k-1M of a 1M-frame run), mean ± std over seeds: steadier than one
                       evaluation, which swings far from the next
   frames to T         first evaluated frame at which a seed's return reaches --threshold, the
-                      median over all seeds ("not by F" where the median seed did not reach it
+                      median over all seeds (a range where seeds stopped short of it leave the
+                      median between two frames; "not by F" where the median seed did not reach it
                       by its last evaluation; "k/S reach T" says how many did);
                       without it, a return of 500 on the DMC tasks, in the kitchen a success
                       rate of 1 (every evaluation episode)
@@ -58,9 +59,11 @@ the methods that read beta): a run belongs to a cell when its config is the
 cell's but for its seeds, envs per seed, dtype and replay (`GRID_MAY_DIFFER`; `table` and
 `claims` keep runs that chose these differently apart, and the grid names such cells). Per cell: the
 seeds that trained --frames frames, the runs stopped short and how far (or running: a live
-process holds its workdir), how many seeds are missing; then a command per stopped run that
-kept a checkpoint (its resume) and per missing seed
-that no resume brings (one seed-run, a config.seed no run of the cell used); last the runs of its
+process holds its workdir, and its seeds count as coming), how many seeds are missing; then a
+command per stopped run that kept a checkpoint and its replay (its resume: one whose replay was
+in memory, `replay.disk` False, would resume on an empty one, so it is not) and per missing seed
+that no resume brings (one seed-run, a config.seed no run of the cell used, with the dtype, envs
+per seed and replay settings its finished runs all chose, so that it pools with them); last the runs of its
 tasks and methods in no cell (sweeps included), each with the field that keeps it out, and how many
 runs are of other tasks or methods. `python -m dear_jax.grid` runs
 those commands as a queue over GPUs.
@@ -73,6 +76,8 @@ flight).
 `curves` is the paper's learning-curve figure (`dear_jax/plot.py`): one panel per task, one line
 per experiment (per setting of a sweep: the beta-sweep figure from the sweep's run; labelled by
 the numbers that set it apart, `lanes.pools`), the mean over its pooled seeds, the spread shaded.
+A line runs as far as every one of its seeds has evaluated; where a seed stopped earlier (or is
+still training), its legend says where the line stops.
 """
 
 from __future__ import annotations
@@ -331,8 +336,12 @@ def _cells(r: dict) -> list:
 
 
 def _frames_to(median: float, lower: float) -> str:
-    """The median seed's frames to the threshold, or the frame it had not reached it by."""
-    return f"{median:,.0f}" if np.isfinite(median) else f"not by {lower:,.0f}"
+    """The median seed's frames to the threshold (`claims.median_frames_to`'s bounds): a frame,
+    a range where a seed stopped short of it leaves the median between two, or the frame it had
+    not reached it by."""
+    if not np.isfinite(median):
+        return f"not by {lower:,.0f}"
+    return f"{median:,.0f}" if lower >= median else f"{lower:,.0f}-{median:,.0f}"
 
 
 def _frames(low: int, high: int) -> str:
@@ -352,9 +361,9 @@ def runs_table(
         f"trained together; returns and cosines of {when} (return: mean ± population std over "
         f"seeds; beside it each seed's mean over its last {last} evaluations, mean ± std over "
         "seeds); frames to threshold: the first evaluation whose return reaches it, the median "
-        "over seeds (a seed that never does counts as later than any)\n\n"
-        + format_table(TABLE_COLUMNS, [_cells(r) for r in rows])
-        + "\n"
+        "over seeds (a seed that never does took longer than its last evaluation: where that "
+        "leaves the median between two frames, both are given; 'not by F' where it may lie past "
+        "every seed's)\n\n" + format_table(TABLE_COLUMNS, [_cells(r) for r in rows]) + "\n"
     )
     if out:
         path = pathlib.Path(out)
@@ -671,6 +680,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
                 "done": [],
                 "short": [],
                 "stopped": [],  # (frames reached, the seeds it brings, its resume's arguments)
+                "coming": set(),  # the seeds of its runs that train now
                 "used": set(),
                 "paces": [],  # (lanes, *`training_pace`) of the runs that reached `frames`
                 "chosen": {},  # field -> the values its finished runs chose (GRID_MAY_DIFFER's)
@@ -723,21 +733,28 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
             # A seed is (config.seed, lane seed): one trained to the end twice counts once.
             cell["seeds"].update((seed, s) for s in range(config["seeds"]))
             continue
-        running = lock.held(workdir)  # a run in it now: not one to resume
+        running = lock.held(workdir)  # a run in it now: its seeds are coming, not to resume
+        brings = {(seed, s) for s in range(config["seeds"])}
         state = "running" if running else "no summary" if reached is None else f"{reached:,}"
+        # A checkpoint without its replay (replay.disk False) would resume on an empty replay:
+        # another seed's learning, so such a run is not resumed.
+        resumable = (workdir / "checkpoints").is_dir() and fields.get("replay.disk", True)
+        if not running and (workdir / "checkpoints").is_dir() and not resumable:
+            state += ", its replay not kept"
         cell["short"].append(f"{name} ({state})")
-        if not running and (workdir / "checkpoints").is_dir():  # resumed as it was started
+        if running:
+            cell["coming"] |= brings
+        elif resumable:  # resumed as it was started
             own = [
                 f"--config.{k}={fields[k]}"
                 for k in sorted(fields)
                 if k.startswith(kept) and fields[k] != cell["ref"].get(k)
             ]
-            brings = {(seed, s) for s in range(config["seeds"])}
             cell["stopped"].append((reached or 0, brings, [*own, "--workdir", str(workdir)]))
     rows = []
     for cell in cells.values():
         missing = max(0, seeds - len(cell["seeds"]))
-        resume, brought = [], set(cell["seeds"])
+        resume, brought = [], cell["seeds"] | cell["coming"]
         for _, brings, args in sorted(cell["stopped"], key=lambda s: -s[0]):
             if len(brought) - len(cell["seeds"]) < missing and brings - brought:
                 resume.append(args)
@@ -763,6 +780,15 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
                 "related_paces": related.get((cell["ref"]["env.task"], cell["method"]), []),
                 # fields its runs chose differently: `report table` and `claims` keep them apart
                 "mixed": {k: sorted(v) for k, v in sorted(cell["chosen"].items()) if len(v) > 1},
+                # fields every finished run chose alike, other than the cell's config: its new
+                # seed-runs choose them too, so that they pool with those runs
+                "agreed": {
+                    k: value
+                    for k, values in sorted(cell["chosen"].items())
+                    if len(values) == 1
+                    for value in map(json.loads, values)
+                    if value != cell["ref"].get(k)
+                },
             }
         )
     return {"cells": rows, "outside": outside, "elsewhere": elsewhere}
@@ -797,8 +823,10 @@ def grid_jobs(
     with more parts: those too, e.g. walker_medium-full_dear_s0), task by task, the task's methods
     taking turns (a queue stopped part way leaves a task's methods with seeds alike). A seed-run trains
     `seeds_per_run` of a cell's missing seeds side by side (lanes of one process; the last of a
-    cell the rest), from a config.seed no run of the cell used. `overrides`: more
-    `--config.FIELD=VALUE` arguments for the new seed-runs. Job names are unique (suffixes _1,
+    cell the rest), from a config.seed no run of the cell used, with the settings every finished
+    run of the cell chose alike (`grid_rows`' "agreed": dtype, envs per seed, replay), so that
+    it pools with them. `overrides`: more `--config.FIELD=VALUE` arguments for the new
+    seed-runs (a field they name is theirs, not the agreed value). Job names are unique (suffixes _1,
     _2, ... where resumed workdirs share a name). A new seed-run's `seconds`: `frames` at the
     median `training_pace` of the cell's runs of as many lanes that reached the grid's frames
     (whatever their devices; start-up and the closing evaluation not in it), their periodic
@@ -817,6 +845,12 @@ def grid_jobs(
 
     def length(r):
         return (f"--config.total_frames={frames}",) if frames != r["total_frames"] else ()
+
+    given = {o.partition("=")[0] for o in overrides}
+
+    def agreed(r):  # the settings the cell's finished runs share, where overrides do not say
+        flags = (f"--config.{k}={v}" for k, v in r.get("agreed", {}).items())
+        return tuple(f for f in flags if f.partition("=")[0] not in given)
 
     def runs(r):  # (config.seed, lanes) of each new seed-run of cell r
         new = len(r["next_seeds"])
@@ -861,7 +895,7 @@ def grid_jobs(
                 name = f"{r['name']}_s{n}"
                 seed = (f"--config.seed={n}", f"--config.seeds={count}")
                 workdir = ("--workdir", f"{root}/{name}")
-                args = (*spec(r), *seed, *length(r), *overrides, *workdir)
+                args = (*spec(r), *seed, *length(r), *agreed(r), *overrides, *workdir)
                 jobs.append(Job(name, args, *estimate(r, count)))
     names = [job.name for job in jobs]  # resumed workdirs of one name in several folders
     return [

@@ -160,6 +160,28 @@ def test_the_jobs_resume_stopped_runs_then_start_missing_seeds_task_by_task(tmp_
         report.grid_jobs(three, 1_000_000, seeds_per_run=0)
 
 
+def test_new_seed_runs_choose_what_the_cells_finished_runs_chose_alike(tmp_path):
+    """A cell's finished runs all in bf16 with 16 envs per seed: its new seed-runs are too (and
+    pool with them in `report table`), unless the queue's --set says otherwise; a choice the
+    finished runs differ on is left to the cell's config."""
+    fast = {"agent.compute_dtype": "bfloat16", "envs_per_seed": 16}
+    done = [
+        paper_run(tmp_path / "w_ted_s0", "walker,ted", 0, 1_000_000, **fast),
+        paper_run(tmp_path / "w_ted_s1", "walker,ted", 1, 1_000_000, **fast),
+        paper_run(tmp_path / "w_sear_s0", "walker,sear", 0, 1_000_000, **fast),
+        paper_run(
+            tmp_path / "w_sear_s1", "walker,sear", 1, 1_000_000, **{**fast, "envs_per_seed": 8}
+        ),
+    ]
+    cells = report.grid_rows(done, ["walker"], ["ted", "sear"], seeds=3)
+    ted, sear = report.grid_jobs(cells, 1_000_000)
+    assert ted.args[4:6] == ("--config.agent.compute_dtype=bfloat16", "--config.envs_per_seed=16")
+    assert sear.args[4:5] == ("--config.agent.compute_dtype=bfloat16",)
+    assert not [a for a in sear.args if a.startswith("--config.envs_per_seed")]
+    ted, _ = report.grid_jobs(cells, 1_000_000, overrides=["--config.envs_per_seed=32"])
+    assert [a for a in ted.args if "envs_per_seed" in a] == ["--config.envs_per_seed=32"]
+
+
 def test_slots_split_the_cores_and_share_a_gpus_memory(monkeypatch):
     cores = sorted(os.sched_getaffinity(0))
     two = grid.slots(["3", "5"], per_gpu=1)

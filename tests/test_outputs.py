@@ -696,8 +696,14 @@ def test_curves_pool_seeds_at_the_evaluations_they_share(tmp_path):
     curve = plot.pool_curve(pool, "episode_return")
     np.testing.assert_array_equal(curve.x, [10_000, 20_000])
     np.testing.assert_allclose(curve.y[:, 1], [200, 210, 250, 201.16, 211.16, 251.16])
+    assert curve.cut  # the legend says where, and why, the line stops
     (alone,) = plot.load_curves(a, "episode_return")
     np.testing.assert_array_equal(alone.x, [10_000, 20_000, 30_000])
+    assert not alone.cut
+    # A seed with no evaluation yet leaves no point every seed has: said, not drawn empty.
+    c = run("c", 2, ())
+    with pytest.raises(FileNotFoundError, match="no eval log .*seed_0.eval.csv of .* 2 more"):
+        plot.pool_curve(plot.pools([a, c])[0], "episode_return")
 
 
 def test_table_and_claims_read_each_tasks_own_threshold_unless_given_one(tmp_path):
@@ -731,6 +737,13 @@ def test_table_and_claims_read_each_tasks_own_threshold_unless_given_one(tmp_pat
     assert given[0]["frames_to_threshold"] == 0
     _, text = report.runs_table(dear_runs, threshold=None)
     assert "| 0 (3/3 reach 1)" in text and "| not by 100 (0/3 reach 500)" in text
+    # Seeds at 400k, 600k, 810k and two that stopped short of it at 790k and 890k: the median
+    # lies between 790k (if the first stopped seed would have reached it next) and 810k.
+    lower, median = claims.median_frames_to(
+        [400e3, 600e3, 810e3, np.inf, np.inf], [1e6] * 3 + [790e3, 890e3]
+    )
+    assert report._frames_to(median, lower) == "790,000-810,000"
+    assert report._frames_to(6e5, 6e5) == "600,000"
     # the kitchen's returns (success rates) with two decimals, a DMC task's with one
     assert f" {light['final_return_mean']:.2f} ± {light['final_return_std']:.2f} |" in text
     assert f" {walker['final_return_mean']:.1f} ± {walker['final_return_std']:.1f} |" in text
@@ -852,6 +865,13 @@ def test_the_papers_claims_are_checked_per_task_on_the_seeds(tmp_path):
     cos = row("DEAR's |cos| far below SEAR's")
     assert cos["evidence"] == "DEAR 2.0e-03, SEAR 4.0e-02: 20.0x (asked: >= 10x)"
     assert cos["verdict"] == "holds (seeds separate)"
+    # Reversed, every DEAR seed above every SEAR seed: the seeds separate just as much.
+    swapped = [
+        _fake_workdir(tmp_path, "dear_high", "dear", abs_cos=2e-2),
+        _fake_workdir(tmp_path, "sear_low", "sear", offset=-50, abs_cos=1e-3),
+    ]
+    cos = {r["claim"]: r for r in claims.check(swapped, threshold=200, last=2)}
+    assert cos["DEAR's |cos| far below SEAR's"]["verdict"] == "does not hold (seeds separate)"
 
     # Higher thresholds: at 260 every DEAR and TED seed first reaches it at 30k (ratio 1.00);
     # at 300 every DEAR seed at 30k, one TED seed (its median seed never in its 30k frames);
@@ -976,12 +996,21 @@ def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
         "paces": [],  # its finished runs' summaries hold no wall clock
         "related_paces": [],  # nor those of its task and method in other settings
         "mixed": {"envs_per_seed": ["16", "8"]},  # its finished runs' choices differ
+        "agreed": {},  # float32 and the replay's defaults, as the cell's config
     }
     assert (cell["cup", "sear"]["seeds_done"], cell["cup", "sear"]["next_seeds"]) == (2, [1])
-    # A run that holds its workdir now (a live process in its lock) is running: not resumed.
+    # A run that holds its workdir now (a live process in its lock) is running: not resumed,
+    # and its seed is coming, so one new seed-run, not two, makes up the cell.
     with lock.WorkdirLock(runs[2]):
         busy = report.grid_rows(runs, ["walker"], ["dear"], seeds=3)["cells"][0]
     assert busy["short"][0] == f"{here}/w_dear_s1 (running)" and busy["resume"] == []
+    assert busy["next_seeds"] == [2]
+    # A checkpoint whose replay was in memory would resume on an empty replay: not resumed.
+    lost = run("w_dear_s9", "walker,dear", 9, 700_000, **{"replay.disk": False})
+    (lost / "checkpoints").mkdir()
+    cell_lost = report.grid_rows([runs[0], lost], ["walker"], ["dear"], seeds=2)["cells"][0]
+    assert cell_lost["short"] == [f"{here}/w_dear_s9 (700,000, its replay not kept)"]
+    assert (cell_lost["resume"], cell_lost["next_seeds"]) == ([], [1])
     assert cell["walker", "sear"]["missing"] == 3 and cell["walker", "sear"]["next_seeds"] == [
         0,
         1,
@@ -1266,7 +1295,7 @@ def test_plot_errors(tmp_path, capsys):
     empty = tmp_path / "empty"
     empty.mkdir()
     (empty / "config.json").write_text('{"seeds": 1}')
-    with pytest.raises(FileNotFoundError, match=r"expected .*seed_0.eval\.csv"):
+    with pytest.raises(FileNotFoundError, match=r"no eval log .*seed_0.eval\.csv"):
         plot.plot([empty])
     with pytest.raises(FileNotFoundError, match="config.json not found: give the workdir of a run"):
         plot.plot([tmp_path / "nowhere"])

@@ -10,10 +10,12 @@ towards the grid (`report.grid_rows`: a run belongs to a cell of `configs/paper.
 when its config is the cell's but for its seeds, envs per seed, dtype and replay; a task given
 with more of paper.py's parts makes cells of that setting: `--tasks walker,medium-full` of the
 full suite, `walker,beta=10` of a weight ablation's setting, for the methods that read beta). The
-queue (`report.grid_jobs`): first the stopped runs that kept a checkpoint and bring missing
-seeds, resumed in their workdirs, then one seed-run per missing seed (--seeds-per-run K: per K
-missing seeds, trained as lanes of one process) in --root as TASK_METHOD_sSEED (with the
-task's other parts: walker_beta=10_dear_s0), task by task, the methods of a task taking turns.
+queue (`report.grid_jobs`): first the stopped runs that kept a checkpoint and their replay and
+bring missing seeds, resumed in their workdirs, then one seed-run per missing seed that no run
+brings (a running one's seeds count; --seeds-per-run K: per K missing seeds, trained as lanes of
+one process), with the dtype, envs per seed and replay settings the cell's finished runs all
+chose (--set overrides them), in --root as TASK_METHOD_sSEED (with the task's other parts:
+walker_beta=10_dear_s0), task by task, the methods of a task taking turns.
 
 Each GPU (`--gpus`: ids as CUDA_VISIBLE_DEVICES takes them, in nvidia-smi's PCI order; default
 every GPU visible) runs --per-gpu jobs at a time, each pinned (taskset) to its equal share of

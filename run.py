@@ -16,6 +16,7 @@ import logging
 import os
 import pathlib
 import runpy
+import signal
 import sys
 
 from absl import app, flags
@@ -58,7 +59,17 @@ def _resolve_argv(argv: list[str]) -> list[str]:
     name, *spec = value.split(":", 1)  # a config string after the colon goes to get_config
     path = resolve_config_path(name, ROOT / "configs")
     argv[i] = prefix + ":".join([str(path), *spec])
-    check_override_keys(runpy.run_path(str(path))["get_config"](*spec), argv)
+    get_config = runpy.run_path(str(path))["get_config"]
+    try:
+        config = get_config(*spec)
+    except TypeError:
+        if not spec:
+            raise
+        raise ValueError(
+            f"{path.name} takes no config string after ':' (paper.py does, e.g. "
+            "paper.py:walker,dear)"
+        ) from None
+    check_override_keys(config, argv)
     return argv
 
 
@@ -96,6 +107,31 @@ def _check(config) -> None:
         root.setLevel(level)
 
 
+def _remove_if_unused(workdir: pathlib.Path) -> None:
+    """A workdir this run made and left with nothing but its log: removed."""
+    from dear_jax import console
+
+    if {p.name for p in workdir.iterdir()} <= {console.LOG_FILE}:
+        (workdir / console.LOG_FILE).unlink(missing_ok=True)
+        workdir.rmdir()
+
+
+# What a stop signal before training undoes, in order (the workdir's lock, a new workdir).
+_UNDO_BEFORE_TRAINING = []
+
+
+def _stop_before_training(signum, frame):
+    """Until train() takes the stop signals over (dear_jax/signals.py), SIGINT or SIGTERM ends
+    the process at once: nothing is trained or saved yet, and an interrupt raised during the
+    imports could otherwise be swallowed (a KeyboardInterrupt in a garbage-collection callback
+    is only printed, and the run would go on)."""
+    for undo in _UNDO_BEFORE_TRAINING:
+        undo()
+    name = signal.Signals(signum).name
+    os.write(2, f"stopped by {name} before training began; nothing was saved\n".encode())
+    os._exit(128 + signum)
+
+
 def main(argv):
     del argv
     from dear_jax import console
@@ -114,6 +150,9 @@ def main(argv):
         lock.acquire()  # before the slow imports: a second run on a workdir fails at once
     except (WorkdirLocked, OSError) as e:  # in use, or not a folder one can make
         sys.exit(f"error: {e}")
+    _UNDO_BEFORE_TRAINING.append(lock.release)
+    if new:
+        _UNDO_BEFORE_TRAINING.append(lambda: _remove_if_unused(pathlib.Path(workdir)))
     try:
         _check(_CONFIG.value)
     except (ValueError, FileNotFoundError) as e:  # bad input: one line, nothing left behind
@@ -127,7 +166,7 @@ def main(argv):
     console.setup(workdir, verbose=_VERBOSE.value, process=process)
     from dear_jax.checkpoint import IncompatibleCheckpointError
     from dear_jax.experiment import ConfigError
-    from dear_jax.replay_disk import DiskSpaceError
+    from dear_jax.replay_disk import DiskSpaceError, MissingReplayError
     from dear_jax.signals import Stopped, StoppedAtOnce
     from dear_jax.train import train
 
@@ -144,19 +183,27 @@ def main(argv):
             pathlib.Path(workdir) / "checkpoints",
         )
         sys.exit(128 + e.signum)
-    except (IncompatibleCheckpointError, DiskSpaceError, ConfigError, MemoryError) as e:
+    except (
+        IncompatibleCheckpointError,
+        MissingReplayError,
+        DiskSpaceError,
+        ConfigError,
+        MemoryError,
+    ) as e:
         logging.getLogger("dear_jax").error("error: %s", e)  # the message says what to do
         refused = True
         sys.exit(2)
     finally:
+        _UNDO_BEFORE_TRAINING.clear()  # the run's own exit from here
         lock.release()
-        path = pathlib.Path(workdir)
-        if refused and new and [p.name for p in path.iterdir()] == [console.LOG_FILE]:
-            (path / console.LOG_FILE).unlink()  # refused before it wrote anything but its log
-            path.rmdir()
+        if refused and new:
+            _remove_if_unused(pathlib.Path(workdir))  # refused before it wrote anything else
 
 
 if __name__ == "__main__":
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(sig) != signal.SIG_IGN:
+            signal.signal(sig, _stop_before_training)
     sys.path.insert(0, str(ROOT))
     try:
         sys.argv[1:] = _resolve_argv(sys.argv[1:])

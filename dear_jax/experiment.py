@@ -153,9 +153,17 @@ def validate(config: ConfigDict) -> None:
             visible = f" (0-{seen - 1})" if seen else ""
             raise ValueError(f"env.render.gpus={gpus!r}: this process sees {seen} GPU(s){visible}")
     try:
+        render.RenderSettings(**config.env.render.to_dict())
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"env.render: {e}") from None
+    try:
         wideconv.parse_constants(config.agent.kernels)
     except ValueError as e:
         raise ValueError(f"agent.kernels: {e}") from None
+    try:
+        agent_config(config, action_dim=1)  # the agent's fields together (method x encoder)
+    except ValueError as e:
+        raise ValueError(f"agent: {e}") from None
     if config.agent.kernels and networks.stack_for(config.agent.conv_stack) != "pallas":
         log.warning(
             "agent.kernels=%r sets the Pallas stacks' constants, but the conv stacks run in XLA "
@@ -178,10 +186,35 @@ def validate(config: ConfigDict) -> None:
         "env.action_repeat",
         "log_every_frames",
         "keep_checkpoints",
+        "replay.chunk_entries",
     )
     for key in positive:
         if _get(config, key) < 1:
             raise ValueError(f"{key} must be >= 1, got {_get(config, key)}")
+    for key, low, high in [  # (low, high]: an interval open at its left end, or [0, 1]
+        ("agent.lr", 0.0, math.inf),
+        ("agent.ted_lr", 0.0, math.inf),
+        ("agent.discount", 0.0, 1.0),
+        ("agent.tau", 0.0, 1.0),
+    ]:
+        if not low < _get(config, key) <= high:
+            raise ValueError(f"{key} must be in ({low:g}, {high:g}], got {_get(config, key)}")
+    e = config.env
+    if not 0.0 <= e.mask_drop_prob <= 1.0:
+        raise ValueError(f"env.mask_drop_prob must be in [0, 1], got {e.mask_drop_prob}")
+    if config.agent.stddev_clip < 0:
+        raise ValueError(f"agent.stddev_clip must be >= 0, got {config.agent.stddev_clip}")
+    if e.episode_frames < 0:
+        raise ValueError(
+            f"env.episode_frames must be >= 0 (0: the task's own), got {e.episode_frames}"
+        )
+    frames = e.episode_frames or envs.frames_per_episode(e.task)
+    if frames % e.action_repeat:
+        whose = "env.episode_frames" if e.episode_frames else f"{e.task}'s episode"
+        raise ValueError(
+            f"env.action_repeat={e.action_repeat} does not divide {whose} of {frames} frames; "
+            f"give a divisor of {frames}"
+        )
     for key, auto in [
         ("env.physics_threads", "one per device"),
         ("env.eval_physics_threads", "one per core, up to 8"),

@@ -90,6 +90,10 @@ class DiskSpaceError(OSError):
     """The replay on disk would not fit on the workdir's disk."""
 
 
+class MissingReplayError(FileNotFoundError):
+    """A checkpoint's replay rows are not on disk (deleted, or never written there)."""
+
+
 def check_disk(directory: pathlib.Path, need: int, *, headroom: float = 0.9) -> tuple[int, int]:
     """(bytes still to write, free bytes); raise DiskSpaceError naming the numbers unless they
     fit."""
@@ -229,7 +233,7 @@ class ChunkStore:
             while cursor < rows_added:
                 covering = [f for f in files if f[0] <= cursor < f[1]]
                 if not covering:
-                    raise FileNotFoundError(
+                    raise MissingReplayError(
                         f"replay rows from {cursor} of seed {s} are missing in "
                         f"{self.seed_dir(s)} (need rows {lo}..{rows_added - 1} for the "
                         "checkpoint); delete the checkpoints to start over, or resume with "

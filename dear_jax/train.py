@@ -41,7 +41,7 @@ from dear_jax.experiment import (
     validate,
 )
 from dear_jax.lock import WorkdirLock
-from dear_jax.logger import RunLogger
+from dear_jax.logger import RunLogger, write_text_atomic
 from dear_jax.loop import Loop
 from dear_jax.programs import cached_programs
 from dear_jax.signals import AgreedStop, Stopped, StopRequest
@@ -249,7 +249,7 @@ def _logger(config: ConfigDict, workdir: pathlib.Path, hosts: Hosts, loop: Loop)
     """The logs of this process's lanes; the run's config beside them (and each lane's own
     settings beside its logs)."""
     if hosts.index == 0:
-        (workdir / "config.json").write_text(config.to_json(indent=1))
+        write_text_atomic(workdir / "config.json", config.to_json(indent=1))
     runs = lanes.lanes(config)
     mine = [runs[i] for i in hosts.lanes]  # the lanes whose envs, logs and files are here
     # An evaluation due at the checkpoint's frame runs again (and logs its row again).
@@ -264,5 +264,5 @@ def _logger(config: ConfigDict, workdir: pathlib.Path, hosts: Hosts, loop: Loop)
     if len(runs) > 1 or runs[0].settings:
         for i, lane in enumerate(mine):
             text = lanes.lane_config(config, lane).to_json(indent=1)
-            (logger.seed_dir(i) / "config.json").write_text(text)
+            write_text_atomic(logger.seed_dir(i) / "config.json", text)
     return logger

@@ -19,7 +19,7 @@ mujoco.set_mju_user_warning(lambda text: logging.getLogger("mujoco").warning("Mu
 
 from envs.base import Env, EnvSpec, EnvState, TimeStep  # noqa: E402
 from envs.physics import SolverSettings  # noqa: E402
-from envs.registry import make, names, register  # noqa: E402
+from envs.registry import frames_per_episode, make, names, register  # noqa: E402
 from envs.render import RenderSettings  # noqa: E402
 
 __all__ = [
@@ -31,5 +31,6 @@ __all__ = [
     "TimeStep",
     "make",
     "names",
+    "frames_per_episode",
     "register",
 ]

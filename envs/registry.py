@@ -20,6 +20,14 @@ def names() -> tuple[str, ...]:
     return tuple(sorted(_REGISTRY))
 
 
+def frames_per_episode(name: str) -> int:
+    """The task's own episode length in frames (what `Env`'s episode_frames=None gives)."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown task {name!r}; valid tasks: {', '.join(names())}")
+    task = {**dmc.TASKS, **kitchen.TASKS}[name]
+    return task.frames_per_episode(task.physics_model())
+
+
 def make(name: str, **kwargs):
     """Build the env registered as `name`; see envs.base.Env for the keyword arguments."""
     if name not in _REGISTRY:

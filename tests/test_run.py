@@ -566,6 +566,17 @@ def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
         ("keep_checkpoints", 0, "keep_checkpoints must be >= 1, got 0"),
         ("log_every_frames", 0, "log_every_frames must be >= 1, got 0"),
         ("checkpoint_every_frames", -40, r"checkpoint_every_frames must be >= 0 \(0: no periodic"),
+        ("replay.chunk_entries", 0, "replay.chunk_entries must be >= 1, got 0"),
+        ("env.render.num_workers", -1, "env.render: num_workers must be 0 .auto. or more"),
+        ("agent.encoder", "plain", "agent: method 'dear' needs encoder='pool'"),
+        ("agent.discount", 1.5, r"agent.discount must be in \(0, 1\], got 1.5"),
+        ("agent.tau", 0.0, r"agent.tau must be in \(0, 1\], got 0"),
+        ("agent.lr", -1e-4, r"agent.lr must be in \(0, inf\], got -0.0001"),
+        ("agent.stddev_clip", -0.3, "agent.stddev_clip must be >= 0, got -0.3"),
+        ("env.mask_drop_prob", 2.0, r"env.mask_drop_prob must be in \[0, 1\], got 2.0"),
+        ("env.episode_frames", -5, r"env.episode_frames must be >= 0 \(0: the task's own\)"),
+        # the tiny config's 40-frame episodes, and below walker's own 1,000 (episode_frames 0)
+        ("env.action_repeat", 3, "env.action_repeat=3 does not divide env.episode_frames of 40"),
     ]:
         bad_config = copy.deepcopy(config)
         *parents, field = key.split(".")
@@ -575,6 +586,10 @@ def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
         node[field] = bad
         with pytest.raises(ValueError, match=match):
             experiment.validate(bad_config)
+    own = copy.deepcopy(config)
+    own.env.episode_frames, own.env.action_repeat = 0, 3
+    with pytest.raises(ValueError, match="does not divide walker-walk's episode of 1000 frames"):
+        experiment.validate(own)
     assert experiment.eval_processes(config, "accelerator") == 1
     config.eval_device = "train"
     acfg = experiment.agent_config(config, action_dim=6)
@@ -778,6 +793,31 @@ def test_input_the_run_finds_bad_says_one_line(tmp_path, flag, message):
     assert not workdir.exists()
 
 
+def test_a_ctrl_c_while_the_run_starts_stops_it(tmp_path):
+    """SIGINT as soon as the run holds its workdir (during its imports, before training): it
+    stops with 130 and one line, however early, and leaves no new workdir behind when it
+    had not begun; a later one checkpoints first. Never does the run go on to train."""
+    workdir = tmp_path / "run"
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / "run.py"), "--config=smoke", f"--workdir={workdir}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own SIGINT disposition, as a terminal's foreground job
+    )
+    deadline = time.time() + 120
+    while not (workdir / "run.lock").exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 130 and "Traceback" not in err
+    last = err.strip().splitlines()[-1]
+    if "before training began" in last:
+        assert not workdir.exists()
+    else:
+        assert "checkpoint saved" in last
+
+
 def test_a_second_signal_stops_at_once_and_sighup_asks_for_a_stop():
     """The first SIGTERM asks for a stop at the end of the step; a second stops at once with
     StoppedAtOnce, a KeyboardInterrupt that names the signal (run.py: one line, 128 + signal)."""
@@ -828,6 +868,14 @@ def test_config_by_bare_name_and_unknown_names():
     assert (
         "Did you mean 'walker_dear.py'" in out.stderr and "walker_dear_beta_sweep.py" in out.stderr
     )
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "run.py"), "--config=smoke.py:walker"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode != 0 and "Traceback" not in out.stderr
+    assert "smoke.py takes no config string after ':' (paper.py does" in out.stderr
     configs = ROOT / "configs"
     assert resolve_config_path("walker_dear.py", configs) == configs / "walker_dear.py"
     assert resolve_config_path("walker_dear", configs) == configs / "walker_dear.py"

@@ -4,7 +4,7 @@
 string after a colon (`--config paper.py:cup,sear,hard`). Any config field can be
 overridden: `--config.seeds=5 --config.agent.beta=10`. Rerunning the same command on the same
 workdir resumes from its latest checkpoint. SIGTERM, Ctrl-C or SIGHUP checkpoints, then exits
-(with 128 + the signal's number); `--verbose` shows libraries' INFO logs, which otherwise go only to
+(with 128 + the signal's number; before training begins, SIGTERM or Ctrl-C exits at once); `--verbose` shows libraries' INFO logs, which otherwise go only to
 <workdir>/log.txt.
 
 Several hosts: start the same command on each with `--multihost` (README, "Several hosts").

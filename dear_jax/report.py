@@ -16,7 +16,8 @@ shapes only (jax.eval_shape), so it is instant and allocates nothing.
 experiment, beside the paper's figures on walker-walk's rows (docs/method.md; a 1080Ti/3080). Runs of
 the same config but for their seeds (other machines, other days: give each its own
 --config.seed) are one experiment, their seeds pooled; the row names the runs and their commits
-and devices (`sources` in the CSV):
+and devices (`sources` in the CSV), and how they evaluated where that differs (evaluation
+processes, episodes, interval: settings a resumed run may change):
   params (M)          the run's agent (encoder, actor, critic and its method's heads)
   s / 1000 frames     wall-clock seconds per 1000 frames of one seed, amortised over the seeds
                       trained together (the paper runs one seed per process): "training" from
@@ -196,10 +197,16 @@ def _run_files(workdir: pathlib.Path) -> tuple[dict, dict]:
     return tuple(json.loads((workdir / n).read_text()) for n in ("config.json", "summary.json"))
 
 
-def _source(workdir: pathlib.Path, summary: dict, seeds: int) -> dict:
-    """Where a pooled row's seeds come from: the workdir, and the code and machine that ran it."""
+def _source(workdir: pathlib.Path, config: dict, summary: dict, seeds: int) -> dict:
+    """Where a pooled row's seeds come from: the workdir, the code and machine that ran it, and
+    how it evaluated (settings a run may change on resuming, so runs that differ in them pool)."""
     made = summary.get("provenance", {})
     return {
+        "evaluation": {
+            "num_eval_episodes": config.get("num_eval_episodes"),
+            "eval_every_frames": config.get("eval_every_frames"),
+            "eval_processes": summary.get("eval_processes", 1),  # before the field: one
+        },
         "workdir": str(workdir),
         "seeds": seeds,
         "frames_per_seed": summary["frames_per_seed"],
@@ -259,7 +266,7 @@ def pooled_rows(
             walls += summary["wall_s"]
             frames += summary["frames_per_seed"] * sum(map(len, groups.values()))
             mine = sum(w == workdir for w, _ in pool.seeds)
-            sources.append(_source(workdir, summary, mine))
+            sources.append(_source(workdir, files[workdir][0], summary, mine))
         dirs = [d for _, d in pool.seeds]
         near = plot.slack(config)
         evals = [_until(read_csv(d / "eval.csv"), at, d / "eval.csv", near) for d in dirs]
@@ -277,9 +284,16 @@ def pooled_rows(
             + (f" (stopped at {s['frames_per_seed']:,} frames)" if s["stopped"] else "")
             for s in sources
         ]
+        # Pooled runs that evaluated differently (each seed's returns come from its own run's).
+        differ = {
+            k: "/".join(dict.fromkeys(str(s["evaluation"][k]) for s in sources))
+            for k in sources[0]["evaluation"]
+        }
+        differ = "; ".join(f"{k} {v}" for k, v in differ.items() if "/" in v)
         rows.append(
             {
-                "run": f"{' + '.join(names)} {pool.label}".strip(),
+                "run": f"{' + '.join(names)} {pool.label}".strip()
+                + (f" (evaluations differ: {differ})" if differ else ""),
                 "method": agent["method"],
                 "task": plot.task_name(config),
                 "seeds": len(dirs),

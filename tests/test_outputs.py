@@ -643,7 +643,8 @@ def test_seeds_of_one_experiment_pool_over_workdirs(tmp_path):
     rows = report.pooled_rows([a, b, drq], threshold=150.0)
     assert [(r["method"], r["seeds"]) for r in rows] == [("dear", 6), ("drqv2", 3)]
     row = rows[0]
-    assert row["run"] == "a (3) + b (3)"
+    # b evaluated over 5 episodes where a took 10: pooled, and said.
+    assert row["run"] == "a (3) + b (3) (evaluations differ: num_eval_episodes 10/5)"
     finals = np.array([300, 310, 350, 307, 317, 357])
     assert row["final_return_mean"] == pytest.approx(finals.mean())
     assert row["final_return_std"] == pytest.approx(finals.std())

@@ -4,8 +4,8 @@
 string after a colon (`--config paper.py:cup,sear,hard`). Any config field can be
 overridden: `--config.seeds=5 --config.agent.beta=10`. Rerunning the same command on the same
 workdir resumes from its latest checkpoint. SIGTERM, Ctrl-C or SIGHUP checkpoints, then exits
-(with 128 + the signal's number; before training begins, SIGTERM or Ctrl-C exits at once); `--verbose` shows libraries' INFO logs, which otherwise go only to
-<workdir>/log.txt.
+(with 128 + the signal's number; before training begins, SIGTERM or Ctrl-C exits at once);
+`--verbose` shows libraries' INFO logs, which otherwise go only to <workdir>/log.txt.
 
 Several hosts: start the same command on each with `--multihost` (README, "Several hosts").
 """
@@ -118,6 +118,7 @@ def _remove_if_unused(workdir: pathlib.Path) -> None:
 
 # What a stop signal before training undoes, in order (the workdir's lock, a new workdir).
 _UNDO_BEFORE_TRAINING = []
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def _stop_before_training(signum, frame):
@@ -194,14 +195,18 @@ def main(argv):
         refused = True
         sys.exit(2)
     finally:
-        _UNDO_BEFORE_TRAINING.clear()  # the run's own exit from here
+        for sig in _STOP_SIGNALS:  # the run's own exit from here
+            if signal.getsignal(sig) == _stop_before_training:
+                signal.signal(
+                    sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL
+                )
         lock.release()
         if refused and new:
             _remove_if_unused(pathlib.Path(workdir))  # refused before it wrote anything else
 
 
 if __name__ == "__main__":
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in _STOP_SIGNALS:
         if signal.getsignal(sig) != signal.SIG_IGN:
             signal.signal(sig, _stop_before_training)
     sys.path.insert(0, str(ROOT))

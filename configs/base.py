@@ -1,7 +1,9 @@
-"""Base configuration: DEAR on walker-walk, the hyperparameters of docs/method.md.
+"""Base configuration: every field, with the hyperparameters of docs/method.md shared by all tasks.
 
-Experiment files import `get_config` from here and override a few fields; every field can also be
-overridden on the command line: `python run.py --config configs/walker_dear.py --config.seeds=5`.
+Experiment files start from `make(task, method)`, which adds the per-task settings (walker:
+n-step 1 and batch 512, DrQ-v2's), or from `get_config` (the shared defaults alone, n-step 3 and
+batch 256 whatever env.task says) and override a few fields; every field can also be overridden
+on the command line: `python run.py --config configs/walker_dear.py --config.seeds=5`.
 """
 
 from ml_collections import ConfigDict, config_dict

@@ -140,22 +140,16 @@ def validate(config: ConfigDict) -> None:
         distractions.parse_types(config.env.distraction_types)
     except ValueError as e:
         raise ValueError(f"env.distraction_types: {e}") from None
-    gpus = config.env.render.gpus
-    if gpus != "auto":
-        try:
-            render.RenderSettings(gpus=gpus)
-        except ValueError:
-            raise ValueError(
-                f"env.render.gpus={gpus!r}: 'auto' or GPU numbers separated by commas, e.g. '1'"
-            ) from None
-        seen = len([d for d in jax.local_devices() if d.platform == "gpu"])
-        if any(int(g) >= seen for g in gpus.split(",")):
-            visible = f" (0-{seen - 1})" if seen else ""
-            raise ValueError(f"env.render.gpus={gpus!r}: this process sees {seen} GPU(s){visible}")
     try:
         render.RenderSettings(**config.env.render.to_dict())
     except (TypeError, ValueError) as e:
         raise ValueError(f"env.render: {e}") from None
+    gpus = config.env.render.gpus
+    if gpus != "auto":
+        seen = len([d for d in jax.local_devices() if d.platform == "gpu"])
+        if any(int(g) >= seen for g in gpus.split(",")):
+            visible = f" (0-{seen - 1})" if seen else ""
+            raise ValueError(f"env.render.gpus={gpus!r}: this process sees {seen} GPU(s){visible}")
     try:
         wideconv.parse_constants(config.agent.kernels)
     except ValueError as e:

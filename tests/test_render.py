@@ -447,7 +447,7 @@ def test_auto_draws_on_the_gpus_of_the_envs_lanes_and_numbers_are_checked(monkey
     monkeypatch.setattr(experiment.jax, "local_devices", lambda: gpus)
     for setting, message in [
         ("0,2", r"env.render.gpus='0,2': this process sees 2 GPU\(s\) \(0-1\)$"),
-        ("gpu1", r"env.render.gpus='gpu1': 'auto' or GPU numbers separated by commas"),
+        ("gpu1", r"env.render: render gpus 'gpu1': 'auto' or GPU numbers separated by commas"),
     ]:
         config.env.render.gpus = setting
         with pytest.raises(ValueError, match=message):

@@ -76,14 +76,17 @@ def evaluate(env, step, params, key, *, video: bool, stop=lambda: False, hosts=N
     returns = jnp.zeros(env.shape)
     success = jnp.zeros(env.shape)
     done = np.zeros(env.shape, bool)  # envs whose first episode has ended (kitchen: at success)
-    cos_sum, steps = None, 0
+    # The latent cosines of every observation of each env's first episode: sums and counts.
+    cos_sum, abs_cos_sum, counted = (np.zeros(env.shape) for _ in range(3))
     frames = []
     while True:
         action, cos, pred = to_local(step(params, to_global(ts.obs)))
         if video:
             frames.append((ts.frame[:, 0], ts.true_mask[:, 0], pred))
-        cos_sum = cos if cos_sum is None else jax.tree.map(jnp.add, cos_sum, cos)
-        steps += 1
+        cos, live = np.asarray(cos), ~done  # live: this observation is of the first episode
+        cos_sum += np.where(live, cos, 0.0)
+        abs_cos_sum += np.where(live, np.abs(cos), 0.0)
+        counted += live
         done |= np.asarray(state.last)
         if agree([done.all()]).all():
             break
@@ -95,7 +98,8 @@ def evaluate(env, step, params, key, *, video: bool, stop=lambda: False, hosts=N
         success = jnp.maximum(success, jnp.where(live, ts.success, 0.0))
     metrics = {
         "episode_return": np.asarray(returns.mean(1)),
-        **{name: np.asarray(total / steps) for name, total in cos_sum.items()},
+        "cos_agent_env": cos_sum.sum(1) / counted.sum(1),
+        "abs_cos_agent_env": abs_cos_sum.sum(1) / counted.sum(1),
     }
     if env.spec.has_success:
         metrics["success"] = np.asarray(success.mean(1))

@@ -28,7 +28,7 @@ class Programs:
     act: callable
     learn: callable  # (agent, replay, key) -> (agent, metrics [S]): one update per seed
     add: callable  # (replay, ts, action) -> replay
-    # (params, obs) -> (actions, {cos_agent_env, abs_cos_agent_env: [S]}, predicted mask of env 0
+    # (params, obs) -> (actions, cos(z_A, z_E) of each env [S,E], predicted mask of env 0
     # [S,H,W])
     evaluate_step: callable
     # The same in float32, for the evaluation process on the host's CPU (eval_device="cpu",
@@ -169,7 +169,7 @@ def build_programs(
             z = nets.encoder.apply({"params": params["encoder"]}, obs)
             action = nets.actor.apply({"params": params["actor"]}, z)
             z_env, z_agent = losses.split_latent(z)
-            cos = losses.latent_cosines(z_agent, z_env)
+            cos = losses.cosine_similarity(z_agent, z_env).astype(jnp.float32)  # [E]
             if nets.mask_decoder is None:
                 pred = jnp.zeros(obs.shape[1:3])
             else:  # newest frame's channel of env 0

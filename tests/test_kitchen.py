@@ -491,7 +491,8 @@ def test_configs_validate(task):
 
 
 def test_evaluation_counts_each_envs_first_episode():
-    """Kitchen episodes end at different steps; dear_jax.evaluator.evaluate must still stop."""
+    """Kitchen episodes end at different steps; dear_jax.evaluator.evaluate must still stop, and
+    count the returns, successes and latent cosines of each env's first episode only."""
     import types
 
     from dear_jax import evaluator
@@ -520,11 +521,20 @@ def test_evaluation_counts_each_envs_first_episode():
             assert state.step.max() < 20, "evaluate did not stop"
             return self._ts(state.step + 1)
 
-    cos = {"cos_agent_env": jnp.zeros(1), "abs_cos_agent_env": jnp.zeros(1)}
+    # The observations' cosines per env: 3 + 5 + 4 of first episodes (steps 0 to its end),
+    # then, once an env has restarted, 9 (must not count) until the last env's episode ends.
+    calls = []
 
     def step(params, obs):
-        return jnp.zeros((1, 3, 9)), cos, jnp.zeros((4, 4))
+        t = len(calls)
+        calls.append(t)
+        cos = np.where(t > ends, 9.0, np.array([[-0.2, 0.1, 0.4]]))
+        return jnp.zeros((1, 3, 9)), jnp.asarray(cos, jnp.float32), jnp.zeros((4, 4))
 
     metrics, _ = evaluator.evaluate(FakeEnv(), step, None, None, video=False)
     np.testing.assert_allclose(metrics["episode_return"], [2 / 3])
     np.testing.assert_allclose(metrics["success"], [2 / 3])
+    assert len(calls) == 5  # the last env's episode: steps 0-4
+    want = (3 * -0.2 + 5 * 0.1 + 4 * 0.4) / 12
+    np.testing.assert_allclose(metrics["cos_agent_env"], [want], rtol=1e-6)
+    np.testing.assert_allclose(metrics["abs_cos_agent_env"], [(0.6 + 0.5 + 1.6) / 12], rtol=1e-6)

@@ -189,7 +189,7 @@ def _pallas_child(root: pathlib.Path) -> None:
         )
         agent, metrics = programs.learn(agent, buffer, jax.random.key(2))
         evaluated, cos, pred = programs.evaluate_step(agent.params, put(obs))
-        out = {"act": acted, "evaluate": evaluated, "pred": pred, **cos, **metrics}
+        out = {"act": acted, "evaluate": evaluated, "pred": pred, "eval_cos": cos, **metrics}
         for path, x in jax.tree_util.tree_leaves_with_path(agent.params):
             out[jax.tree_util.keystr(path)] = x
         where = sorted({len(x.sharding.device_set) for x in jax.tree.leaves(out)})

@@ -69,6 +69,7 @@ RESUMABLE_CHANGES = (
 ADDED_FIELDS = {
     "env.distraction_types": "all",
     "env.render.mesh_faces": 0,
+    "replay.sampling": "uniform",
     "agent.noise_hold": 1,
     "sweep.noise_hold": "",
 }
@@ -123,6 +124,7 @@ def validate(config: ConfigDict) -> None:
         "env.mask": ("true", "noisy", "approximate"),
         "env.render.quality": render.QUALITIES,
         "agent.compute_dtype": ("float32", "bfloat16"),
+        "replay.sampling": replay.SAMPLINGS,
     }
     for key, valid in choices.items():
         if _get(config, key) not in valid:

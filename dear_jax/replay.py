@@ -317,6 +317,30 @@ def _draw(key: jax.Array, valid: jax.Array, n: int) -> jax.Array:
     return lo
 
 
+SAMPLINGS = ("uniform", "episode")  # replay.sampling: every start alike, or DrQ-v2's
+
+
+def _draw_by_episode(key: jax.Array, state: ReplayState, valid: jax.Array, n: int):
+    """`n` starts (row, env) drawn as DrQ-v2's replay draws them: an episode uniformly, then one
+    of its starts uniformly. Only finished episodes, as DrQ-v2 stores an episode when it ends,
+    unless none has finished yet (then every episode). valid: [T, E] `sample_weights`."""
+    k_episode, k_step = jax.random.split(key)
+    rows = jnp.arange(state.rows)[:, None]
+    envs = jnp.arange(state.frames.shape[1])[None, :]
+    # An episode's starts are consecutive rows: its head is the one whose row before is none.
+    same_before, _ = _same_episode_at(state, rows, envs, -1)
+    valid = valid > 0
+    head = valid & ~(same_before & jnp.roll(valid, 1, axis=0))
+    finished = state.episode < state.episodes_started[None, :] - 1  # a later episode began
+    head = jnp.where((head & finished).any(), head & finished, head)
+    row, env = jnp.divmod(_draw(k_episode, head.reshape(-1), n), state.frames.shape[1])
+    _, last = _episode_span(state, row, env)
+    starts = last - _age(state, row)  # every stored row of the episode after the head but its last
+    u = jax.random.uniform(k_step, row.shape)
+    offset = jnp.minimum(jnp.floor(u * starts).astype(jnp.int32), starts - 1)
+    return (row + offset) % state.rows, env
+
+
 def sample(
     state: ReplayState,
     key: jax.Array,
@@ -326,19 +350,24 @@ def sample(
     gamma: float,
     frame_stack: int,
     same_episode: bool = False,
+    by_episode: bool = False,
 ) -> Batch:
-    """Uniform sample (with replacement) of `batch_size` transitions among the valid starts.
+    """Uniform sample (with replacement) of `batch_size` transitions among the valid starts;
+    by_episode=True: an episode uniformly, then a start in it (`_draw_by_episode`).
 
     same_episode=True also returns TED's same-episode frames (`same_episode_offsets`).
     Raises ValueError when called on a replay holding no transition (outside `jit`; inside,
     the trainer checks once before its first update, see `check_can_sample`).
     """
     k_idx, k_far = jax.random.split(key)
-    weights = sample_weights(state, frame_stack).reshape(-1)
+    weights = sample_weights(state, frame_stack)
     if not isinstance(weights, jax.core.Tracer):
         check_can_sample(weights.sum(), 1)
-    flat = _draw(k_idx, weights, batch_size)
-    row, env = jnp.divmod(flat, state.frames.shape[1])
+    if by_episode:
+        row, env = _draw_by_episode(k_idx, state, weights, batch_size)
+    else:
+        flat = _draw(k_idx, weights.reshape(-1), batch_size)
+        row, env = jnp.divmod(flat, state.frames.shape[1])
     return sample_at(
         state,
         row,

@@ -57,7 +57,7 @@ magnitude |cos| how far from orthogonal each sample is.
 kitchen's too with `--tasks light kettle`; a task with more of paper.py's parts for another
 setting, e.g. `--tasks walker,medium-full`, or `walker,beta=10`: a weight ablation's cell, for
 the methods that read beta): a run belongs to a cell when its config is the
-cell's but for its seeds, envs per seed, dtype and replay (`GRID_MAY_DIFFER`; `table` and
+cell's but for its seeds, envs per seed, dtype and replay store (`GRID_MAY_DIFFER`; `table` and
 `claims` keep runs that chose these differently apart, and the grid names such cells). Per cell: the
 seeds that trained --frames frames, the runs stopped short and how far (or running: a live
 process holds its workdir, and its seeds count as coming), how many seeds are missing; then a
@@ -600,8 +600,17 @@ def evals_table(workdirs, out: str | None = None) -> tuple[list[dict], str]:
 
 # What a seed-run of a grid cell may set otherwise than configs/paper.py, besides what any resume
 # may change (experiment.RESUMABLE_CHANGES): how many seeds and envs it steps, its dtype, its
-# replay's size and place. Every other field is the cell's.
-GRID_MAY_DIFFER = ("seed", "seeds", "envs_per_seed", "agent.compute_dtype", "replay.")
+# replay's size, warm-up and place (not its sampling). Every other field is the cell's.
+GRID_MAY_DIFFER = (
+    "seed",
+    "seeds",
+    "envs_per_seed",
+    "agent.compute_dtype",
+    "replay.capacity",
+    "replay.seed_frames",
+    "replay.disk",
+    "replay.chunk_entries",
+)
 
 
 SEEDS_PER_RUN_HELP = "missing seeds a new seed-run trains side by side, as lanes of one process"

@@ -142,6 +142,7 @@ def write_summary(
         "distraction_types": list(spec.distraction_types),
         "backgrounds": spec.backgrounds,
         "noise_hold": config.agent.noise_hold,
+        "replay_sampling": config.replay.sampling,
         "stopped": stopped,
         "per_seed": per_seed,
         "provenance": provenance(),
@@ -159,6 +160,8 @@ def write_summary(
     evaluators = f", {eval_processes} processes" if eval_processes > 1 else ""
     held = config.agent.noise_hold
     held = f"; exploration draws held {held:g} agent steps" if held != 1 else ""
+    if config.replay.sampling == "episode":
+        held += "; replay sampled by episode"
     on = summary["device"] if devices == 1 else f"{devices} x {summary['device']}"
     if config.devices_per_seed > 1:
         on += f", {config.devices_per_seed} per {unit}"

@@ -172,6 +172,15 @@ def test_new_seed_runs_choose_what_the_cells_finished_runs_chose_alike(tmp_path)
         paper_run(
             tmp_path / "w_sear_s1", "walker,sear", 1, 1_000_000, **{**fast, "envs_per_seed": 8}
         ),
+        # Another experiment: sampled by episode, it brings the ted cell no third seed.
+        paper_run(
+            tmp_path / "w_ted_s2",
+            "walker,ted",
+            2,
+            1_000_000,
+            **fast,
+            **{"replay.sampling": "episode"},
+        ),
     ]
     cells = report.grid_rows(done, ["walker"], ["ted", "sear"], seeds=3)
     ted, sear = report.grid_jobs(cells, 1_000_000)
@@ -369,7 +378,8 @@ def test_bad_settings_are_refused_by_name(tmp_path, capsys):
         "--config.replay.capacity=1000",
         "--config.progress=False",
     ]
-    for bad in ["agent.beta=2", "seed=4", "total_frames=10", "envs_per_seed", "replay.bogus=1"]:
+    bad_ones = ["agent.beta=2", "seed=4", "total_frames=10", "envs_per_seed", "replay.bogus=1"]
+    for bad in [*bad_ones, "replay.sampling=episode"]:
         with pytest.raises(ValueError, match="FIELD one a grid run may choose: envs_per_seed"):
             grid.overrides([bad])
     # A value of the wrong type is refused before any run would start and fail on it.

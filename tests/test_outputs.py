@@ -935,7 +935,7 @@ def paper_run(workdir, spec, seed, frames, seeds=1, summary=True, **fields):
 
 def test_grid_counts_each_cells_seeds_that_reached_the_frames(tmp_path):
     """`report grid`: a run counts in the cell of configs/paper.py whose config it has, but for
-    its seeds, envs per seed, dtype and replay (a field it lacks: its old behaviour,
+    its seeds, envs per seed, dtype and replay store (a field it lacks: its old behaviour,
     experiment.ADDED_FIELDS; a field since removed: passed over). A seed trained to the end twice counts once; a run stopped short is
     listed with its frames (a checkpoint: a resume command); free config.seed values fill the
     missing seeds that no resume brings, one seed-run each; every other run is named with the

@@ -251,6 +251,73 @@ def test_same_episode_negatives_are_uniform_over_the_episode_but_t_and_neighbour
     assert np.all(np.abs(counts - draws * p) < 5 * np.sqrt(draws * p * (1 - p))), counts
 
 
+@pytest.mark.parametrize(
+    "lengths, rows, want",
+    [
+        # Episodes of 3, 12, 5 entries finished (2, 11, 4 starts), the 4th still running:
+        # each finished one a third of the draws, spread evenly over its starts.
+        ((3, 12, 5, 4), 32, {**dict.fromkeys(range(0, 2), 1 / 6),
+                             **dict.fromkeys(range(3, 14), 1 / 33),
+                             **dict.fromkeys(range(15, 19), 1 / 12)}),
+        # The ring of 12 rows holds steps 12..23: the second episode keeps 12..14 (2 starts).
+        ((3, 12, 5, 4), 12, {12: 1 / 4, 13: 1 / 4, **dict.fromkeys(range(15, 19), 1 / 8)}),
+        # No episode has finished: the running one's starts alike.
+        ((7,), 32, dict.fromkeys(range(0, 6), 1 / 6)),
+    ],
+)  # fmt: skip
+def test_episode_sampling_draws_a_finished_episode_then_a_start_in_it(lengths, rows, want):
+    """replay.sampling "episode" (DrQ-v2's replay): the frequency of a start is 1 / (episodes x
+    its episode's starts), where uniform sampling gives every start the same."""
+    state = _one_env_replay(lengths, rows)
+    draws = 24_000
+    sample = functools.partial(replay.sample, nstep=1, gamma=0.99, frame_stack=1, by_episode=True)
+    batch = jax.jit(sample, static_argnums=2)(state, jax.random.key(0), draws)
+    steps, counts = np.unique(np.asarray(batch.obs[:, 0, 0, 0]), return_counts=True)
+    assert steps.tolist() == sorted(want)
+    p = np.array([want[s] for s in steps.tolist()])
+    assert np.all(np.abs(counts - draws * p) < 5 * np.sqrt(draws * p * (1 - p))), counts
+
+
+def test_episode_sampling_over_envs_returns_valid_transitions_of_finished_episodes():
+    """Over several envs, every draw is a valid transition (the reference's values) of a
+    finished episode, and the finished episodes of all envs are drawn about equally often."""
+    num_envs = 3
+    logs = _rollout(num_envs, 60, seed=11)
+    state = replay.init(48, num_envs, FRAME, 2)
+    for s in logs:
+        state = replay.add(
+            state, s["frame"], s["mask"], s["action"], s["reward"], s["discount"], s["first"]
+        )
+    draws = 30_000
+    batch = jax.jit(
+        functools.partial(replay.sample, nstep=2, gamma=0.9, frame_stack=3, by_episode=True),
+        static_argnums=2,
+    )(state, jax.random.key(3), draws)
+    values = {_frame_value(e, g): (e, g) for g in range(len(logs)) for e in range(num_envs)}
+    ep = {e: np.cumsum([s["first"][e] for s in logs]) - 1 for e in range(num_envs)}
+    seen = {}
+    for i in range(draws):
+        e, g = values[int(batch.obs[i, 0, 0, -1])]
+        if i < 300:
+            ref = _reference(logs, state.rows, e, g, 2, 0.9, 3)
+            assert ref is not None
+            np.testing.assert_allclose(batch.reward[i], ref["reward"], rtol=1e-5)
+        assert ep[e][g] < ep[e][-1], "a draw from an episode that has not finished"
+        seen[e, ep[e][g]] = seen.get((e, ep[e][g]), 0) + 1
+    # Every finished episode with a start: those whose rows all lie in the ring and hold a
+    # transition, or that lost only their oldest rows (the ring's partial first episode).
+    with_start = {
+        (e, ep[e][g])
+        for e in range(num_envs)
+        for g in range(len(logs))
+        if ep[e][g] < ep[e][-1] and _reference(logs, state.rows, e, g, 2, 0.9, 3) is not None
+    }
+    assert set(seen) == with_start
+    counts = np.array(list(seen.values()))
+    p = 1 / len(with_start)
+    assert np.all(np.abs(counts - draws * p) < 5 * np.sqrt(draws * p * (1 - p))), counts
+
+
 def test_sampling_an_empty_replay_raises():
     state = replay.init(8, 2, FRAME, 2)
     with pytest.raises(ValueError, match="holds \\[0\\] sampleable transitions"):

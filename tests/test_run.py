@@ -29,6 +29,7 @@ from dear_jax import (
     experiment,
     lanes,
     loop,
+    replay,
     replay_disk,
     report,
     train,
@@ -198,6 +199,7 @@ def test_outputs_exist_and_parse(run):
     summary = json.loads((workdir / "summary.json").read_text())  # rewritten by the resume
     assert summary["frames_per_seed"] == 280 and len(summary["per_seed"]) == 2
     assert (summary["distraction_types"], summary["backgrounds"]) == ([], "none")
+    assert summary["replay_sampling"] == "uniform" and "sampled by episode" not in text
     assert (summary["conv_stack"], summary["kernels"]) == ("xla", "")
     assert summary["render"]["gpus"] == "auto"  # no GPU here: MuJoCo's EGL chooses
     assert "(cpu physics, xla conv stacks, evaluations on" in text
@@ -567,6 +569,11 @@ def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
         ("log_every_frames", 0, "log_every_frames must be >= 1, got 0"),
         ("checkpoint_every_frames", -40, r"checkpoint_every_frames must be >= 0 \(0: no periodic"),
         ("replay.chunk_entries", 0, "replay.chunk_entries must be >= 1, got 0"),
+        (
+            "replay.sampling",
+            "episodes",
+            "unknown replay.sampling 'episodes'; valid: uniform, episode",
+        ),
         ("env.render.num_workers", -1, "env.render: num_workers must be 0 .auto. or more"),
         ("agent.encoder", "plain", "agent: method 'dear' needs encoder='pool'"),
         ("agent.discount", 1.5, r"agent.discount must be in \(0, 1\], got 1.5"),
@@ -632,6 +639,27 @@ def test_the_loops_act_holds_each_lanes_draws_by_its_hold_key():
     assert not np.allclose(first, actions(config, 0, 5, keys[::-1]), atol=1e-3)  # the lanes' keys
     config.agent.noise_hold = 1
     np.testing.assert_array_equal(actions(config, 0, 5, keys), actions(config, 0, 5, None))
+
+
+def test_the_updates_sample_the_replay_as_replay_sampling_says(monkeypatch):
+    """programs.learn hands replay.sampling to the sampler: "episode" draws by episode."""
+    told = []
+
+    def sample(*args, by_episode=False, **kwargs):
+        told.append(by_episode)
+        return replay_sample(*args, by_episode=by_episode, **kwargs)
+
+    replay_sample = replay.sample
+    monkeypatch.setattr(replay, "sample", sample)
+    config = tiny_config(seeds=1)
+    acfg = experiment.agent_config(config, action_dim=6)
+    agent = update.init_seeds(acfg, jax.random.split(jax.random.key(0), 1))
+    buffer = replay.init(64, 3, (84, 84, 3), 6, leading=(1,))
+    for sampling in ("uniform", "episode"):
+        config.replay.sampling = sampling
+        programs = build_programs(acfg, experiment.hparams(config), config)
+        jax.make_jaxpr(programs.learn)(agent, buffer, jax.random.key(1))
+    assert told == [False, True]
 
 
 def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):

@@ -193,7 +193,7 @@ def get_config() -> ConfigDict:
     )
     c.replay.seed_frames = 4000  # frames per seed collected before the first update
     # "uniform": every stored start alike; "episode": DrQ-v2's replay, an episode uniformly among
-    # the finished ones, then a start in it (the same on DMC; docs/method.md, decision 18).
+    # the finished ones, then a start in it (docs/method.md, decision 18).
     c.replay.sampling = "uniform"
     # Keep the replay on disk too (workdir/replay/, compressed chunks written as they fill), so a
     # resume continues with it; False: a resume starts with an empty replay and refills it.

@@ -322,23 +322,28 @@ SAMPLINGS = ("uniform", "episode")  # replay.sampling: every start alike, or DrQ
 
 def _draw_by_episode(key: jax.Array, state: ReplayState, valid: jax.Array, n: int):
     """`n` starts (row, env) drawn as DrQ-v2's replay draws them: an episode uniformly, then one
-    of its starts uniformly. Only finished episodes, as DrQ-v2 stores an episode when it ends,
-    unless none has finished yet (then every episode). valid: [T, E] `sample_weights`."""
+    of its starts uniformly. valid: [T, E] `sample_weights`.
+
+    DrQ-v2 stores an episode when it ends and evicts whole episodes, so the episodes drawn are
+    the finished ones, once at least one per env has finished (before: every episode, running
+    ones too), and, once the ring has wrapped, not the one each env's oldest row belongs to (it
+    has lost its first rows), unless no other is left."""
     k_episode, k_step = jax.random.split(key)
+    num_envs = state.frames.shape[1]
     rows = jnp.arange(state.rows)[:, None]
-    envs = jnp.arange(state.frames.shape[1])[None, :]
     # An episode's starts are consecutive rows: its head is the one whose row before is none.
-    same_before, _ = _same_episode_at(state, rows, envs, -1)
+    same_before, _ = _same_episode_at(state, rows, jnp.arange(num_envs)[None, :], -1)
     valid = valid > 0
     head = valid & ~(same_before & jnp.roll(valid, 1, axis=0))
-    finished = state.episode < state.episodes_started[None, :] - 1  # a later episode began
-    head = jnp.where((head & finished).any(), head & finished, head)
-    row, env = jnp.divmod(_draw(k_episode, head.reshape(-1), n), state.frames.shape[1])
+    finished = head & (state.episode < state.episodes_started - 1)  # a later episode began
+    head = jnp.where(finished.sum() >= num_envs, finished, head)
+    wrapped = state.size == state.rows
+    whole = head & ~(wrapped & (state.episode == state.episode[state.pos]))
+    head = jnp.where(whole.any(), whole, head)
+    row, env = jnp.divmod(_draw(k_episode, head.reshape(-1), n), num_envs)
     _, last = _episode_span(state, row, env)
-    starts = last - _age(state, row)  # every stored row of the episode after the head but its last
-    u = jax.random.uniform(k_step, row.shape)
-    offset = jnp.minimum(jnp.floor(u * starts).astype(jnp.int32), starts - 1)
-    return (row + offset) % state.rows, env
+    starts = last - _age(state, row)  # every stored row of the episode from the head but its last
+    return (row + jax.random.randint(k_step, row.shape, 0, starts)) % state.rows, env
 
 
 def sample(

@@ -259,8 +259,12 @@ def test_same_episode_negatives_are_uniform_over_the_episode_but_t_and_neighbour
         ((3, 12, 5, 4), 32, {**dict.fromkeys(range(0, 2), 1 / 6),
                              **dict.fromkeys(range(3, 14), 1 / 33),
                              **dict.fromkeys(range(15, 19), 1 / 12)}),
-        # The ring of 12 rows holds steps 12..23: the second episode keeps 12..14 (2 starts).
-        ((3, 12, 5, 4), 12, {12: 1 / 4, 13: 1 / 4, **dict.fromkeys(range(15, 19), 1 / 8)}),
+        # The ring of 12 rows holds steps 12..23: the second episode, which lost its first
+        # rows, is left out, as DrQ-v2 evicts whole episodes.
+        ((3, 12, 5, 4), 12, dict.fromkeys(range(15, 19), 1 / 4)),
+        # ... unless no other is left: the ring of 6 rows holds steps 10..14 of the second
+        # and the one entry of the third (no start).
+        ((3, 12, 1), 6, dict.fromkeys(range(10, 14), 1 / 4)),
         # No episode has finished: the running one's starts alike.
         ((7,), 32, dict.fromkeys(range(0, 6), 1 / 6)),
     ],
@@ -304,17 +308,46 @@ def test_episode_sampling_over_envs_returns_valid_transitions_of_finished_episod
             np.testing.assert_allclose(batch.reward[i], ref["reward"], rtol=1e-5)
         assert ep[e][g] < ep[e][-1], "a draw from an episode that has not finished"
         seen[e, ep[e][g]] = seen.get((e, ep[e][g]), 0) + 1
-    # Every finished episode with a start: those whose rows all lie in the ring and hold a
-    # transition, or that lost only their oldest rows (the ring's partial first episode).
+    # Every finished episode with a start, but the one of each env's oldest stored row, which
+    # the ring has cut (the rollout has many episodes per env and has wrapped the ring).
+    oldest = len(logs) - state.rows
+    assert oldest > 0
     with_start = {
         (e, ep[e][g])
         for e in range(num_envs)
         for g in range(len(logs))
-        if ep[e][g] < ep[e][-1] and _reference(logs, state.rows, e, g, 2, 0.9, 3) is not None
+        if ep[e][oldest] < ep[e][g] < ep[e][-1]
+        and _reference(logs, state.rows, e, g, 2, 0.9, 3) is not None
     }
     assert set(seen) == with_start
     counts = np.array(list(seen.values()))
     p = 1 / len(with_start)
+    assert np.all(np.abs(counts - draws * p) < 5 * np.sqrt(draws * p * (1 - p))), counts
+
+
+def test_episode_sampling_draws_running_episodes_until_each_env_has_finished_one():
+    """Two envs, one finished episode (env 0's first, 3 entries) beside two running ones (env
+    0's second, 5 entries; env 1's, 8): fewer finished episodes than envs, so all three are
+    drawn, each a third of the draws, evenly over its starts."""
+    state = replay.init(32, 2, FRAME, 2)
+    for g in range(8):
+        state = replay.add(
+            state,
+            jnp.stack([jnp.full(FRAME, g, jnp.uint8), jnp.full(FRAME, 100 + g, jnp.uint8)]),
+            jnp.zeros((2, *FRAME[:2]), jnp.uint8),
+            jnp.zeros((2, 2)),
+            jnp.zeros(2),
+            jnp.ones(2),
+            jnp.array([g in (0, 3), g == 0]),
+        )
+    want = {0: 1 / 6, 1: 1 / 6, **dict.fromkeys(range(3, 7), 1 / 12)}
+    want.update(dict.fromkeys(range(100, 107), 1 / 21))
+    draws = 24_000
+    sample = functools.partial(replay.sample, nstep=1, gamma=0.99, frame_stack=1, by_episode=True)
+    batch = jax.jit(sample, static_argnums=2)(state, jax.random.key(4), draws)
+    steps, counts = np.unique(np.asarray(batch.obs[:, 0, 0, 0]), return_counts=True)
+    assert steps.tolist() == sorted(want)
+    p = np.array([want[s] for s in steps.tolist()])
     assert np.all(np.abs(counts - draws * p) < 5 * np.sqrt(draws * p * (1 - p))), counts
 
 

@@ -40,6 +40,17 @@ def _rollout(num_envs, steps, seed):
     return logs
 
 
+def _filled(logs, capacity):
+    """A replay of `capacity` entries holding the rollout `logs`, row by row."""
+    state = replay.init(capacity, len(logs[0]["first"]), FRAME, 2)
+    add = jax.jit(replay.add)
+    for s in logs:
+        state = add(
+            state, s["frame"], s["mask"], s["action"], s["reward"], s["discount"], s["first"]
+        )
+    return state
+
+
 def _reference(logs, rows, e, g, nstep, gamma, k_stack):
     """Plain Python transition starting at global step g of env e, or None if not a valid start."""
     total = len(logs)
@@ -77,12 +88,7 @@ def _reference(logs, rows, e, g, nstep, gamma, k_stack):
 def test_sample_matches_python_reference(steps, capacity):
     num_envs, nstep, gamma, k = 3, 3, 0.9, 3
     logs = _rollout(num_envs, steps, seed=steps)
-    state = replay.init(capacity, num_envs, FRAME, 2)
-    add = jax.jit(replay.add)
-    for s in logs:
-        state = add(
-            state, s["frame"], s["mask"], s["action"], s["reward"], s["discount"], s["first"]
-        )
+    state = _filled(logs, capacity)
     rows = state.rows
     total = len(logs)
     starts, expected = [], []
@@ -111,11 +117,7 @@ def test_sample_matches_python_reference(steps, capacity):
 def test_uniform_sample_only_returns_valid_starts_and_same_episode_negatives():
     num_envs = 2
     logs = _rollout(num_envs, 40, seed=5)
-    state = replay.init(24, num_envs, FRAME, 2)
-    for s in logs:
-        state = replay.add(
-            state, s["frame"], s["mask"], s["action"], s["reward"], s["discount"], s["first"]
-        )
+    state = _filled(logs, 24)
     sample = jax.jit(
         functools.partial(
             replay.sample, batch_size=512, nstep=2, gamma=0.99, frame_stack=3, same_episode=True
@@ -251,6 +253,17 @@ def test_same_episode_negatives_are_uniform_over_the_episode_but_t_and_neighbour
     assert np.all(np.abs(counts - draws * p) < 5 * np.sqrt(draws * p * (1 - p))), counts
 
 
+def _assert_drawn_by_episode(state, want, key, draws=24_000):
+    """Starts drawn by episode (frame_stack 1: a frame's value names its start) are exactly
+    those of `want`, each as often as its probability there (within 5 standard deviations)."""
+    sample = functools.partial(replay.sample, nstep=1, gamma=0.99, frame_stack=1, by_episode=True)
+    batch = jax.jit(sample, static_argnums=2)(state, jax.random.key(key), draws)
+    starts, counts = np.unique(np.asarray(batch.obs[:, 0, 0, 0]), return_counts=True)
+    assert starts.tolist() == sorted(want)
+    p = np.array([want[s] for s in starts.tolist()])
+    assert np.all(np.abs(counts - draws * p) < 5 * np.sqrt(draws * p * (1 - p))), counts
+
+
 @pytest.mark.parametrize(
     "lengths, rows, want",
     [
@@ -273,13 +286,7 @@ def test_episode_sampling_draws_a_finished_episode_then_a_start_in_it(lengths, r
     """replay.sampling "episode" (DrQ-v2's replay): the frequency of a start is 1 / (episodes x
     its episode's starts), where uniform sampling gives every start the same."""
     state = _one_env_replay(lengths, rows)
-    draws = 24_000
-    sample = functools.partial(replay.sample, nstep=1, gamma=0.99, frame_stack=1, by_episode=True)
-    batch = jax.jit(sample, static_argnums=2)(state, jax.random.key(0), draws)
-    steps, counts = np.unique(np.asarray(batch.obs[:, 0, 0, 0]), return_counts=True)
-    assert steps.tolist() == sorted(want)
-    p = np.array([want[s] for s in steps.tolist()])
-    assert np.all(np.abs(counts - draws * p) < 5 * np.sqrt(draws * p * (1 - p))), counts
+    _assert_drawn_by_episode(state, want, key=0)
 
 
 def test_episode_sampling_over_envs_returns_valid_transitions_of_finished_episodes():
@@ -287,11 +294,7 @@ def test_episode_sampling_over_envs_returns_valid_transitions_of_finished_episod
     finished episode, and the finished episodes of all envs are drawn about equally often."""
     num_envs = 3
     logs = _rollout(num_envs, 60, seed=11)
-    state = replay.init(48, num_envs, FRAME, 2)
-    for s in logs:
-        state = replay.add(
-            state, s["frame"], s["mask"], s["action"], s["reward"], s["discount"], s["first"]
-        )
+    state = _filled(logs, 48)
     draws = 30_000
     batch = jax.jit(
         functools.partial(replay.sample, nstep=2, gamma=0.9, frame_stack=3, by_episode=True),
@@ -342,13 +345,7 @@ def test_episode_sampling_draws_running_episodes_until_each_env_has_finished_one
         )
     want = {0: 1 / 6, 1: 1 / 6, **dict.fromkeys(range(3, 7), 1 / 12)}
     want.update(dict.fromkeys(range(100, 107), 1 / 21))
-    draws = 24_000
-    sample = functools.partial(replay.sample, nstep=1, gamma=0.99, frame_stack=1, by_episode=True)
-    batch = jax.jit(sample, static_argnums=2)(state, jax.random.key(4), draws)
-    steps, counts = np.unique(np.asarray(batch.obs[:, 0, 0, 0]), return_counts=True)
-    assert steps.tolist() == sorted(want)
-    p = np.array([want[s] for s in steps.tolist()])
-    assert np.all(np.abs(counts - draws * p) < 5 * np.sqrt(draws * p * (1 - p))), counts
+    _assert_drawn_by_episode(state, want, key=4)
 
 
 def test_sampling_an_empty_replay_raises():

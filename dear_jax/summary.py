@@ -159,9 +159,8 @@ def write_summary(
     )
     evaluators = f", {eval_processes} processes" if eval_processes > 1 else ""
     held = config.agent.noise_hold
-    held = f"; exploration draws held {held:g} agent steps" if held != 1 else ""
-    if config.replay.sampling == "episode":
-        held += "; replay sampled by episode"
+    notes = f"; exploration draws held {held:g} agent steps" if held != 1 else ""
+    notes += "; replay sampled by episode" if config.replay.sampling == "episode" else ""
     on = summary["device"] if devices == 1 else f"{devices} x {summary['device']}"
     if config.devices_per_seed > 1:
         on += f", {config.devices_per_seed} per {unit}"
@@ -171,7 +170,7 @@ def write_summary(
         f"{until}{counters['frame']:,} frames per {unit} x {len(runs)} {unit}s, "
         f"{wall:.0f} s of training ({fps:.0f} frames/s in all{_stages_line(ms)}) on {on} "
         f"({spec.backend} physics, {summary['conv_stack']} conv stacks{kernels}, evaluations on "
-        f"{summary['eval_device']}{evaluators}); {_distraction_line(spec)}{held}; render "
+        f"{summary['eval_device']}{evaluators}); {_distraction_line(spec)}{notes}; render "
         f"settings {summary['render']}; commit {prov['commit']}, jax {prov['jax']}, flax "
         f"{prov['flax']}, mujoco {prov['mujoco']}\n\n{table}\n"
     )

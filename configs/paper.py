@@ -11,7 +11,8 @@ the paper's setting, background videos only, static, a new video each episode; w
 (e.g. medium-full) the full Distracting Control Suite: background, colours and camera;
 MASK: true (default), noisy (each agent pixel dropped with p = 0.8), approximate.
 WEIGHT=VALUE (after the others, any number): a number of the update the method reads, as a sweep
-may vary it (dear_jax/lanes.py, e.g. beta=10, alpha=0): one setting of the weight ablations.
+may vary it (dear_jax/lanes.py, e.g. beta=10, alpha=0): one setting of the weight ablations;
+or sampling=episode: the replay sampled as DrQ-v2's code samples it (replay.sampling).
 E.g. `paper.py:cup,sear,hard`, `paper.py:walker,dear,medium-full,noisy` or
 `paper.py:walker,dear,alpha=0,beta=0`. The default workdir is runs/paper_<the parts joined by _>.
 The weight ablations as sweeps in one run: walker_dear_beta_sweep.py, walker_dear_loss_ablation.py.
@@ -20,7 +21,7 @@ The weight ablations as sweeps in one run: walker_dear_beta_sweep.py, walker_dea
 from ml_collections import ConfigDict
 
 from configs import base, kitchen
-from dear_jax import lanes
+from dear_jax import lanes, replay
 
 METHODS = ("drqv2", "dear", "sear", "ted")
 LEVELS = ("easy", "medium", "hard")
@@ -59,12 +60,18 @@ def get_config(spec: str = "walker,dear,medium") -> ConfigDict:
     given = set()
     for part in weights:
         name, value = (x.strip() for x in part.split("=", 1))
-        if name not in lanes.SWEEPABLE:
-            valid = ", ".join(lanes.SWEEPABLE)
+        if name not in (*lanes.SWEEPABLE, "sampling"):
+            valid = ", ".join((*lanes.SWEEPABLE, "sampling"))
             raise ValueError(f"unknown setting {name!r} in {spec!r}; valid: {valid}")
         if name in given:
             raise ValueError(f"{name} given twice in {spec!r}")
         given.add(name)
+        if name == "sampling":
+            if value not in replay.SAMPLINGS:
+                valid = ", ".join(replay.SAMPLINGS)
+                raise ValueError(f"{part!r} in {spec!r}: the replay's sampling is one of {valid}")
+            c.replay.sampling = value
+            continue
         if not lanes.reads(method, name):
             readers = lanes.USED_BY[name]
             raise ValueError(

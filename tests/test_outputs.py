@@ -1101,14 +1101,19 @@ def test_grid_cells_of_a_weight_setting(tmp_path):
     """A task with WEIGHT=VALUE parts makes cells of that setting for the methods that read the
     weight (alpha: DEAR and SEAR; beta: DEAR): runs given that weight count there (to --frames:
     a 1M run counts at 500k), the paper's DEAR runs in beta=100's cell, which is the paper's
-    own (given twice: refused); new seed-runs carry the setting in their spec and workdir."""
+    own (given twice: refused); new seed-runs carry the setting in their spec and workdir. A
+    replay sampling (sampling=episode) makes cells of every method."""
     from configs import paper
 
     c = paper.get_config("walker,dear,alpha=0,beta=0")
     assert (c.agent.alpha, c.agent.beta) == (0.0, 0.0)
     assert paper.get_config("walker,dear,std_steps=1000").agent.std_steps == 1000  # an int field
     assert paper.get_config("light,drqv2,noise_hold=10").agent.noise_hold == 10
+    sampled = paper.get_config("light,drqv2,noise_hold=10,sampling=episode")
+    assert (sampled.replay.sampling, sampled.agent.noise_hold) == ("episode", 10)
+    assert paper.get_config("light,drqv2").replay.sampling == "uniform"
     for bad, message in (
+        ("light,dear,sampling=episodes", "the replay's sampling is one of uniform, episode"),
         ("walker,drqv2,beta=1", r"'beta=1' in 'walker,drqv2,beta=1': drqv2 does not read beta \("),
         ("walker,dear,gamma=1", "unknown setting 'gamma' .*; valid: alpha, beta, "),
         ("walker,dear,beta=x", "'beta=x' in .*: give a number, e.g. beta=10"),
@@ -1128,8 +1133,9 @@ def test_grid_cells_of_a_weight_setting(tmp_path):
         run("beta10_s0", "walker,dear,beta=10", 0, 500_000),
         run("alpha0_sear_s0", "walker,sear,alpha=0", 0, 500_000),
         run("beta10_short", "walker,dear,beta=10", 1, 200_000),
+        run("episode_sear_s0", "walker,sear,sampling=episode", 0, 500_000),
     ]
-    tasks = ["walker,beta=10", "walker,beta=100", "walker,alpha=0"]
+    tasks = ["walker,beta=10", "walker,beta=100", "walker,alpha=0", "walker,sampling=episode"]
     grid = report.grid_rows(runs, tasks, paper.METHODS, seeds=2, frames=500_000)
     got = {
         (r["task"], r["method"]): (r["done"], r["short"], r["next_seeds"]) for r in grid["cells"]
@@ -1144,6 +1150,9 @@ def test_grid_cells_of_a_weight_setting(tmp_path):
         ("walker,beta=100", "dear"): ([f"{here}/dear_s0"], [], [1]),
         ("walker,alpha=0", "dear"): ([], [], [0, 1]),
         ("walker,alpha=0", "sear"): ([f"{here}/alpha0_sear_s0"], [], [1]),
+        # not a weight: every method's cell
+        ("walker,sampling=episode", "sear"): ([f"{here}/episode_sear_s0"], [], [1]),
+        **{("walker,sampling=episode", m): ([], [], [0, 1]) for m in ("drqv2", "dear", "ted")},
     }
     jobs = report.grid_jobs(grid, 500_000)
     assert jobs[0].name == "walker_beta=10_dear_s2"

@@ -20,7 +20,10 @@ LP_NUM_THREADS=0 keeps rasterisation in this process's thread).
 `--mesh-faces N` draws every row with meshes simplified to about N faces (`env.render.mesh_faces`:
 the kitchen's arm); |d| and the labels are still compared with mujoco.Renderer's picture of the
 shipped meshes, and each row adds its checked frames' difference from the same variant drawn
-with the shipped meshes (`*_vs_shipped_meshes`).
+with the shipped meshes (`*_vs_shipped_meshes`). `--primitives SxT` draws spheres, capsules and
+cylinders with S slices and T stacks (`env.render.num_slices`, `num_stacks`; 0x0: the model's
+own), each row adding its difference from the same variant drawn with the model's own
+(`*_vs_model_primitives`).
 
 Variants: "default" and "fast" are the two qualities (envs/render.py); the others change one
 thing of "default": an effect off, another shadow map size, or "-in-place" (each picture drawn in
@@ -96,12 +99,19 @@ def reference(task, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack(rgb), np.stack(labels)
 
 
-def measure(task, variant, workers, tiles, qpos, calls, ref_rgb, ref_labels, mesh_faces=0):
+def measure(
+    task, variant, workers, tiles, qpos, calls, ref_rgb, ref_labels, mesh_faces=0, primitives=(0, 0)
+):
     """Pool throughput (wall clock), or with workers=0 one TileRenderer in this process timed by
     this process's CPU time (best of `calls`): a proxy that other load on the machine barely moves.
     """
     settings = dataclasses.replace(
-        VARIANTS[variant], num_workers=workers, tiles_per_sheet=tiles, mesh_faces=mesh_faces
+        VARIANTS[variant],
+        num_workers=workers,
+        tiles_per_sheet=tiles,
+        mesh_faces=mesh_faces,
+        num_slices=primitives[0],
+        num_stacks=primitives[1],
     )
     model = task.render_model(mesh_faces)
     agent, floor = task.agent_geom_ids(model), task.floor_geom_ids(model)
@@ -140,24 +150,34 @@ def measure(task, variant, workers, tiles, qpos, calls, ref_rgb, ref_labels, mes
     n = len(ref_rgb)
     diff = np.abs(rgb[:n].astype(np.int16) - ref_rgb)
     batch = qpos.shape[0]
-    shipped = {}
-    if mesh_faces:  # the same variant on the shipped meshes: what the simplification alone changes
-        same = dataclasses.replace(settings, mesh_faces=0)
-        model = task.render_model()
+
+    def versus(suffix, **change):
+        """The checked frames' difference from the same variant drawn with `change`."""
+        same = dataclasses.replace(settings, **change)
         renderer = TileRenderer(
-            model, camera=task.camera, agent_geom_ids=agent, floor_geom_ids=floor, settings=same
+            task.render_model(same.mesh_faces),
+            camera=task.camera,
+            agent_geom_ids=agent,
+            floor_geom_ids=floor,
+            settings=same,
         )
-        ship_rgb, ship_labels = np.zeros_like(rgb[:n]), np.zeros_like(labels[:n])
-        renderer.render(qpos[:n], ship_rgb, ship_labels)
+        other_rgb, other_labels = np.zeros_like(rgb[:n]), np.zeros_like(labels[:n])
+        renderer.render(qpos[:n], other_rgb, other_labels)
         renderer.close()
-        gap = np.abs(rgb[:n].astype(np.int16) - ship_rgb)
-        shipped = {
-            "mean_abs_diff_vs_shipped_meshes": float(gap.mean()),
-            "worst_frame_mean_abs_diff_vs_shipped_meshes": float(gap.mean(axis=(1, 2, 3)).max()),
-            "label_pixels_differing_vs_shipped_meshes": int((labels[:n] != ship_labels).sum()),
+        gap = np.abs(rgb[:n].astype(np.int16) - other_rgb)
+        return {
+            f"mean_abs_diff_vs_{suffix}": float(gap.mean()),
+            f"worst_frame_mean_abs_diff_vs_{suffix}": float(gap.mean(axis=(1, 2, 3)).max()),
+            f"label_pixels_differing_vs_{suffix}": int((labels[:n] != other_labels).sum()),
         }
+
+    compared = {}
+    if mesh_faces:  # the same variant on the shipped meshes: what the simplification alone changes
+        compared.update(versus("shipped_meshes", mesh_faces=0))
+    if any(primitives):
+        compared.update(versus("model_primitives", num_slices=0, num_stacks=0))
     return {
-        **shipped,
+        **compared,
         "task": task.name,
         "variant": variant,
         "workers": workers,
@@ -179,6 +199,15 @@ def measure(task, variant, workers, tiles, qpos, calls, ref_rgb, ref_labels, mes
     }
 
 
+def _slices_by_stacks(text: str) -> tuple[int, int]:
+    slices, sep, stacks = text.partition("x")
+    if not (sep and slices.isdigit() and stacks.isdigit()):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: give SLICESxSTACKS, e.g. 16x4 (0x0: the model's)"
+        )
+    return int(slices), int(stacks)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--tasks", nargs="+", default=["walker-walk"], choices=sorted(TASKS))
@@ -197,19 +226,29 @@ def main():
         default=[0],
         help="env.render.mesh_faces (0: as shipped)",
     )
+    parser.add_argument(
+        "--primitives",
+        type=_slices_by_stacks,
+        nargs="+",
+        default=[(0, 0)],
+        help="SLICESxSTACKS of spheres, capsules, cylinders (env.render.num_slices, num_stacks; "
+        "0x0: the model's own)",
+    )
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     rows = []
     head = (
         f"{'task':<18} {'variant':<20} {'workers':>7} {'tiles':>5} {'obs/s':>8} {'x fast':>6} "
-        f"{'ms/call':>8} {'|d| vs Renderer':>15} {'label px':>8} {'faces':>6} {'|d| vs shipped':>14}"
+        f"{'ms/call':>8} {'|d| vs Renderer':>15} {'label px':>8} {'faces':>6} {'|d| vs shipped':>14} "
+        f"{'primitives':>10} {'|d| vs model':>12}"
     )
     print(head)
     for name in args.tasks:
         task = TASKS[name]
         qpos = random_states(task.render_model(), args.batch)
         ref_rgb, ref_labels = reference(task, qpos[: args.check])
-        for workers, tiles, faces in itertools.product(args.workers, args.tiles, args.mesh_faces):
+        grid = itertools.product(args.workers, args.tiles, args.mesh_faces, args.primitives)
+        for workers, tiles, faces, primitives in grid:
             fast_obs = None
             for variant in sorted(args.variants, key=lambda v: v != "fast"):  # fast first
                 where = f"{name:<18} {variant:<20} {workers:>7} {tiles:>5}"
@@ -224,6 +263,7 @@ def main():
                         ref_rgb,
                         ref_labels,
                         faces,
+                        primitives,
                     )
                 except Exception as err:  # noqa: BLE001 - one variant must not end the run
                     rows.append(
@@ -233,6 +273,7 @@ def main():
                             workers=workers,
                             tiles=tiles,
                             mesh_faces=faces,
+                            primitives=list(primitives),
                             error=repr(err),
                         )
                     )
@@ -245,7 +286,9 @@ def main():
                     f"{where} {row['obs_per_s']:>8.0f} {rel} {row['ms_per_call']:>8.1f} "
                     f"{row['mean_abs_diff_vs_renderer']:>15.3f} "
                     f"{row['label_pixels_differing']:>8} {faces:>6} "
-                    f"{row.get('mean_abs_diff_vs_shipped_meshes', 0.0):>14.3f}",
+                    f"{row.get('mean_abs_diff_vs_shipped_meshes', 0.0):>14.3f} "
+                    f"{'x'.join(map(str, primitives)):>10} "
+                    f"{row.get('mean_abs_diff_vs_model_primitives', 0.0):>12.3f}",
                     flush=True,
                 )
     print("GL_RENDERER:", {row["gl_renderer"] for row in rows if "gl_renderer" in row})

@@ -117,6 +117,10 @@ def get_config() -> ConfigDict:
     # Meshes of more faces drawn simplified to about this many (0: as shipped, or >= 1000): only
     # the kitchen's arm has such meshes (envs/kitchen.py, build_render_model).
     c.env.render.mesh_faces = 0
+    # Spheres, capsules and cylinders drawn with this many slices around and stacks along (0:
+    # the model's own, MuJoCo's 28 and 16 unless it says otherwise); fewer draw faster.
+    c.env.render.num_slices = 0
+    c.env.render.num_stacks = 0
     # The GPUs the render workers draw on: "auto", those that train the env's lanes (or run the
     # evaluation's policy; MUJOCO_EGL_DEVICE_ID instead where it is set), or GPU numbers of this
     # process, e.g. "1": a GPU the updates do not use. Drawing shares its GPU with the updates:

@@ -69,6 +69,8 @@ RESUMABLE_CHANGES = (
 ADDED_FIELDS = {
     "env.distraction_types": "all",
     "env.render.mesh_faces": 0,
+    "env.render.num_slices": 0,
+    "env.render.num_stacks": 0,
     "replay.sampling": "uniform",
     "agent.noise_hold": 1,
     "sweep.noise_hold": "",

@@ -15,6 +15,10 @@ flat-colour pass, which skips every effect, so labels are the same under both.
 
 Meshes (`RenderSettings.mesh_faces`): the tasks' model factories can draw every mesh of more
 faces simplified to about that many (`simplify_meshes`); only the kitchen's arm has such meshes.
+Spheres, capsules and cylinders (`RenderSettings.num_slices`, `num_stacks`): MuJoCo draws them as
+meshes it makes with the render context, of `vis.quality.numslices` slices around and `numstacks`
+stacks along (28 and 16 unless a model says otherwise); fewer draw faster and rounder shapes a
+little more faceted.
 
 Drawing: each worker renders its samples into "tile sheets". Each picture (a sample's RGB frame,
 then its segmentation) is drawn by `mjr_render` at the origin of a one-picture offscreen buffer,
@@ -91,6 +95,8 @@ QUALITY_VISUALS = {
 # meshes' at 4,000, 1.4 at 1,000: benchmarks/results/render_kitchen_mesh_faces_cpu.json), and
 # targets of a few hundred faces are not met.
 MIN_MESH_FACES = 1000
+# Fewer slices draw a cylinder as a prism of that many sides.
+MIN_SLICES = 8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,6 +115,10 @@ class RenderSettings:
     # Drawn meshes of more faces simplified to about this many (`simplify_meshes`); 0: as
     # shipped. The model factories (the tasks' `render_model`, `render_factory`) read it.
     mesh_faces: int = 0
+    # Spheres, capsules and cylinders drawn with this many slices around (>= MIN_SLICES) and
+    # stacks along (>= 1); 0: the model's own (vis.quality.numslices / numstacks).
+    num_slices: int = 0
+    num_stacks: int = 0
     # False: no segmentation pass, labels all 0 (LABEL_BACKGROUND), for an env that needs no
     # agent mask and composites no background (dear_jax.experiment.make_env decides, by method).
     labels: bool = True
@@ -144,6 +154,11 @@ class RenderSettings:
                 f"mesh_faces must be 0 (meshes as shipped) or >= {MIN_MESH_FACES}, got "
                 f"{self.mesh_faces}"
             )
+
+        for name, least in (("num_slices", MIN_SLICES), ("num_stacks", 1)):
+            value = getattr(self, name)
+            if value < 0 or 0 < value < least:
+                raise ValueError(f"{name} must be 0 (the model's own) or >= {least}, got {value}")
 
     def resolved_workers(self, batch: int | None = None) -> int:
         """The pool's number of workers for batches of `batch` samples (None: not known)."""
@@ -206,6 +221,15 @@ def apply_visuals(model: mujoco.MjModel, visuals: Visuals) -> None:
         model.vis.quality.shadowsize = 0  # no shadow map allocated
     elif visuals.shadow_size is not None:
         model.vis.quality.shadowsize = int(visuals.shadow_size)
+
+
+def apply_tessellation(model: mujoco.MjModel, settings: RenderSettings) -> None:
+    """Sets the primitives' slices and stacks the settings ask for (read when a render context
+    is made, so set them before)."""
+    if settings.num_slices:
+        model.vis.quality.numslices = settings.num_slices
+    if settings.num_stacks:
+        model.vis.quality.numstacks = settings.num_stacks
 
 
 def apply_scene_flags(scene: mujoco.MjvScene, visuals: Visuals) -> None:
@@ -288,6 +312,7 @@ class TileRenderer:
         sheet_w, sheet_h = 2 * self.cols * w, self.rows * h
         self.visuals = settings.resolved_visuals()
         apply_visuals(model, self.visuals)
+        apply_tessellation(model, settings)
         self.in_place = settings.in_place
         if self.in_place:
             model.vis.global_.offwidth = max(model.vis.global_.offwidth, sheet_w)

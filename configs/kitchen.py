@@ -43,11 +43,16 @@ def make(task: str, method: str) -> ConfigDict:
     # second whatever the number of render workers; "fast" draws ~1,500 (benchmarks/RESULTS.md,
     # "Franka Kitchen rendering"). "dm_control" is the reference's picture.
     c.env.render.quality = "fast"
-    # The arm's nine meshes (134k of the scene's 142k faces) drawn simplified to 4,000 faces each:
-    # frames 0.5 of 255 levels per pixel from the shipped meshes', 8 workers' pictures 1,478 ->
-    # 2,554 per second and the DEAR loop 590 -> 732 env frames/s on an H200 (benchmarks/RESULTS.md,
-    # "Franka Kitchen rendering"). Physics keeps the shipped meshes. 0 draws them as shipped.
-    c.env.render.mesh_faces = 4000
+    # The arm's nine meshes (134k of the scene's 142k faces) drawn simplified to 1,000 faces each,
+    # and the 53 spheres, capsules and cylinders it shows with 16 slices and 4 stacks instead of
+    # MuJoCo's 28 and 16: frames 1.4 and 0.2 of 255 levels per pixel from the
+    # shipped meshes' and MuJoCo's primitives' ("fast"; 298 of 226k mask pixels differ from the
+    # shipped scene's), and the DEAR loop on an H200 1,054-1,068 env frames/s against 919-962
+    # with the primitives as MuJoCo makes them and 853-897 with 4,000 faces (benchmarks/RESULTS.md,
+    # "Kitchen end to end"). Physics keeps the shipped meshes. 0 draws them as shipped / made.
+    c.env.render.mesh_faces = 1000
+    c.env.render.num_slices = 16
+    c.env.render.num_stacks = 4
     # The kitchen's heavier pictures want every worker: 3 seeds x 16 envs on 8 workers drew 852-867
     # env frames/s, on 6 or 3 (8 or 16 envs each) 830-854 (benchmarks/RESULTS.md, "Kitchen end
     # to end").

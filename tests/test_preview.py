@@ -76,7 +76,10 @@ def test_preview_draws_and_steps_as_a_run_of_the_task_does(tmp_path, monkeypatch
         with pytest.raises(SystemExit):
             preview.main([task, "--out", str(tmp_path / "x.png")])
     kettle, walker = made["kitchen-kettle"], made["walker-walk"]
-    assert (kettle["render"].quality, kettle["render"].mesh_faces) == ("fast", 4000)
+    kettle_render = kettle["render"]
+    assert (kettle_render.quality, kettle_render.mesh_faces) == ("fast", 1000)
+    assert (kettle_render.num_slices, kettle_render.num_stacks) == (16, 4)
     assert (kettle["backend"], kettle["action_repeat"]) == ("cpu", 1)
     assert (walker["render"].quality, walker["render"].mesh_faces) == ("dm_control", 0)
+    assert (walker["render"].num_slices, walker["render"].num_stacks) == (0, 0)
     assert (walker["backend"], walker["action_repeat"]) == ("cpu", 2)

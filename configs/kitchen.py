@@ -45,11 +45,11 @@ def make(task: str, method: str) -> ConfigDict:
     c.env.render.quality = "fast"
     # The arm's nine meshes (134k of the scene's 142k faces) drawn simplified to 1,000 faces each,
     # and the 53 spheres, capsules and cylinders it shows with 16 slices and 4 stacks instead of
-    # MuJoCo's 28 and 16: frames 1.4 and 0.2 of 255 levels per pixel from the
-    # shipped meshes' and MuJoCo's primitives' ("fast"; 298 of 226k mask pixels differ from the
-    # shipped scene's), and the DEAR loop on an H200 1,054-1,068 env frames/s against 919-962
-    # with the primitives as MuJoCo makes them and 853-897 with 4,000 faces (benchmarks/RESULTS.md,
-    # "Kitchen end to end"). Physics keeps the shipped meshes. 0 draws them as shipped / made.
+    # MuJoCo's 28 and 16: "fast" frames 1.4 and 0.2 of 255 levels per pixel from the shipped
+    # meshes' and from MuJoCo's primitives' (298 of 226k mask pixels differ from the shipped
+    # scene's), and the DEAR loop on an H200 1,054-1,068 env frames/s against 919-962 with
+    # MuJoCo's primitives and 853-897 with 4,000 faces (benchmarks/RESULTS.md, "Kitchen end to
+    # end"). Physics keeps the shipped meshes. 0 draws the shipped meshes, MuJoCo's primitives.
     c.env.render.mesh_faces = 1000
     c.env.render.num_slices = 16
     c.env.render.num_stacks = 4

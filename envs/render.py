@@ -95,7 +95,7 @@ QUALITY_VISUALS = {
 # meshes' at 4,000, 1.4 at 1,000: benchmarks/results/render_kitchen_mesh_faces_cpu.json), and
 # targets of a few hundred faces are not met.
 MIN_MESH_FACES = 1000
-# Fewer slices draw a cylinder as a prism of that many sides.
+# A cylinder is drawn as a prism of `num_slices` sides: fewer than 8 no longer look round.
 MIN_SLICES = 8
 
 

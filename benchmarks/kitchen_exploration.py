@@ -99,7 +99,7 @@ def actor_means(num_seeds: int, trajectory: int, seed: int) -> dict:
     cfg = experiment.agent_config(config, action_dim=kitchen.NUM_ROBOT_JOINTS)
     states = update.init_seeds(cfg, jax.random.split(jax.random.key(seed), num_seeds))
     hp = update.HParams()
-    render = RenderSettings(quality=config.env.render.quality, num_workers=1)
+    render = RenderSettings(**{**config.env.render.to_dict(), "num_workers": 1})
     rng = np.random.default_rng(seed)
     obs = []
     with envs.make(

@@ -95,8 +95,10 @@ QUALITY_VISUALS = {
 # meshes' at 4,000, 1.4 at 1,000: benchmarks/results/render_kitchen_mesh_faces_cpu.json), and
 # targets of a few hundred faces are not met.
 MIN_MESH_FACES = 1000
-# A cylinder is drawn as a prism of `num_slices` sides: fewer than 8 no longer look round.
+# A cylinder is drawn as a prism of `num_slices` sides: fewer than 8 no longer look round. One
+# stack draws no sphere at all (and capsules without their caps).
 MIN_SLICES = 8
+MIN_STACKS = 2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,7 +118,7 @@ class RenderSettings:
     # shipped. The model factories (the tasks' `render_model`, `render_factory`) read it.
     mesh_faces: int = 0
     # Spheres, capsules and cylinders drawn with this many slices around (>= MIN_SLICES) and
-    # stacks along (>= 1); 0: the model's own (vis.quality.numslices / numstacks).
+    # stacks along (>= MIN_STACKS); 0: the model's own (vis.quality.numslices / numstacks).
     num_slices: int = 0
     num_stacks: int = 0
     # False: no segmentation pass, labels all 0 (LABEL_BACKGROUND), for an env that needs no
@@ -155,7 +157,7 @@ class RenderSettings:
                 f"{self.mesh_faces}"
             )
 
-        for name, least in (("num_slices", MIN_SLICES), ("num_stacks", 1)):
+        for name, least in (("num_slices", MIN_SLICES), ("num_stacks", MIN_STACKS)):
             value = getattr(self, name)
             if value < 0 or 0 < value < least:
                 raise ValueError(f"{name} must be 0 (the model's own) or >= {least}, got {value}")

@@ -338,8 +338,9 @@ def test_primitives_drawn_with_the_slices_and_stacks_asked_for():
     assert 0 < diff < 1.0, diff
     agent_pixels = labels == LABEL_AGENT
     assert (coarse_labels != labels).sum() < 0.05 * agent_pixels.sum()
-    for name, least in (("num_slices", R.MIN_SLICES), ("num_stacks", 1)):
-        for bad in (-1, least - 1) if least > 1 else (-1,):
+    assert (R.MIN_SLICES, R.MIN_STACKS) == (8, 2)  # one stack draws no sphere
+    for name, least in (("num_slices", R.MIN_SLICES), ("num_stacks", R.MIN_STACKS)):
+        for bad in (-1, least - 1):
             with pytest.raises(
                 ValueError, match=rf"{name} must be 0 \(the model's own\) or >= {least}"
             ):

@@ -358,6 +358,7 @@ def make_env(
     hosts: Hosts | None = None,
     physics_threads: int | None = None,
     labels: bool | None = None,
+    label_envs: int | None = None,
     video_seed: int | None = None,
     render_devices: list | None = None,
 ) -> envs.Env:
@@ -366,8 +367,9 @@ def make_env(
     CPU MuJoCo's threads (default: env.physics_threads, or one per device where that is 0).
     labels: whether the render pool draws the segmentation pass (default: where the method's
     loss reads the agent's mask; the env draws it anyway where it composites backgrounds);
-    without it the masks are all 0. video_seed: the built-in background videos' (default:
-    `seed`), the same on every process of the run. render_devices: the devices env.render.gpus
+    without it the masks are all 0. label_envs: only the first label_envs envs of each seed draw
+    it where no background is composited (envs.Env's). video_seed: the built-in background
+    videos' (default: `seed`), the same on every process of the run. render_devices: the devices env.render.gpus
     "auto" draws on (default: those of this process's lanes)."""
     e = config.env
     hosts = hosts or Hosts(mesh, lanes.num_lanes(config))
@@ -402,6 +404,7 @@ def make_env(
         episode_frames=e.episode_frames or None,
         sharding=hosts.local,
         physics_threads=physics_threads,
+        label_envs=label_envs,
     )
     return env
 
@@ -428,7 +431,9 @@ def make_eval_env(
         split="val",
         seed=config.seed + 1 + stream * EVAL_STREAM_STRIDE,
         video_seed=config.seed + 1,
-        labels=True if config.save_video else None,  # the videos show the true mask
+        # The policy reads no mask: only the video's env (env 0 of each seed) shows one.
+        labels=config.save_video,
+        label_envs=1,
         backend="cpu" if config.env.eval_backend == "cpu" else None,
         mesh=mesh,
         hosts=hosts,

@@ -154,6 +154,10 @@ class Env:
     `success_ends_episode` end an episode on the step their reward is 1 (success 1, discount 0).
     `video_seed` draws the built-in background videos (without `background_dir`; None: `seed`),
     so that envs of one run with seeds of their own (hosts, evaluation processes) share them.
+    `label_envs`: where the render settings draw labels, only the first `label_envs` envs of
+    each seed get them (the others' are all LABEL_BACKGROUND, as are their masks), unless
+    backgrounds are composited, which read every env's (None: every env's; an evaluation's
+    videos show env 0's true mask).
     """
 
     def __init__(
@@ -178,6 +182,7 @@ class Env:
         episode_frames: int | None = None,
         sharding: jax.sharding.NamedSharding | None = None,
         physics_threads: int = 1,
+        label_envs: int | None = None,
     ):
         render = render or RenderSettings()
         solver = solver or SolverSettings()
@@ -188,6 +193,14 @@ class Env:
         with_videos = "background" in types
         if with_videos and not render.labels:  # compositing reads the labels
             render = dataclasses.replace(render, labels=True)
+        if label_envs is not None and label_envs < 0:
+            raise ValueError(f"label_envs must be >= 0 (None: every env), got {label_envs}")
+        self._label_rows = None  # every sample's labels drawn, where render.labels
+        if label_envs is not None and not with_videos and render.labels:
+            if label_envs == 0:
+                render = dataclasses.replace(render, labels=False)
+            elif label_envs < envs_per_seed:
+                self._label_rows = np.tile(np.arange(envs_per_seed) < label_envs, num_seeds)
         if not with_videos:
             backgrounds = "none"
         elif background_dir:
@@ -416,7 +429,7 @@ class Env:
         t0 = time.perf_counter()
         qpos = np.asarray(self.physics.qpos(phys)).reshape(self.batch, -1)
         t1 = time.perf_counter()
-        rgb, labels = self._pool.render(qpos, perturb=perturb)
+        rgb, labels = self._pool.render(qpos, perturb=perturb, label_rows=self._label_rows)
         t2 = time.perf_counter()
         h, w, _ = self.spec.frame_shape
         video, video_frame = bg_index

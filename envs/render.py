@@ -433,9 +433,16 @@ class TileRenderer:
         mocap_pos=None,
         mocap_quat=None,
         perturb: dict[str, np.ndarray] | None = None,
+        label_rows: np.ndarray | None = None,
     ) -> None:
-        """qpos [B,nq] -> rgb_out uint8 [B,H,W,3], labels_out uint8 [B,H,W] (written in place)."""
+        """qpos [B,nq] -> rgb_out uint8 [B,H,W,3], labels_out uint8 [B,H,W] (written in place).
+        label_rows: bool [B], the samples whose segmentation pass is drawn (None: every one);
+        the others' labels, as every label without `settings.labels`, are LABEL_BACKGROUND."""
         perturb = perturb or {}
+        if label_rows is None:
+            label_rows = np.full(qpos.shape[0], self.settings.labels)
+        else:
+            label_rows = np.asarray(label_rows, bool) & self.settings.labels
         h, w = self.settings.height, self.settings.width
         flags = self.scene.flags
         seg_flags = (mujoco.mjtRndFlag.mjRND_SEGMENT, mujoco.mjtRndFlag.mjRND_IDCOLOR)
@@ -457,7 +464,8 @@ class TileRenderer:
                 )
                 r, c = divmod(k, self.cols)
                 self._draw(2 * c * w, r * h)
-                if not self.settings.labels:
+                if not label_rows[start + k]:
+                    luts.append(None)
                     continue
                 # MuJoCo's segmentation pass draws flat colours with no effect (skybox, shadows,
                 # reflections, multisampling) whatever the scene's flags say.
@@ -475,11 +483,11 @@ class TileRenderer:
                 # GL rows run bottom-up: flip each tile.
                 tile = sheet[r * h : (r + 1) * h]
                 rgb_out[start + k] = tile[::-1, 2 * c * w : (2 * c + 1) * w]
-                if not self.settings.labels:
+                lut = luts[k]
+                if lut is None:
                     labels_out[start + k] = LABEL_BACKGROUND
                     continue
                 seg = tile[::-1, (2 * c + 1) * w : (2 * c + 2) * w]
-                lut = luts[k]
                 if len(lut) <= 256:  # ids fit the red byte; the others are zero
                     labels_out[start + k] = lut[seg[..., 0]]
                 else:

@@ -63,7 +63,7 @@ def _worker_main(conn, model_fn, init_kwargs, gpu: int | None) -> None:
                 egl_device = os.environ.get("MUJOCO_EGL_DEVICE_ID", "")
                 conn.send(("ok", {**renderer.gl_info(), "MUJOCO_EGL_DEVICE_ID": egl_device}))
             elif kind == "render":
-                _, shm_name, capacity, lo, qpos, mocap_pos, mocap_quat, perturb = msg
+                _, shm_name, capacity, lo, qpos, mocap_pos, mocap_quat, perturb, label_rows = msg
                 if shm is None or shm.name != shm_name:
                     if shm is not None:
                         shm.close()
@@ -77,6 +77,7 @@ def _worker_main(conn, model_fn, init_kwargs, gpu: int | None) -> None:
                     mocap_pos=mocap_pos,
                     mocap_quat=mocap_quat,
                     perturb=perturb,
+                    label_rows=label_rows,
                 )
                 conn.send(("ok", None))
             else:
@@ -206,8 +207,10 @@ class RenderPool:
         mocap_pos: np.ndarray | None = None,
         mocap_quat: np.ndarray | None = None,
         perturb: dict[str, np.ndarray] | None = None,
+        label_rows: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """qpos [B,nq] -> (rgb uint8 [B,H,W,3], labels uint8 [B,H,W]). perturb: PERTURB_KEYS."""
+        """qpos [B,nq] -> (rgb uint8 [B,H,W,3], labels uint8 [B,H,W]). perturb: PERTURB_KEYS.
+        label_rows: bool [B], the samples whose labels are drawn (None: all; `TileRenderer`)."""
         qpos = np.asarray(qpos, np.float64)
         if qpos.ndim != 2:
             raise ValueError(f"qpos must be [B, nq], got shape {qpos.shape}")
@@ -216,6 +219,10 @@ class RenderPool:
         if unknown:
             raise ValueError(f"unknown perturbation keys {sorted(unknown)}; valid: {PERTURB_KEYS}")
         batch = qpos.shape[0]
+        if label_rows is not None:
+            label_rows = np.asarray(label_rows, bool)
+            if label_rows.shape != (batch,):
+                raise ValueError(f"label_rows must be [B] = [{batch}], got {label_rows.shape}")
         for name, arr in [("mocap_pos", mocap_pos), ("mocap_quat", mocap_quat), *perturb.items()]:
             if arr is not None and np.shape(arr)[0] != batch:
                 raise ValueError(f"{name} has leading dim {np.shape(arr)[0]}, qpos has {batch}")
@@ -238,6 +245,7 @@ class RenderPool:
                         None if mocap_pos is None else np.asarray(mocap_pos)[part],
                         None if mocap_quat is None else np.asarray(mocap_quat)[part],
                         {k: v[part] for k, v in perturb.items()},
+                        None if label_rows is None else label_rows[part],
                     )
                 )
                 busy.append(i)

@@ -1,6 +1,7 @@
 """Render pool: frames are dm_control's (mujoco.Renderer's); labels follow MuJoCo's segmentation."""
 
 import copy
+import dataclasses
 import functools
 import importlib.util
 import os
@@ -347,6 +348,24 @@ def test_primitives_drawn_with_the_slices_and_stacks_asked_for():
                 R.RenderSettings(**{name: bad})
 
 
+def test_labels_drawn_for_the_rows_asked_for():
+    """label_rows draws the segmentation pass for those samples only (the evaluation's video
+    env): their labels are exact, the others' all LABEL_BACKGROUND (also where the buffer held
+    labels before), every frame the same; without settings.labels none is drawn."""
+    model, agent, floor, cam = task_facts("walker")
+    qpos = random_qpos(model, 6, seed=4)
+    settings = R.RenderSettings(tiles_per_sheet=4)
+    rgb, labels = tile_render(model, qpos, cam, agent, floor, settings)
+    rows = np.array([True, False, True, False, False, True])
+    some = tile_render(model, qpos, cam, agent, floor, settings, LABEL_AGENT, label_rows=rows)
+    np.testing.assert_array_equal(some[0], rgb)
+    np.testing.assert_array_equal(some[1][rows], labels[rows])
+    assert (labels[~rows] == LABEL_AGENT).any() and (some[1][~rows] == LABEL_BACKGROUND).all()
+    off = dataclasses.replace(settings, labels=False)
+    none = tile_render(model, qpos, cam, agent, floor, off, LABEL_AGENT, label_rows=rows)
+    assert (none[1] == LABEL_BACKGROUND).all()
+
+
 def test_in_place_sheet_matches_renderer_up_to_rasterisation():
     """The measuring layout (pictures drawn in place on a sheet-sized buffer): labels exact; RGB
     off in under 0.2% of pixels (0.07% on Mesa llvmpipe)."""
@@ -429,6 +448,8 @@ def test_bad_input_is_named():
             pool.render(model.qpos0[None], perturb={"colour": np.zeros((1, 3))})
         with pytest.raises(ValueError, match=r"\[B, nq\]"):
             pool.render(model.qpos0)
+        with pytest.raises(ValueError, match=r"label_rows must be \[B\] = \[1\], got \(2,\)"):
+            pool.render(model.qpos0[None], label_rows=np.ones(2, bool))
         info = pool.gl_info()
         assert len(info) == 1 and info[0]["GL_RENDERER"]
         assert info[0]["MUJOCO_EGL_DEVICE_ID"] == os.environ.get("MUJOCO_EGL_DEVICE_ID", "")

@@ -489,9 +489,10 @@ def test_evaluation_processes_restore_states_saved_by_fewer_or_more():
 
 def test_the_segmentation_pass_is_drawn_only_where_something_reads_the_labels():
     """The render pool draws the segmentation pass where the method's loss reads the agent's
-    mask (DEAR, SEAR), where distractions composite backgrounds, and in the eval env whose
-    videos show the true mask; DrQ-v2 and TED training envs without distraction skip it, and
-    their masks are all 0. The frames are the same either way."""
+    mask (DEAR, SEAR), where distractions composite backgrounds, and in the eval env for the env
+    whose videos show the true mask (env 0 of each seed; every env where backgrounds are
+    composited); DrQ-v2 and TED training envs without distraction skip it, and their masks are
+    all 0. The frames are the same either way."""
     key = jax.random.key(0)
 
     def first_step(eval_env=False, **overrides):
@@ -513,8 +514,18 @@ def test_the_segmentation_pass_is_drawn_only_where_something_reads_the_labels():
         assert not labels and not np.asarray(ts.true_mask).any()
         np.testing.assert_array_equal(ts.frame, dear.frame)
     assert first_step(**{"agent.method": "drqv2", "env.distraction": "easy"})[0]
-    assert first_step(eval_env=True, **{"agent.method": "drqv2"})[0]  # save_video
-    assert not first_step(eval_env=True, **{"agent.method": "drqv2", "save_video": False})[0]
+    # The eval env: 2 envs per seed (episodes), the true mask in env 0's video only.
+    for method in ("drqv2", "dear"):
+        overrides = {"agent.method": method, "num_eval_episodes": 2}
+        labels, ts = first_step(eval_env=True, **overrides)
+        mask = np.asarray(ts.true_mask)
+        assert labels and mask[:, 0].any(axis=(1, 2)).all() and not mask[:, 1].any()
+        labels, unlabelled = first_step(eval_env=True, save_video=False, **overrides)
+        assert not labels and not np.asarray(unlabelled.true_mask).any()
+        np.testing.assert_array_equal(unlabelled.frame, ts.frame)
+    overrides = {"agent.method": "drqv2", "env.distraction": "easy", "num_eval_episodes": 2}
+    labels, ts = first_step(eval_env=True, **overrides)  # composited: every env's labels
+    assert labels and np.asarray(ts.true_mask).any(axis=(2, 3)).all()
 
 
 def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):

@@ -369,8 +369,8 @@ def make_env(
     loss reads the agent's mask; the env draws it anyway where it composites backgrounds);
     without it the masks are all 0. label_envs: only the first label_envs envs of each seed draw
     it where no background is composited (envs.Env's). video_seed: the built-in background
-    videos' (default: `seed`), the same on every process of the run. render_devices: the devices env.render.gpus
-    "auto" draws on (default: those of this process's lanes)."""
+    videos' (default: `seed`), the same on every process of the run. render_devices: the
+    devices env.render.gpus "auto" draws on (default: those of this process's lanes)."""
     e = config.env
     hosts = hosts or Hosts(mesh, lanes.num_lanes(config))
     if render_devices is None:

@@ -45,6 +45,8 @@
 #                       to measure on its GPU once it is free
 #   collect             the runs' logs and summaries (no checkpoints, replay or videos) ->
 #                       $OUT/runs.tar.gz
+#   pack                every other file under $OUT moved into $OUT/results.tar.gz (one file to
+#                       copy back, however many JSON the bench stages wrote)
 #
 # What the machine must be given (it has CUDA jax, flax, optax, orbax, opencv, matplotlib):
 # wheels in .whl/ and EGL loaders in .gl/ (any folder of wheels `pip install --no-index` takes;
@@ -152,8 +154,12 @@ while [ $# -gt 0 ]; do
         --exclude='*.lock' --exclude='*.pid' runs
       ls -la "$out"
       ;;
+    pack)
+      (cd "$out" && find . -type f ! -name runs.tar.gz ! -name results.tar.gz -print0 |
+        tar -czf results.tar.gz --null -T - --remove-files && tar -tzf results.tar.gz)
+      ;;
     *)
-      echo "unknown stage '$stage'; valid: scaling multihost gpu bench start grid wait stop after collect" >&2
+      echo "unknown stage '$stage'; valid: scaling multihost gpu bench start grid wait stop after collect pack" >&2
       exit 2
       ;;
   esac

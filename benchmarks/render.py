@@ -208,7 +208,7 @@ def _slices_by_stacks(text: str) -> tuple[int, int]:
     return int(slices), int(stacks)
 
 
-def main():
+def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--tasks", nargs="+", default=["walker-walk"], choices=sorted(TASKS))
     parser.add_argument("--variants", nargs="+", default=["default", "fast"], choices=VARIANTS)
@@ -235,7 +235,7 @@ def main():
         "0x0: the model's own)",
     )
     parser.add_argument("--out", default=None)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     rows = []
     head = (
         f"{'task':<18} {'variant':<20} {'workers':>7} {'tiles':>5} {'obs/s':>8} {'x fast':>6} "
@@ -300,6 +300,7 @@ def main():
         "rows": rows,
     }
     save_json(result, args.out)
+    return result
 
 
 if __name__ == "__main__":

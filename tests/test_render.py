@@ -4,6 +4,7 @@ import copy
 import dataclasses
 import functools
 import importlib.util
+import json
 import os
 import pathlib
 
@@ -364,6 +365,24 @@ def test_labels_drawn_for_the_rows_asked_for():
     off = dataclasses.replace(settings, labels=False)
     none = tile_render(model, qpos, cam, agent, floor, off, LABEL_AGENT, label_rows=rows)
     assert (none[1] == LABEL_BACKGROUND).all()
+
+
+def test_render_benchmark_compares_coarser_primitives_with_the_models(tmp_path):
+    """benchmarks/render.py --primitives: a row per SLICESxSTACKS, each coarser one with its
+    frames' difference from the model's own primitives (small, not zero), the settings it drew
+    with in the JSON; a malformed value is named."""
+    from benchmarks import render as bench
+
+    out = tmp_path / "render.json"
+    argv = "--tasks walker-walk --workers 0 --batch 4 --calls 1 --check 2 --variants fast"
+    result = bench.main([*argv.split(), "--primitives", "0x0", "16x4", "--out", str(out)])
+    model_own, coarse = result["rows"]
+    assert "mean_abs_diff_vs_model_primitives" not in model_own
+    assert 0 < coarse["mean_abs_diff_vs_model_primitives"] < 1.0
+    assert (coarse["settings"]["num_slices"], coarse["settings"]["num_stacks"]) == (16, 4)
+    assert json.loads(out.read_text())["rows"][1]["settings"]["num_stacks"] == 4
+    with pytest.raises(SystemExit):
+        bench.main([*argv.split(), "--primitives", "16"])
 
 
 def test_in_place_sheet_matches_renderer_up_to_rasterisation():

@@ -114,6 +114,8 @@ def measure(config, placement: str, threads: int, args) -> dict:
     env = None
     try:
         config.env.eval_physics_threads = threads
+        # The eval env draws the true mask of its video's env only where videos are saved.
+        config.save_video = config.save_video or args.video
         env, step, place = evaluator.build(config, policy_on=policy_on, env_on=env_on)
         acfg = experiment.agent_config(config, env.spec.action_dim)
         keys = jax.random.split(jax.random.key(0), env.shape[0])

@@ -352,7 +352,8 @@ def test_primitives_drawn_with_the_slices_and_stacks_asked_for():
 def test_labels_drawn_for_the_rows_asked_for():
     """label_rows draws the segmentation pass for those samples only (the evaluation's video
     env): their labels are exact, the others' all LABEL_BACKGROUND (also where the buffer held
-    labels before), every frame the same; without settings.labels none is drawn."""
+    labels before), every frame the same; without settings.labels none is drawn. A pool's
+    workers each draw their slice of the rows."""
     model, agent, floor, cam = task_facts("walker")
     qpos = random_qpos(model, 6, seed=4)
     settings = R.RenderSettings(tiles_per_sheet=4)
@@ -365,6 +366,17 @@ def test_labels_drawn_for_the_rows_asked_for():
     off = dataclasses.replace(settings, labels=False)
     none = tile_render(model, qpos, cam, agent, floor, off, LABEL_AGENT, label_rows=rows)
     assert (none[1] == LABEL_BACKGROUND).all()
+    # A pool hands each worker its slice of the rows: 3 workers split the 6 samples 2, 2, 2.
+    with RenderPool(
+        functools.partial(copy.deepcopy, model),
+        camera=cam,
+        agent_geom_ids=agent,
+        floor_geom_ids=floor,
+        settings=R.RenderSettings(num_workers=3),
+    ) as pool:
+        pooled = pool.render(qpos, label_rows=rows)
+    np.testing.assert_array_equal(pooled[0], rgb)
+    np.testing.assert_array_equal(pooled[1], some[1])
 
 
 def test_render_benchmark_compares_coarser_primitives_with_the_models(tmp_path):

@@ -109,6 +109,17 @@ def tile_render(model, qpos, cam, agent, floor, settings, labels_fill=0, **kwarg
         tr.close()
 
 
+def model_pool(model, agent, floor, cam, settings):
+    """A render pool whose workers draw copies of `model`."""
+    return RenderPool(
+        functools.partial(copy.deepcopy, model),
+        camera=cam,
+        agent_geom_ids=agent,
+        floor_geom_ids=floor,
+        settings=settings,
+    )
+
+
 def pool_render(task, qpos, settings):
     """The env's path: spawned workers building the task's render model, the task's camera."""
     model = task.render_model()
@@ -236,13 +247,7 @@ def test_pool_equals_single_process_renderer(task):
     model, agent, floor, cam = task_facts(task)
     settings = R.RenderSettings(num_workers=2, tiles_per_sheet=1)
     qpos = random_qpos(model, 5, seed=1)
-    with RenderPool(
-        functools.partial(copy.deepcopy, model),
-        camera=cam,
-        agent_geom_ids=agent,
-        floor_geom_ids=floor,
-        settings=settings,
-    ) as pool:
+    with model_pool(model, agent, floor, cam, settings) as pool:
         rgb, labels = pool.render(qpos)
         # a second, smaller batch reuses the same shared block
         rgb2, labels2 = pool.render(qpos[3:])
@@ -367,13 +372,7 @@ def test_labels_drawn_for_the_rows_asked_for():
     none = tile_render(model, qpos, cam, agent, floor, off, LABEL_AGENT, label_rows=rows)
     assert (none[1] == LABEL_BACKGROUND).all()
     # A pool hands each worker its slice of the rows: 3 workers split the 6 samples 2, 2, 2.
-    with RenderPool(
-        functools.partial(copy.deepcopy, model),
-        camera=cam,
-        agent_geom_ids=agent,
-        floor_geom_ids=floor,
-        settings=R.RenderSettings(num_workers=3),
-    ) as pool:
+    with model_pool(model, agent, floor, cam, R.RenderSettings(num_workers=3)) as pool:
         pooled = pool.render(qpos, label_rows=rows)
     np.testing.assert_array_equal(pooled[0], rgb)
     np.testing.assert_array_equal(pooled[1], some[1])
@@ -468,13 +467,7 @@ def test_bad_input_is_named():
     model, agent, floor, cam = task_facts("walker")
     with pytest.raises(ValueError, match="both agent and floor"):
         label_tables(model, [0, 1], [0])
-    with RenderPool(
-        functools.partial(copy.deepcopy, model),
-        camera=cam,
-        agent_geom_ids=agent,
-        floor_geom_ids=floor,
-        settings=R.RenderSettings(num_workers=1),
-    ) as pool:
+    with model_pool(model, agent, floor, cam, R.RenderSettings(num_workers=1)) as pool:
         with pytest.raises(ValueError, match=r"unknown perturbation keys \['colour'\]; valid:"):
             pool.render(model.qpos0[None], perturb={"colour": np.zeros((1, 3))})
         with pytest.raises(ValueError, match=r"\[B, nq\]"):
@@ -486,13 +479,7 @@ def test_bad_input_is_named():
         assert info[0]["MUJOCO_EGL_DEVICE_ID"] == os.environ.get("MUJOCO_EGL_DEVICE_ID", "")
         frame = pool.render(model.qpos0[None])
     # A worker told its GPU makes its context there and draws the same picture.
-    with RenderPool(
-        functools.partial(copy.deepcopy, model),
-        camera=cam,
-        agent_geom_ids=agent,
-        floor_geom_ids=floor,
-        settings=R.RenderSettings(num_workers=1, gpus="0"),
-    ) as pool:
+    with model_pool(model, agent, floor, cam, R.RenderSettings(num_workers=1, gpus="0")) as pool:
         assert pool.gl_info()[0]["MUJOCO_EGL_DEVICE_ID"] == "0"
         for a, b in zip(pool.render(model.qpos0[None]), frame, strict=True):
             np.testing.assert_array_equal(a, b)

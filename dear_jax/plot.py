@@ -181,7 +181,7 @@ def plot(
     keys = list(dict.fromkeys(c.label.removeprefix(f"{c.task} ") for c in curves))
     colour = {k: f"C{i % 10}" for i, k in enumerate(keys)}
     fig, axes = plt.subplots(
-        1, len(tasks), figsize=(5.5 * len(tasks), 4), squeeze=False, constrained_layout=True
+        1, len(tasks), figsize=(5.5 * len(tasks), 5), squeeze=False, constrained_layout=True
     )
     for ax, task in zip(axes[0], tasks):
         for c in (c for c in curves if c.task == task):
@@ -205,7 +205,8 @@ def plot(
         ax.set_xlabel(f"{x}s per seed" if x == "frame" else x)
         ax.set_ylabel(metric)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize="small")
+        # Below the axes, where it hides no curve (constrained_layout makes room for it).
+        ax.legend(fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.15))
     fig.suptitle(f"{metric}: mean over seeds; {_BAND_TEXT[band]}", fontsize="medium")
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=120)

@@ -193,6 +193,30 @@ def test_collision_model_is_mjx_ready_and_keeps_the_mass(physics_model):
     assert {"panda0_leftfinger", "panda0_rightfinger", "panda0_link7"} <= names
 
 
+def test_geoms_without_contacts_are_left_out_and_change_no_state(physics_model):
+    spec, _ = kitchen.collision_spec()
+    full = spec.compile()  # every shipped geom kept, the same contacts
+    colliding = [g for g in range(full.ngeom) if full.geom_contype[g] or full.geom_conaffinity[g]]
+    assert physics_model.ngeom == len(colliding) < full.ngeom
+    control = kitchen.TASKS["kitchen-kettle"].make_control(physics_model)
+    rng = np.random.default_rng(0)
+    datas = [mujoco.MjData(m) for m in (full, physics_model)]
+    for d in datas:
+        d.qpos[:] = kitchen.INIT_QPOS
+    contacts = 0
+    for _ in range(30):  # agent steps of 40 physics steps, each action held 5 of them
+        if _ % 5 == 0:
+            action = rng.uniform(-1, 1, 9)
+        for model, data in zip((full, physics_model), datas):
+            data.ctrl[:] = control(data.qpos, action, np)
+            mujoco.mj_step(model, data, 40)
+        np.testing.assert_array_equal(datas[0].qpos, datas[1].qpos)
+        np.testing.assert_array_equal(datas[0].qvel, datas[1].qvel)
+        assert datas[0].ncon == datas[1].ncon
+        contacts += datas[1].ncon
+    assert contacts > 0  # the arm sagged onto the counter: the contact paths ran too
+
+
 def test_robot_primitives_contain_the_shipped_collision_meshes(physics_model):
     shipped = kitchen.load_spec().compile()
     d_s, d_m = mujoco.MjData(shipped), mujoco.MjData(physics_model)

@@ -44,8 +44,9 @@ scripted rollout (tests/test_kitchen.py) condim 6 left the switch at -0.13 rad o
 0.5 rad (the kettle keeps its condim 4). The added geoms have no mass; every body keeps the
 shipped mass and inertia, written into the model as its explicit inertial, so that the geoms
 without contacts (231 of 252: visual meshes, cylinders, walls) are left out: every physics step
-pays for each geom's pose and bounding box, and without them a CPU step took 33 µs instead of 41
-on the same states, bit for bit (tests check the mass and the states). Both backends step this
+pays for each geom's pose and bounding box: without them an agent step of 48 envs takes ~30%
+less CPU time, on the same states bit for bit (benchmarks/RESULTS.md, "Franka Kitchen physics";
+tests check the mass and the states). Both backends step this
 model; tests/test_kitchen.py states how closely they agree.
 
 Actuation. The arm has position actuators (kp 870 / 120, fingers 500) and the action is a joint

@@ -324,14 +324,18 @@ def _without_contactless_geoms(spec: mujoco.MjSpec, shipped: mujoco.MjModel) -> 
     """`spec` compiled without its geoms that take part in no contact, each body keeping the
     mass, centre of mass and inertia `shipped` (the same bodies, in the same order) gives it."""
     bodies = list(spec.bodies)
-    if len(bodies) != shipped.nbody:
-        raise ValueError(f"{len(bodies)} bodies in the spec, {shipped.nbody} in the model")
+    names = [b.name for b in bodies]
+    if len(bodies) != shipped.nbody or any(
+        name and name != shipped.body(i).name for i, name in enumerate(names)
+    ):
+        raise ValueError("the spec's bodies are not the compiled model's, in its order")
     for i, body in enumerate(bodies[1:], start=1):  # the world has no inertial
         body.explicitinertial = True
         body.mass = shipped.body_mass[i]
         body.ipos = shipped.body_ipos[i]
         body.iquat = shipped.body_iquat[i]
-        body.inertia = shipped.body_inertia[i]
+        body.inertia = shipped.body_inertia[i]  # principal moments, in the iquat frame
+        body.fullinertia = [np.nan, 0, 0, 0, 0, 0]  # unset (MuJoCo's marker): not a full one
     for geom in list(spec.geoms):
         if geom.contype == 0 and geom.conaffinity == 0:
             spec.delete(geom)

@@ -41,13 +41,12 @@ in MJX and not on the CPU), while box-box agreed on all 195 within 3.2 mm of dep
 The fingers' condim is 3 instead of the shipped 6 (torsional and rolling friction): on a
 scripted rollout (tests/test_kitchen.py) condim 6 left the switch at -0.13 rad on the CPU and
 -0.43 in MJX and the arm pressed into the counter 1.2 rad apart; condim 3: -0.36 / -0.42 and
-0.5 rad (the kettle keeps its condim 4). The added geoms have no mass; every body keeps the
-shipped mass and inertia, written into the model as its explicit inertial, so that the geoms
-without contacts (231 of 252: visual meshes, cylinders, walls) are left out: every physics step
-pays for each geom's pose and bounding box: without them an agent step of 48 envs takes ~30%
-less CPU time, on the same states bit for bit (benchmarks/RESULTS.md, "Franka Kitchen physics";
-tests check the mass and the states). Both backends step this
-model; tests/test_kitchen.py states how closely they agree.
+0.5 rad (the kettle keeps its condim 4). The added geoms have no mass, and the geoms without
+contacts (231 of 252: visual meshes, cylinders, walls) are left out, every body keeping the
+shipped mass and inertia as an explicit inertial (tests check the mass). A physics step computes
+every geom's pose and bounding box, so without them an agent step of 48 envs takes ~30% less CPU
+time, on the same states bit for bit (tested; benchmarks/RESULTS.md, "Franka Kitchen physics").
+Both backends step this model; tests/test_kitchen.py states how closely they agree.
 
 Actuation. The arm has position actuators (kp 870 / 120, fingers 500) and the action is a joint
 velocity, as in D4RL and gymnasium-robotics: the 9-d action a in [-1, 1] is scaled by 2 (rad/s,

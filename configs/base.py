@@ -88,9 +88,6 @@ def get_config() -> ConfigDict:
     # Threads of the evaluation env's CPU physics; 0: one per core the evaluating process may
     # use, up to 8 (the evaluation process has half the machine's cores).
     c.env.eval_physics_threads = 0
-    # Render workers of the evaluation env (each a GL context on the GPU it draws on); 0: as the
-    # training env's (env.render.num_workers, env.render.envs_per_worker).
-    c.env.eval_render_workers = 0
     # Python's thread switch interval (ms) while the loop runs; 0: Python's own (5 ms). The env's
     # threads take the GIL back several times per env and step and may each time wait this long
     # for the loop's thread to let go (benchmarks/gil.py measures it).

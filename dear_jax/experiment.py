@@ -47,7 +47,6 @@ RESUMABLE_CHANGES = (
     "env.eval_backend",
     "env.physics_threads",
     "env.eval_physics_threads",
-    "env.eval_render_workers",
     "env.switch_interval_ms",
     "eval_in_background",
     "eval_device",
@@ -217,7 +216,6 @@ def validate(config: ConfigDict) -> None:
     for key, auto in [
         ("env.physics_threads", "one per device"),
         ("env.eval_physics_threads", "one per core, up to 8"),
-        ("env.eval_render_workers", "as the training env's"),
         ("env.switch_interval_ms", "Python's own"),
         ("checkpoint_every_frames", "no periodic checkpoints"),
     ]:
@@ -363,7 +361,6 @@ def make_env(
     label_envs: int | None = None,
     video_seed: int | None = None,
     render_devices: list | None = None,
-    render_workers: int = 0,
 ) -> envs.Env:
     """The batched env of the config (`backend` overrides env.backend; seeds split over `mesh`);
     with several processes (`hosts`), of this process's lanes on its devices. physics_threads:
@@ -373,8 +370,7 @@ def make_env(
     without it the masks are all 0. label_envs: only the first label_envs envs of each seed draw
     it where no background is composited (envs.Env's). video_seed: the built-in background
     videos' (default: `seed`), the same on every process of the run. render_devices: the
-    devices env.render.gpus "auto" draws on (default: those of this process's lanes).
-    render_workers: the render pool's workers (0: env.render's rule)."""
+    devices env.render.gpus "auto" draws on (default: those of this process's lanes)."""
     e = config.env
     hosts = hosts or Hosts(mesh, lanes.num_lanes(config))
     if render_devices is None:
@@ -385,8 +381,6 @@ def make_env(
         labels=config.agent.method in update.MASK_METHODS if labels is None else labels,
     )
     render = dataclasses.replace(render, gpus=render_gpus(render.gpus, render_devices))
-    if render_workers:
-        render = dataclasses.replace(render, num_workers=render_workers)
     physics_threads = physics_threads or e.physics_threads or hosts.num_devices
     # Each process draws its own lanes' episode starts and distractions from the same videos.
     video_seed = seed if video_seed is None else video_seed
@@ -427,9 +421,8 @@ def make_eval_env(
     its own seed (evaluation process `stream`'s own, of `eval_processes`; the built-in videos
     every stream's, so that each evaluation shows the same set), env.eval_backend's
     physics; CPU physics on env.eval_physics_threads threads (0: as many as this process may
-    use cores, up to 8); env.eval_render_workers render workers (0: as the training env's).
-    device: where the evaluation's policy runs, if not on the lanes' devices (its frames are
-    then drawn there: env.render.gpus "auto")."""
+    use cores, up to 8). device: where the evaluation's policy runs, if not on the lanes'
+    devices (its frames are then drawn there: env.render.gpus "auto")."""
     usable = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else range(os.cpu_count())
     threads = config.env.eval_physics_threads or min(8, len(usable))
     return make_env(
@@ -446,7 +439,6 @@ def make_eval_env(
         hosts=hosts,
         physics_threads=threads,
         render_devices=None if device is None else [device],
-        render_workers=config.env.eval_render_workers,
     )
 
 

@@ -986,8 +986,6 @@ def test_bad_values_fail_with_valid_choices(tmp_path):
         train.train(tiny_config(**{"env.distraction_types": "sky"}), tmp_path)
     with pytest.raises(ValueError, match="env.eval_physics_threads must be >= 0.*got -1"):
         train.train(tiny_config(**{"env.eval_physics_threads": -1}), tmp_path)
-    with pytest.raises(ValueError, match="env.eval_render_workers must be >= 0.*got -2"):
-        train.train(tiny_config(**{"env.eval_render_workers": -2}), tmp_path)
     with pytest.raises(ValueError, match=r"env.physics_threads must be >= 0 \(0: one per device"):
         train.train(tiny_config(**{"env.physics_threads": -2}), tmp_path)
     with pytest.raises(ValueError, match=r"env.switch_interval_ms must be >= 0 \(0: Python's own"):
@@ -1012,23 +1010,13 @@ def test_the_loop_runs_at_the_configured_switch_interval(run, tmp_path, monkeypa
 
 def test_envs_step_their_physics_on_the_configured_threads():
     """env.eval_physics_threads reaches the evaluation env's CPU physics; 0 is one thread per
-    core this process may use, up to 8. env.eval_render_workers sets its render workers alone;
-    0 is the training env's rule (here env.render.num_workers). env.physics_threads reaches any
-    training env made from the config (the loop's and the benchmarks'); 0 is one per device,
-    here one."""
+    core this process may use, up to 8. env.physics_threads reaches any training env made from
+    the config (the loop's and the benchmarks'); 0 is one per device, here one."""
     cores = min(8, len(os.sched_getaffinity(0)))
-    for setting, threads, workers in ((3, 3, 2), (0, cores, 0)):
-        config = tiny_config(
-            **{
-                "env.eval_physics_threads": setting,
-                "env.eval_render_workers": workers,
-                "env.render.num_workers": 1,
-            }
-        )
-        env = experiment.make_eval_env(config)
+    for setting, threads in ((3, 3), (0, cores)):
+        env = experiment.make_eval_env(tiny_config(**{"env.eval_physics_threads": setting}))
         try:
             assert env.physics.threads == threads
-            assert env._pool.num_workers == (workers or 1)
             assert env.shape[1] == tiny_config().num_eval_episodes
         finally:
             env.close()

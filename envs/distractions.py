@@ -72,7 +72,7 @@ DAVIS_LAYOUT = (
 
 def check_difficulty(difficulty: str) -> None:
     if difficulty not in DIFFICULTIES:
-        raise ValueError(f"unknown distraction {difficulty!r}; valid: {DIFFICULTIES}")
+        raise ValueError(f"unknown distraction {difficulty!r}; valid: {', '.join(DIFFICULTIES)}")
 
 
 def parse_types(types: str | tuple | list) -> tuple[str, ...]:

@@ -90,7 +90,9 @@ def test_davis_loader_errors_name_the_layout(tmp_path, davis):
     (davis / "ImageSets" / "2017" / "val.txt").write_text("v2\nmissing\n")
     with pytest.raises(FileNotFoundError, match="missing"):
         D.load_backgrounds(davis, "val", None)
-    with pytest.raises(ValueError, match="valid"):
+    with pytest.raises(
+        ValueError, match="^unknown distraction 'extreme'; valid: none, easy, medium, hard$"
+    ):
         D.difficulty_videos("extreme")
 
 

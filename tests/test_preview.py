@@ -50,6 +50,11 @@ def test_preview_refuses_an_unknown_distraction_type(tmp_path, capsys):
     [
         (["walker"], "unknown task 'walker'; valid tasks: ball_in_cup-catch"),
         (["walker-walk", "--mask", "fuzzy"], "unknown mask 'fuzzy'; valid: true, noisy"),
+        (
+            ["walker-walk", "--distraction", "extreme"],
+            "unknown distraction 'extreme'; valid: none, easy, medium, hard, easy-full, "
+            "medium-full, hard-full",
+        ),
     ],
 )
 def test_preview_says_what_is_wrong_in_one_line(tmp_path, capsys, args, message):

@@ -1,4 +1,5 @@
-"""Command-line config checks that need no jax: config file names, unknown `--config.key`."""
+"""Command-line config checks that need no jax: config file names, unknown `--config.key`,
+values a field's type does not take."""
 
 from __future__ import annotations
 
@@ -7,18 +8,29 @@ import pathlib
 import runpy
 import sys
 
+from absl import flags
 from ml_collections import ConfigDict
+
+# The parsers ml_collections gives `--config.KEY=VALUE` of fields of these types (absl's), and
+# what each takes in words.
+_SCALAR_PARSERS = {
+    bool: (flags.BooleanParser(), "true or false"),
+    int: (flags.IntegerParser(), "an integer"),
+    float: (flags.FloatParser(), "a number"),
+}
 
 
 def check_override_keys(config: ConfigDict, argv: list[str]) -> None:
-    """Reject `--config.a.b=...` arguments whose key the config does not have, before parsing.
+    """Reject `--config.a.b=...` arguments whose key the config does not have (KeyError), or
+    whose value a bool, int or float field does not take (ValueError), before parsing.
 
-    The message names the unknown part, the closest valid key and every valid key at that level.
+    The message names the unknown part, the closest valid key and every valid key at that level;
+    or the field, its type and the value given.
     """
     for arg in argv:
         if not arg.startswith("--config."):
             continue
-        dotted = arg[len("--config.") :].split("=", 1)[0]
+        dotted, eq, value = arg[len("--config.") :].partition("=")
         node, path = config, []
         for part in dotted.split("."):
             if not isinstance(node, ConfigDict) or part not in node:
@@ -31,6 +43,15 @@ def check_override_keys(config: ConfigDict, argv: list[str]) -> None:
                     f"Valid fields of {where}: {', '.join(valid) or '(none: it is a value)'}"
                 )
             node, path = node[part], [*path, part]
+        parser, takes = _SCALAR_PARSERS.get(type(node), (None, ""))
+        if eq and parser is not None:
+            try:
+                parser.parse(value)
+            except ValueError:
+                raise ValueError(
+                    f"--config.{dotted}={value}: {dotted} takes {takes} (the config's: "
+                    f"{node!r}), not {value!r}"
+                ) from None
 
 
 # Files of configs/ that other configs build on, not runs' configs (not listed as choices).

@@ -898,6 +898,16 @@ def test_config_by_bare_name_and_unknown_names():
     assert out.returncode != 0
     assert "Did you mean 'agent.alpha'" in out.stderr and "batch_size" in out.stderr
     out = subprocess.run(
+        [sys.executable, str(ROOT / "run.py"), "--config=smoke", "--config.seeds=two"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert (out.returncode, out.stderr.strip()) == (
+        1,
+        "error: --config.seeds=two: seeds takes an integer (the config's: 2), not 'two'",
+    )
+    out = subprocess.run(
         [sys.executable, str(ROOT / "run.py"), "--config=walker_dear.pyy"],
         capture_output=True,
         text=True,
@@ -1069,6 +1079,35 @@ def test_benchmarks_set_any_config_field_typed_and_by_known_name():
         set_field(config, "agent.shift_impl")
     with pytest.raises(ValueError, match="invalid literal"):
         set_field(config, "agent.batch_size=big")
+
+
+def test_override_values_a_field_cannot_take_are_refused_naming_its_type():
+    """`--config.KEY=VALUE` checked as ml_collections will parse it (absl's parsers), before
+    absl's own two-line error: a bool, int or float field refuses what it cannot take, naming
+    what it takes; a string field takes anything; an unknown key stays a KeyError."""
+    from dear_jax.config import check_override_keys
+
+    config = tiny_config()
+    fine = [
+        "--config.progress=false",
+        "--config.progress=True",
+        "--config.seeds=3",
+        "--config.total_frames=2_000",
+        "--config.agent.lr=1e-4",
+        "--config.agent.lr=3",
+        "--config.agent.method=anything",
+        "--config.seeds",  # a value in the next word: absl's to parse
+    ]
+    check_override_keys(config, fine)
+    for arg, message in [
+        ("--config.progress=maybe", "progress takes true or false (the config's: False)"),
+        ("--config.seeds=1.5", "seeds takes an integer (the config's: 2), not '1.5'"),
+        ("--config.agent.lr=fast", "agent.lr takes a number (the config's: 0.0001), not 'fast'"),
+    ]:
+        with pytest.raises(ValueError, match=re.escape(f"{arg}: {message}")):
+            check_override_keys(config, [arg])
+    with pytest.raises(KeyError, match="unknown config key 'agent.lrr'"):
+        check_override_keys(config, ["--config.agent.lrr=1"])
 
 
 def test_benchmarks_vary_fields_over_every_combination():

@@ -105,12 +105,12 @@ def main(argv=None) -> None:
     import cv2
 
     import envs
+    from configs.paper import DIFFICULTIES  # the levels a run's config string takes
     from envs import distractions
 
     distraction, types = args.distraction, args.distraction_types
-    levels = [*distractions.DIFFICULTIES, *(f"{d}-full" for d in distractions.DIFFICULTIES[1:])]
-    if distraction not in levels:
-        parser.error(f"unknown distraction {distraction!r}; valid: {', '.join(levels)}")
+    if distraction not in DIFFICULTIES:
+        parser.error(f"unknown distraction {distraction!r}; valid: {', '.join(DIFFICULTIES)}")
     if distraction.endswith("-full"):  # configs/paper.py's name of the full suite's level
         distraction, types = distraction.removesuffix("-full"), "all"
     try:  # bad input: one line, as run.py says it

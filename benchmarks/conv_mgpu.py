@@ -1,0 +1,186 @@
+"""A 3 x 3 convolution as a Mosaic GPU (Hopper) kernel, against the Pallas (Triton) stack's.
+
+    python -m benchmarks.conv_mgpu --batch 512 --side 39 --blocks 128 256 --out conv_mgpu.json
+
+The question: would the conv stacks gain from keeping each block's input on chip? The Triton
+kernels (`dear_jax/wideconv.py`) read each of a block's 9 taps from memory through L1 (Nsight
+Compute: L1 at 61-80% of its peak). Here a layer's activations sit on a grid whose rows are a
+multiple of 8 pixels wide (`--width`, >= the input's side), so that a tap (i, j) is the input
+shifted by i * width + j rows: a block's input is copied into shared memory by the TMA once per
+horizontal tap j (3 copies, each with the block's halo of 2 grid rows), every vertical tap i is a
+slice of it at a multiple of 8 rows, and the 9 products are warpgroup MMAs reading both operands
+from shared memory. The price: the grid's extra columns and rows are computed too (a 37 x 37
+output on a 39 x 40 grid: 14% more rows).
+
+It times, for `--batch` images of `--side` x `--side` x 32 channels (a lone seed's encoder layer
+at batch 512: 39 -> 37), the bf16 forward with ReLU: this kernel per `--blocks` (rows per program),
+the Triton stack's kernel (`wideconv.conv_stack`, one VALID layer), and XLA's (cuDNN); it checks
+the kernel's valid outputs against XLA's. Writes JSON. Needs a Hopper GPU (or `--interpret`,
+Mosaic GPU's interpreter on the CPU: slow, for checking values at small sizes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import mosaic_gpu as plgpu
+
+from benchmarks.common import save_json, timed_calls
+
+K = 3  # taps per side
+
+
+def grid_rows(images: int, side: int, width: int) -> int:
+    return images * side * width
+
+
+def to_grid(x: jax.Array, width: int, block: int) -> jax.Array:
+    """[N, H, H, C] -> [rows, C]: pixel (y, x) of image n at row (n * H + y) * width + x, zeros
+    in the columns past H, then zero rows up to a multiple of `block` plus the halo (2 grid rows
+    and 2 pixels, rounded up to 8) that the last block's taps read."""
+    n, h, _, c = x.shape
+    x = jnp.pad(x, ((0, 0), (0, 0), (0, width - h), (0, 0))).reshape(-1, c)
+    rows = -(-x.shape[0] // block) * block
+    return jnp.pad(x, ((0, rows - x.shape[0] + halo(width)), (0, 0)))
+
+
+def halo(width: int) -> int:
+    return (K - 1) * width + 8
+
+
+def from_grid(out: jax.Array, images: int, side: int, width: int, valid: int) -> jax.Array:
+    """[rows, F] on the input's grid -> [N, valid, valid, F], the VALID outputs."""
+    f = out.shape[-1]
+    out = out[: grid_rows(images, side, width)].reshape(images, side, width, f)
+    return out[:, :valid, :valid]
+
+
+def conv_mgpu(xg: jax.Array, w: jax.Array, *, width: int, block: int, interpret: bool = False):
+    """relu(sum_{i,j} x[q + i * width + j] @ w[i, j]) for every row q of the grid (`to_grid`;
+    its last `halo(width)` rows are only read), bf16 out."""
+    rows = xg.shape[0] - halo(width)
+    c, f = w.shape[2:]
+    span = block + (K - 1) * width  # rows of one horizontal tap's copy
+    swizzle = plgpu.find_swizzle(c * xg.dtype.itemsize * 8)
+    x_t = (
+        plgpu.TilingTransform((8, swizzle // xg.dtype.itemsize)),
+        plgpu.SwizzleTransform(swizzle),
+    )
+    o_swizzle = plgpu.find_swizzle(f * xg.dtype.itemsize * 8)
+    o_t = (
+        plgpu.TilingTransform((8, o_swizzle // xg.dtype.itemsize)),
+        plgpu.SwizzleTransform(o_swizzle),
+    )
+    taps = w.reshape(K * K, c, f)
+
+    def body(x_gmem, w_gmem, o_gmem, x_smem, w_smem, o_smem, bars):
+        q0 = pl.multiple_of(jax.lax.axis_index("rows") * block, block)
+        for j in range(K):
+            plgpu.copy_gmem_to_smem(x_gmem.at[pl.ds(q0 + j, span)], x_smem.at[j], bars.at[j])
+        plgpu.copy_gmem_to_smem(w_gmem, w_smem, bars.at[K])
+        plgpu.barrier_wait(bars.at[K])
+
+        def products(acc_ref):
+            for j in range(K):
+                plgpu.barrier_wait(bars.at[j])
+                for i in range(K):
+                    a = x_smem.at[j, pl.ds(i * width, block)]
+                    plgpu.wgmma(acc_ref, a, w_smem.at[i * K + j])
+            plgpu.wgmma_wait(0)
+            return acc_ref[...]
+
+        acc = pl.run_scoped(products, plgpu.ACC((block, f), jnp.float32))
+        o_smem[...] = jnp.maximum(acc, 0.0).astype(o_smem.dtype)
+        plgpu.commit_smem()
+        plgpu.copy_smem_to_gmem(o_smem, o_gmem.at[pl.ds(q0, block)])
+        plgpu.wait_smem_to_gmem(0)
+
+    kernel = plgpu.kernel(
+        body,
+        out_type=jax.ShapeDtypeStruct((rows, f), xg.dtype),
+        grid=(rows // block,),
+        grid_names=("rows",),
+        scratch_types=(
+            plgpu.SMEM((K, span, c), xg.dtype, transforms=x_t),
+            plgpu.SMEM((K * K, c, f), xg.dtype, transforms=o_t),
+            plgpu.SMEM((block, f), xg.dtype, transforms=o_t),
+            plgpu.Barrier(num_barriers=K + 1),
+        ),
+        interpret=_interpret_params() if interpret else None,
+    )
+    return kernel(xg, taps)
+
+
+def _interpret_params():
+    from jax._src.pallas.mosaic_gpu.interpret.params import InterpretGPUParams
+
+    return InterpretGPUParams()
+
+
+def xla_conv(x, w):
+    out = jax.lax.conv_general_dilated(
+        x, w, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC")
+    )
+    return jax.nn.relu(out.astype(jnp.float32)).astype(x.dtype)
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--batch", type=int, default=512)
+    parser.add_argument("--side", type=int, default=39, help="the input's side")
+    parser.add_argument("--channels", type=int, default=32)
+    parser.add_argument(
+        "--width", type=int, default=0, help="grid row width; 0: side rounded up to 8"
+    )
+    parser.add_argument("--blocks", type=int, nargs="+", default=[128, 256])
+    parser.add_argument("--iters", type=int, default=50)
+    parser.add_argument("--interpret", action="store_true")
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args(argv)
+    from dear_jax import wideconv
+
+    n, h, c = args.batch, args.side, args.channels
+    width = args.width or -(-h // 8) * 8
+    valid = h - K + 1
+    kx, kw = jax.random.split(jax.random.key(0))
+    x = jax.random.normal(kx, (n, h, h, c), jnp.float32).astype(jnp.bfloat16)
+    w = (jax.random.normal(kw, (K, K, c, c), jnp.float32) / np.sqrt(K * K * c)).astype(jnp.bfloat16)
+    want = np.asarray(jax.jit(xla_conv)(x, w), np.float32)
+    rows = {}
+
+    def time(name, fn, *operands):
+        fn = jax.jit(fn)
+        jax.block_until_ready(fn(*operands))
+        ms, dispatch = timed_calls(lambda i: fn(*operands), args.iters)
+        rows[name] = {"us_per_call": ms * 1e3, "dispatch_us": dispatch * 1e3}
+        print(f"{name:>24}: {ms * 1e3:8.1f} µs per call")
+        return fn
+
+    if not args.interpret:
+        time("xla (cuDNN)", xla_conv, x, w)
+        layer = ((w, jnp.zeros((c,), jnp.float32)),)
+        time("pallas triton stack", lambda x: wideconv.conv_stack(x, layer, 0), x)
+    for block in args.blocks:
+        xg = to_grid(x, width, block)
+        fn = functools.partial(conv_mgpu, width=width, block=block, interpret=args.interpret)
+        name = f"mosaic gpu, block {block}"
+        if args.interpret:
+            out = jax.jit(fn)(xg, w)
+        else:
+            out = time(name, fn, xg, w)(xg, w)
+        got = np.asarray(from_grid(out, n, h, width, valid), np.float32)
+        err = float(np.max(np.abs(got - want)))
+        rows.setdefault(name, {})["max_abs_error"] = err
+        print(f"{name:>24}: max |error| against XLA {err:.4f}")
+    result = {"args": vars(args), "width": width, "valid": valid, "rows": rows}
+    save_json(result, args.out)
+    return result
+
+
+if __name__ == "__main__":
+    main()

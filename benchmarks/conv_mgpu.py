@@ -79,7 +79,7 @@ def conv_mgpu(xg: jax.Array, w: jax.Array, *, width: int, block: int, interpret:
     taps = w.reshape(K * K, c, f)
 
     def body(x_gmem, w_gmem, o_gmem, x_smem, w_smem, o_smem, bars):
-        q0 = pl.multiple_of(jax.lax.axis_index("rows") * block, block)
+        q0 = jax.lax.axis_index("rows") * block
         for j in range(K):
             plgpu.copy_gmem_to_smem(x_gmem.at[pl.ds(q0 + j, span)], x_smem.at[j], bars.at[j])
         plgpu.copy_gmem_to_smem(w_gmem, w_smem, bars.at[K])

@@ -62,34 +62,42 @@ def from_grid(out: jax.Array, images: int, side: int, width: int, valid: int) ->
 
 def conv_mgpu(xg: jax.Array, w: jax.Array, *, width: int, block: int, interpret: bool = False):
     """relu(sum_{i,j} x[q + i * width + j] @ w[i, j]) for every row q of the grid (`to_grid`;
-    its last `halo(width)` rows are only read), bf16 out."""
+    its last `halo(width)` rows are only read), bf16 out.
+
+    A block's window of input rows (the block and its halo) is copied into shared memory twice
+    by the TMA: tiled and swizzled for the MMAs, and plain. The taps j = 0 are slices of the
+    first at multiples of 8 rows (i * width); the taps j = 1, 2 are read from the plain copy
+    into registers at their row offset (the MMA's left operand may be registers)."""
     rows = xg.shape[0] - halo(width)
     c, f = w.shape[2:]
-    span = block + (K - 1) * width  # rows of one horizontal tap's copy
-    swizzle = plgpu.find_swizzle(c * xg.dtype.itemsize * 8)
-    x_t = (
-        plgpu.TilingTransform((8, swizzle // xg.dtype.itemsize)),
-        plgpu.SwizzleTransform(swizzle),
-    )
-    o_swizzle = plgpu.find_swizzle(f * xg.dtype.itemsize * 8)
-    o_t = (
-        plgpu.TilingTransform((8, o_swizzle // xg.dtype.itemsize)),
-        plgpu.SwizzleTransform(o_swizzle),
+    span = block + halo(width)  # the window's rows
+    tiled = lambda n: (  # noqa: E731  (n channels of bf16)
+        plgpu.TilingTransform((8, plgpu.find_swizzle(n * 16) // 2)),
+        plgpu.SwizzleTransform(plgpu.find_swizzle(n * 16)),
     )
     taps = w.reshape(K * K, c, f)
 
-    def body(x_gmem, w_gmem, o_gmem, x_smem, w_smem, o_smem, bars):
+    def body(x_gmem, w_gmem, o_gmem, x_smem, u_smem, w_smem, o_smem, bars):
         q0 = jax.lax.axis_index("rows") * block
-        for j in range(K):
-            plgpu.copy_gmem_to_smem(x_gmem.at[pl.ds(q0 + j, span)], x_smem.at[j], bars.at[j])
-        plgpu.copy_gmem_to_smem(w_gmem, w_smem, bars.at[K])
-        plgpu.barrier_wait(bars.at[K])
+        window = x_gmem.at[pl.ds(q0, span)]
+        plgpu.copy_gmem_to_smem(window, x_smem, bars.at[0])
+        plgpu.copy_gmem_to_smem(window, u_smem, bars.at[1])
+        plgpu.copy_gmem_to_smem(w_gmem, w_smem, bars.at[2])
+        plgpu.barrier_wait(bars.at[2])
+        plgpu.barrier_wait(bars.at[0])
 
         def products(acc_ref):
-            for j in range(K):
-                plgpu.barrier_wait(bars.at[j])
-                for i in range(K):
-                    a = x_smem.at[j, pl.ds(i * width, block)]
+            for i in range(K):
+                plgpu.wgmma(acc_ref, x_smem.at[pl.ds(i * width, block)], w_smem.at[i * K])
+            plgpu.barrier_wait(bars.at[1])
+            for i in range(K):
+                for j in range(1, K):
+                    a = plgpu.load(
+                        u_smem,
+                        (pl.ds(i * width + j, block), slice(None)),
+                        layout=plgpu.Layout.WGMMA,
+                        optimized=False,
+                    )
                     plgpu.wgmma(acc_ref, a, w_smem.at[i * K + j])
             plgpu.wgmma_wait(0)
             return acc_ref[...]
@@ -106,10 +114,11 @@ def conv_mgpu(xg: jax.Array, w: jax.Array, *, width: int, block: int, interpret:
         grid=(rows // block,),
         grid_names=("rows",),
         scratch_types=(
-            plgpu.SMEM((K, span, c), xg.dtype, transforms=x_t),
-            plgpu.SMEM((K * K, c, f), xg.dtype, transforms=o_t),
-            plgpu.SMEM((block, f), xg.dtype, transforms=o_t),
-            plgpu.Barrier(num_barriers=K + 1),
+            plgpu.SMEM((span, c), xg.dtype, transforms=tiled(c)),
+            plgpu.SMEM((span, c), xg.dtype),
+            plgpu.SMEM((K * K, c, f), xg.dtype, transforms=tiled(f)),
+            plgpu.SMEM((block, f), xg.dtype, transforms=tiled(f)),
+            plgpu.Barrier(num_barriers=3),
         ),
         interpret=_interpret_params() if interpret else None,
     )

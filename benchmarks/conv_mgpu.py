@@ -60,14 +60,23 @@ def from_grid(out: jax.Array, images: int, side: int, width: int, valid: int) ->
     return out[:, :valid, :valid]
 
 
-def conv_mgpu(xg: jax.Array, w: jax.Array, *, width: int, block: int, interpret: bool = False):
+def conv_mgpu(
+    xg: jax.Array,
+    w: jax.Array,
+    *,
+    width: int,
+    block: int,
+    tiled_taps: bool = True,
+    interpret: bool = False,
+):
     """relu(sum_{i,j} x[q + i * width + j] @ w[i, j]) for every row q of the grid (`to_grid`;
     its last `halo(width)` rows are only read), bf16 out.
 
     A block's window of input rows (the block and its halo) is copied into shared memory twice
     by the TMA: tiled and swizzled for the MMAs, and plain. The taps j = 0 are slices of the
     first at multiples of 8 rows (i * width); the taps j = 1, 2 are read from the plain copy
-    into registers at their row offset (the MMA's left operand may be registers)."""
+    into registers at their row offset (the MMA's left operand may be registers); without
+    `tiled_taps`, every tap is."""
     rows = xg.shape[0] - halo(width)
     c, f = w.shape[2:]
     span = block + halo(width)  # the window's rows
@@ -87,14 +96,15 @@ def conv_mgpu(xg: jax.Array, w: jax.Array, *, width: int, block: int, interpret:
         plgpu.barrier_wait(bars.at[0])
 
         def products(acc_ref):
-            for i in range(K):
-                plgpu.wgmma(acc_ref, x_smem.at[pl.ds(i * width, block)], w_smem.at[i * K])
+            if tiled_taps:
+                for i in range(K):
+                    plgpu.wgmma(acc_ref, x_smem.at[pl.ds(i * width, block)], w_smem.at[i * K])
             plgpu.barrier_wait(bars.at[1])
             for i in range(K):
-                for j in range(1, K):
+                for j in range(1 if tiled_taps else 0, K):
                     a = plgpu.load(
-                        u_smem,
-                        (pl.ds(i * width + j, block), slice(None)),
+                        u_smem.at[pl.ds(i * width + j, block)],
+                        (slice(None), slice(None)),
                         layout=plgpu.Layout.WGMMA,
                         optimized=False,
                     )
@@ -149,6 +159,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--blocks", type=int, nargs="+", default=[128, 256])
     parser.add_argument("--iters", type=int, default=50)
     parser.add_argument("--interpret", action="store_true")
+    parser.add_argument("--parts", action="store_true", help="check parts of the taps apart")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     from dear_jax import wideconv
@@ -186,6 +197,33 @@ def main(argv=None) -> dict:
         err = float(np.max(np.abs(got - want)))
         rows.setdefault(name, {})["max_abs_error"] = err
         print(f"{name:>24}: max |error| against XLA {err:.4f}")
+    if args.parts and not args.interpret:
+        block = args.blocks[-1]
+        xg = to_grid(x, width, block)
+        j = np.arange(K)[None, :, None, None]
+        for name, keep, tiled in (
+            ("all taps as registers", j >= 0, False),
+            ("taps j = 0 only", j == 0, True),
+            ("taps j = 1, 2 only", j > 0, True),
+        ):
+            wp = jnp.where(keep, w, 0)
+            fn = jax.jit(functools.partial(conv_mgpu, width=width, block=block, tiled_taps=tiled))
+            got = np.asarray(from_grid(fn(xg, wp), n, h, width, valid), np.float32)
+            ref = np.asarray(jax.jit(xla_conv)(x, wp), np.float32)
+            bad = np.abs(got - ref) > 0.05 * (1 + np.abs(ref))
+            where = np.argwhere(bad.any(-1))
+            rows[f"parts: {name}"] = {
+                "max_abs_error": float(np.max(np.abs(got - ref))),
+                "bad_fraction": float(bad.mean()),
+                "first_bad_pixels": where[:8].tolist(),
+                "bad_rows_by_y": np.bincount(where[:, 1], minlength=valid).tolist()
+                if len(where)
+                else [],
+                "bad_by_x": np.bincount(where[:, 2], minlength=valid).tolist()
+                if len(where)
+                else [],
+            }
+            print(name, rows[f"parts: {name}"])
     result = {"args": vars(args), "width": width, "valid": valid, "rows": rows}
     save_json(result, args.out)
     return result

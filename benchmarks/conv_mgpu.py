@@ -200,11 +200,14 @@ def main(argv=None) -> dict:
     if args.parts and not args.interpret:
         block = args.blocks[-1]
         xg = to_grid(x, width, block)
-        j = np.arange(K)[None, :, None, None]
+        i, j = np.arange(K)[:, None, None, None], np.arange(K)[None, :, None, None]
         for name, keep, tiled in (
             ("all taps as registers", j >= 0, False),
             ("taps j = 0 only", j == 0, True),
             ("taps j = 1, 2 only", j > 0, True),
+            ("tap (0, 0) as registers", (i == 0) & (j == 0), False),
+            ("tap (0, 1) as registers", (i == 0) & (j == 1), False),
+            ("tap (1, 0) as registers", (i == 1) & (j == 0), False),
         ):
             wp = jnp.where(keep, w, 0)
             fn = jax.jit(functools.partial(conv_mgpu, width=width, block=block, tiled_taps=tiled))

@@ -72,11 +72,12 @@ def conv_mgpu(
     """relu(sum_{i,j} x[q + i * width + j] @ w[i, j]) for every row q of the grid (`to_grid`;
     its last `halo(width)` rows are only read), bf16 out.
 
-    A block's window of input rows (the block and its halo) is copied into shared memory twice
-    by the TMA: tiled and swizzled for the MMAs, and plain. The taps j = 0 are slices of the
-    first at multiples of 8 rows (i * width); the taps j = 1, 2 are read from the plain copy
-    into registers at their row offset (the MMA's left operand may be registers); without
-    `tiled_taps`, every tap is."""
+    A block's window of input rows (the block and its halo) is copied into shared memory by the
+    TMA, tiled and swizzled for the MMAs; the taps j = 0 are its slices at i * width rows (a
+    multiple of 8). A tiled copy must start at a multiple of 8 rows, so the taps j = 1, 2 read
+    plain copies of the window shifted by j rows, each slice into registers (the MMA's left
+    operand may be registers; read at a row offset that is not a multiple of 8 they came out
+    wrong, on jax 0.11.2). Without `tiled_taps` every tap is read so."""
     rows = xg.shape[0] - halo(width)
     c, f = w.shape[2:]
     span = block + halo(width)  # the window's rows
@@ -86,24 +87,27 @@ def conv_mgpu(
     )
     taps = w.reshape(K * K, c, f)
 
+    plain = range(1 if tiled_taps else 0, K)  # the taps' j read into registers
+
     def body(x_gmem, w_gmem, o_gmem, x_smem, u_smem, w_smem, o_smem, bars):
         q0 = jax.lax.axis_index("rows") * block
-        window = x_gmem.at[pl.ds(q0, span)]
-        plgpu.copy_gmem_to_smem(window, x_smem, bars.at[0])
-        plgpu.copy_gmem_to_smem(window, u_smem, bars.at[1])
-        plgpu.copy_gmem_to_smem(w_gmem, w_smem, bars.at[2])
-        plgpu.barrier_wait(bars.at[2])
-        plgpu.barrier_wait(bars.at[0])
+        plgpu.copy_gmem_to_smem(w_gmem, w_smem, bars.at[K])
+        if tiled_taps:
+            plgpu.copy_gmem_to_smem(x_gmem.at[pl.ds(q0, span)], x_smem, bars.at[0])
+        for j in plain:  # a plain copy may start at any row
+            plgpu.copy_gmem_to_smem(x_gmem.at[pl.ds(q0 + j, span)], u_smem.at[j], bars.at[j])
+        plgpu.barrier_wait(bars.at[K])
 
         def products(acc_ref):
             if tiled_taps:
+                plgpu.barrier_wait(bars.at[0])
                 for i in range(K):
                     plgpu.wgmma(acc_ref, x_smem.at[pl.ds(i * width, block)], w_smem.at[i * K])
-            plgpu.barrier_wait(bars.at[1])
-            for i in range(K):
-                for j in range(1 if tiled_taps else 0, K):
+            for j in plain:
+                plgpu.barrier_wait(bars.at[j])
+                for i in range(K):
                     a = plgpu.load(
-                        u_smem.at[pl.ds(i * width + j, block)],
+                        u_smem.at[j, pl.ds(i * width, block)],
                         (slice(None), slice(None)),
                         layout=plgpu.Layout.WGMMA,
                         optimized=False,
@@ -125,10 +129,10 @@ def conv_mgpu(
         grid_names=("rows",),
         scratch_types=(
             plgpu.SMEM((span, c), xg.dtype, transforms=tiled(c)),
-            plgpu.SMEM((span, c), xg.dtype),
+            plgpu.SMEM((K, span, c), xg.dtype),
             plgpu.SMEM((K * K, c, f), xg.dtype, transforms=tiled(f)),
             plgpu.SMEM((block, f), xg.dtype, transforms=tiled(f)),
-            plgpu.Barrier(num_barriers=3),
+            plgpu.Barrier(num_barriers=K + 1),
         ),
         interpret=_interpret_params() if interpret else None,
     )

@@ -1,22 +1,21 @@
 """A 3 x 3 convolution as a Mosaic GPU (Hopper) kernel, against the Pallas (Triton) stack's.
 
-    python -m benchmarks.conv_mgpu --batch 512 --side 39 --blocks 128 256 --out conv_mgpu.json
+    python -m benchmarks.conv_mgpu --batch 512 --side 39 --blocks 64 128 --iters 200 --out X.json
 
-The question: would the conv stacks gain from keeping each block's input on chip? The Triton
+The question: would the conv stacks gain from a block's input held in shared memory? The Triton
 kernels (`dear_jax/wideconv.py`) read each of a block's 9 taps from memory through L1 (Nsight
 Compute: L1 at 61-80% of its peak). Here a layer's activations sit on a grid whose rows are a
-multiple of 8 pixels wide (`--width`, >= the input's side), so that a tap (i, j) is the input
-shifted by i * width + j rows: a block's input is copied into shared memory by the TMA once per
-horizontal tap j (3 copies, each with the block's halo of 2 grid rows), every vertical tap i is a
-slice of it at a multiple of 8 rows, and the 9 products are warpgroup MMAs reading both operands
-from shared memory. The price: the grid's extra columns and rows are computed too (a 37 x 37
-output on a 39 x 40 grid: 14% more rows).
+multiple of 8 pixels wide (`--width`, >= the input's side), so that tap (i, j) is the input
+shifted by i * width + j rows, and a block's products are warpgroup MMAs (`conv_mgpu`). The
+price: the grid's extra columns and rows are computed too (a 37 x 37 output on a 39 x 40 grid:
+14% more rows).
 
 It times, for `--batch` images of `--side` x `--side` x 32 channels (a lone seed's encoder layer
-at batch 512: 39 -> 37), the bf16 forward with ReLU: this kernel per `--blocks` (rows per program),
-the Triton stack's kernel (`wideconv.conv_stack`, one VALID layer), and XLA's (cuDNN); it checks
-the kernel's valid outputs against XLA's. Writes JSON. Needs a Hopper GPU (or `--interpret`,
-Mosaic GPU's interpreter on the CPU: slow, for checking values at small sizes).
+at batch 512: 39 -> 37), the bf16 forward with ReLU: this kernel per `--blocks` (rows per
+program), the Triton stack's kernel (`wideconv.conv_stack`, one VALID layer), and XLA's (cuDNN);
+it checks the kernel's valid outputs against XLA's (`--parts`: each way of reading the taps
+apart, on the taps' weights alone). Each figure is a mean over `--iters` calls from Python,
+with the host's time to launch them beside it. Writes JSON. Needs a Hopper GPU.
 """
 
 from __future__ import annotations
@@ -67,7 +66,6 @@ def conv_mgpu(
     width: int,
     block: int,
     tiled_taps: bool = True,
-    interpret: bool = False,
 ):
     """relu(sum_{i,j} x[q + i * width + j] @ w[i, j]) for every row q of the grid (`to_grid`;
     its last `halo(width)` rows are only read), bf16 out.
@@ -134,15 +132,8 @@ def conv_mgpu(
             plgpu.SMEM((block, f), xg.dtype, transforms=tiled(f)),
             plgpu.Barrier(num_barriers=K + 1),
         ),
-        interpret=_interpret_params() if interpret else None,
     )
     return kernel(xg, taps)
-
-
-def _interpret_params():
-    from jax._src.pallas.mosaic_gpu.interpret.params import InterpretGPUParams
-
-    return InterpretGPUParams()
 
 
 def xla_conv(x, w):
@@ -162,7 +153,6 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--blocks", type=int, nargs="+", default=[128, 256])
     parser.add_argument("--iters", type=int, default=50)
-    parser.add_argument("--interpret", action="store_true")
     parser.add_argument("--parts", action="store_true", help="check parts of the taps apart")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
@@ -185,23 +175,18 @@ def main(argv=None) -> dict:
         print(f"{name:>24}: {ms * 1e3:8.1f} µs per call")
         return fn
 
-    if not args.interpret:
-        time("xla (cuDNN)", xla_conv, x, w)
-        layer = ((w, jnp.zeros((c,), jnp.float32)),)
-        time("pallas triton stack", lambda x: wideconv.conv_stack(x, layer, 0), x)
+    time("xla (cuDNN)", xla_conv, x, w)
+    layer = ((w, jnp.zeros((c,), jnp.float32)),)
+    time("pallas triton stack", lambda x: wideconv.conv_stack(x, layer, 0), x)
     for block in args.blocks:
         xg = to_grid(x, width, block)
-        fn = functools.partial(conv_mgpu, width=width, block=block, interpret=args.interpret)
         name = f"mosaic gpu, block {block}"
-        if args.interpret:
-            out = jax.jit(fn)(xg, w)
-        else:
-            out = time(name, fn, xg, w)(xg, w)
+        out = time(name, functools.partial(conv_mgpu, width=width, block=block), xg, w)(xg, w)
         got = np.asarray(from_grid(out, n, h, width, valid), np.float32)
         err = float(np.max(np.abs(got - want)))
         rows.setdefault(name, {})["max_abs_error"] = err
         print(f"{name:>24}: max |error| against XLA {err:.4f}")
-    if args.parts and not args.interpret:
+    if args.parts:
         block = args.blocks[-1]
         xg = to_grid(x, width, block)
         i, j = np.arange(K)[:, None, None, None], np.arange(K)[None, :, None, None]

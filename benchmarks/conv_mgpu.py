@@ -74,8 +74,10 @@ def conv_mgpu(
     TMA, tiled and swizzled for the MMAs; the taps j = 0 are its slices at i * width rows (a
     multiple of 8). A tiled copy must start at a multiple of 8 rows, so the taps j = 1, 2 read
     plain copies of the window shifted by j rows, each slice into registers (the MMA's left
-    operand may be registers; read at a row offset that is not a multiple of 8 they came out
-    wrong, on jax 0.11.2). Without `tiled_taps` every tap is read so."""
+    operand may be registers; read at row offset 1 every other output row came out wrong on jax
+    0.11.2, at multiples of 8 right: `--parts`). Without `tiled_taps` every tap is read so.
+    (The plain copies' buffer keeps a slot for j = 0 either way: 1/4 of the shared memory a
+    program holds, as measured.)"""
     rows = xg.shape[0] - halo(width)
     c, f = w.shape[2:]
     span = block + halo(width)  # the window's rows
@@ -160,6 +162,8 @@ def main(argv=None) -> dict:
 
     n, h, c = args.batch, args.side, args.channels
     width = args.width or -(-h // 8) * 8
+    if width < h or width % 8:
+        parser.error(f"--width {width}: must be a multiple of 8 and at least --side {h}")
     valid = h - K + 1
     kx, kw = jax.random.split(jax.random.key(0))
     x = jax.random.normal(kx, (n, h, h, c), jnp.float32).astype(jnp.bfloat16)

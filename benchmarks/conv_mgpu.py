@@ -76,7 +76,7 @@ def conv_mgpu(
     plain copies of the window shifted by j rows, each slice into registers (the MMA's left
     operand may be registers; read at row offset 1 every other output row came out wrong on jax
     0.11.2, at multiples of 8 right: `--parts`). Without `tiled_taps` every tap is read so.
-    (The plain copies' buffer keeps a slot for j = 0 either way: 1/4 of the shared memory a
+    (The plain copies' buffer keeps a slot for j = 0 either way: a sixth of the shared memory a
     program holds, as measured.)"""
     rows = xg.shape[0] - halo(width)
     c, f = w.shape[2:]

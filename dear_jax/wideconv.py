@@ -94,6 +94,10 @@ WGRAD_WARPS = 2
 # rather than x^T g (each tap's block transposed); its result is then transposed in XLA. On an
 # H200 (benchmarks/RESULTS.md) every method's update was 1-15% faster with it than without.
 WGRAD_G_FIRST = True
+# A padded or VALID layer's filter gradient stepping over anchors rather than output rows
+# (`_Anchors`): per step k loads of the input and k of the output gradient rather than k * k and
+# one, for a few more rows.
+WGRAD_ANCHORS = False
 STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of looped taps)
 # A convolution's taps as a loop (which Triton software-pipelines) rather than unrolled, and
 # its pipeline's stages.
@@ -114,6 +118,7 @@ TUNABLE = (
     "WGRAD_MIN_PROGRAMS",
     "WGRAD_WARPS",
     "WGRAD_G_FIRST",
+    "WGRAD_ANCHORS",
     "STAGES",
     "TAP_LOOP",
     "CONV_STAGES",
@@ -122,7 +127,7 @@ TUNABLE = (
 
 # Constants that must be powers of two (Triton's block shapes, warps) or at least 1; switches 0/1.
 _POWERS_OF_TWO = ("BLOCK", "NUM_WARPS", "WGRAD_BLOCK", "WGRAD_STEPS", "WGRAD_WARPS")
-_SWITCHES = ("WGRAD_G_FIRST", "TAP_LOOP")
+_SWITCHES = ("WGRAD_G_FIRST", "WGRAD_ANCHORS", "TAP_LOOP")
 
 
 def parse_constants(setting: str | dict) -> dict[str, int]:
@@ -525,12 +530,62 @@ def _conv(x, w, layer, *, bias=None, relu=False, mask=None, targets=None):
     )(*args)
 
 
-def _wgrad_kernel(*refs, layer, steps):
+@dataclasses.dataclass(frozen=True)
+class _Anchors:
+    """The rows a filter gradient steps over with `WGRAD_ANCHORS`, for a `_Pass` of k x k taps
+    with pad p and output side s: anchor (n, Y, X), Y < s + k - 1, X < s, pairs the output
+    gradient's pixel (n, Y - i, X) (where 0 <= Y - i < s) with the input's pixel
+    (n, Y - p, X + j - p) (zero in the padding) for every tap (i, j). Output pixel (y, x) meets
+    tap (i, j) at one anchor only, (y + i, x), so the sum over anchors of x_j^T g_i is tap
+    (i, j)'s filter gradient, and a step reads k blocks of each operand where one over output
+    rows reads k * k of the input and one of the gradient: (s + k - 1) / s as many rows, 2k
+    loads instead of k * k + 1."""
+
+    layer: _Pass
+
+    @property
+    def rows(self) -> int:
+        return self.layer.images * (self.layer.size + self.layer.kernel - 1) * self.layer.size
+
+    def load(self, x_ref, g_ref, rows, c: int, f: int, dtype):
+        """([x_j for each j], [g_i for each i]) at the anchors `rows` (past the anchors: zeros);
+        x_ref and g_ref flat, the input's and the output gradient's rows (`_Grid`)."""
+        k, p, s, side = self.layer.kernel, self.layer.pad, self.layer.size, self.layer.size_in
+        keep = rows < self.rows
+        tall = s + k - 1
+        image, rest = jax.lax.div(rows, tall * s), jax.lax.rem(rows, tall * s)
+        y, x = jax.lax.div(rest, s), jax.lax.rem(rest, s)
+
+        def gather(ref, ok, row, lanes):
+            idx = jnp.where(ok, row, 0)[:, None] * lanes + jnp.arange(lanes, dtype=jnp.int32)
+            return plt.load(ref.at[idx], mask=jnp.broadcast_to(ok[:, None], idx.shape), other=0)
+
+        xs = []
+        for j in range(k):
+            ok = keep  # a VALID layer's anchors read inside its input
+            if p:
+                ok = ok & (y >= p) & (y - p < side) & (x + j >= p) & (x + j - p < side)
+            row = (image * side + y - p) * side + x + j - p
+            xs.append(gather(x_ref, ok, row, c).astype(dtype))
+        gs = [
+            gather(g_ref, keep & (y >= i) & (y - i < s), (image * s + y - i) * s + x, f)
+            for i in range(k)
+        ]
+        return xs, gs
+
+
+def _anchors(layer) -> _Anchors | None:
+    """The anchors a filter gradient of `layer` steps over, None: its output rows."""
+    use = WGRAD_ANCHORS and isinstance(layer, _Pass) and layer.kernel > 1
+    return _Anchors(layer) if use else None
+
+
+def _wgrad_kernel(*refs, layer, steps, anchors):
     x_ref, *refs, w_ref, b_ref = refs
     crop_ref = refs.pop(0) if isinstance(layer, _Pixels) and layer.shift else None
     g_ref = refs.pop(0)
     n, *acc_shape = w_ref.shape[1:]  # taps, then [c, f] ([f, c] with WGRAD_G_FIRST)
-    f = g_ref.shape[-1]
+    f = b_ref.shape[-1]
     c = acc_shape[1] if WGRAD_G_FIRST else acc_shape[0]
     p = pl.program_id(0)
 
@@ -543,6 +598,11 @@ def _wgrad_kernel(*refs, layer, steps):
         accs, bacc = carry
         start = (p * steps + s) * WGRAD_BLOCK
         rows = start + jnp.arange(WGRAD_BLOCK, dtype=jnp.int32)
+        if anchors is not None:
+            xs, gs = anchors.load(x_ref, g_ref, rows, c, f, g_ref.dtype)
+            k = len(xs)
+            out = tuple(acc + product(xs[t % k], gs[t // k]) for t, acc in enumerate(accs))
+            return out, bacc + jnp.sum(gs[0].astype(jnp.float32), axis=0)
         # The last program's steps past the rows read zeros (whole blocks: see _Grid).
         inside = jnp.broadcast_to((rows < layer.out.rows)[:, None], (WGRAD_BLOCK, f))
         g = plt.load(g_ref.at[pl.ds(start, WGRAD_BLOCK), :], mask=inside, other=0)
@@ -605,10 +665,14 @@ def _wgrad_over(layer, c: int, axes: tuple[int, ...]):
 def _wgrad_call(layer, c: int, steps: int, *args):
     f = args[-1].shape[-1]
     taps = layer.kernel if isinstance(layer, _Pixels) else layer.kernel**2
-    programs = -(-layer.out.rows // (WGRAD_BLOCK * steps))
+    anchors = _anchors(layer)
+    if anchors is not None:  # the output gradient gathered too
+        args = (*args[:-1], args[-1].reshape(*args[-1].shape[:-2], -1))
+    rows = layer.out.rows if anchors is None else anchors.rows
+    programs = -(-rows // (WGRAD_BLOCK * steps))
     acc_shape = (f, c) if WGRAD_G_FIRST else (c, f)
     w, b = pl.pallas_call(
-        functools.partial(_wgrad_kernel, layer=layer, steps=steps),
+        functools.partial(_wgrad_kernel, layer=layer, steps=steps, anchors=anchors),
         out_shape=(
             jax.ShapeDtypeStruct((programs, taps, *acc_shape), jnp.float32),
             jax.ShapeDtypeStruct((programs, f), jnp.float32),

@@ -49,7 +49,9 @@ Filter gradients' products as g^T x (`WGRAD_G_FIRST`) then took DEAR from 3.23-3
 3.10-3.12 ms for one seed and 2.37-2.38 to 2.28-2.29 per seed for five on an H200; with them 4
 warps, 4 stages or 128-row steps were slower, 32-row steps no faster (benchmarks/RESULTS.md).
 Nsight Compute found the 9-tap filter gradients (as x^T g) limited by their registers (232-252 a
-thread: 2 warps' programs, 6% occupancy) and L1 traffic (80% of its peak), not by memory.
+thread: 2 warps' programs, 6% occupancy) and L1 traffic (80% of its peak), not by memory. Read
+over anchors (`_Anchors`: 6 loads a step instead of 10), they took DEAR to 2.85 ms for one seed
+and 2.11 per seed for five (commit b902f47).
 
 `conv_stack(x, layers, pads)` is the function of
 `for (k, b), p in zip(layers, pads): x = relu(VALID conv of x zero-padded by p with k, + b)`,
@@ -90,14 +92,15 @@ WGRAD_STEPS = 32  # steps of one program of a filter gradient (at most; see belo
 # devices are then no longer the same bit for bit.
 WGRAD_MIN_PROGRAMS = 0
 WGRAD_WARPS = 2
-# A filter gradient's products as g^T x (the output gradient's block transposed once per step)
-# rather than x^T g (each tap's block transposed); its result is then transposed in XLA. On an
-# H200 (benchmarks/RESULTS.md) every method's update was 1-15% faster with it than without.
-WGRAD_G_FIRST = True
+# A filter gradient's products as g^T x rather than x^T g (its result then transposed in XLA).
+# Over output rows, where a step's one block of g meets k * k blocks of x, g^T x transposes one
+# block a step instead of k * k; it was 1-15% faster there (H200, benchmarks/RESULTS.md). Over
+# anchors, both transpose k blocks a step, and x^T g was level or faster.
+WGRAD_G_FIRST = False
 # A padded or VALID layer's filter gradient stepping over anchors rather than output rows
-# (`_Anchors`): per step k loads of the input and k of the output gradient rather than k * k and
-# one, for a few more rows.
-WGRAD_ANCHORS = False
+# (`_Anchors`): a step loads k blocks of the input and k of the output gradient rather than
+# k * k and one. On an H200 every method's update took 4-19% less time (benchmarks/RESULTS.md).
+WGRAD_ANCHORS = True
 STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of looped taps)
 # A convolution's taps as a loop (which Triton software-pipelines) rather than unrolled, and
 # its pipeline's stages.
@@ -647,7 +650,8 @@ def _wgrad_over(layer, c: int, axes: tuple[int, ...]):
 
     @jax.custom_batching.custom_vmap
     def wgrad(*args):
-        fn = functools.partial(_wgrad_call, layer, c, _wgrad_steps(layer.out.rows, math.prod(axes)))
+        steps = _wgrad_steps(_wgrad_rows(layer), math.prod(axes))
+        fn = functools.partial(_wgrad_call, layer, c, steps)
         for _ in axes:
             fn = jax.vmap(fn)
         return fn(*args)
@@ -662,14 +666,19 @@ def _wgrad_over(layer, c: int, axes: tuple[int, ...]):
     return wgrad
 
 
+def _wgrad_rows(layer) -> int:
+    """How many rows a filter gradient of `layer` steps over."""
+    anchors = _anchors(layer)
+    return layer.out.rows if anchors is None else anchors.rows
+
+
 def _wgrad_call(layer, c: int, steps: int, *args):
     f = args[-1].shape[-1]
     taps = layer.kernel if isinstance(layer, _Pixels) else layer.kernel**2
     anchors = _anchors(layer)
     if anchors is not None:  # the output gradient gathered too
         args = (*args[:-1], args[-1].reshape(*args[-1].shape[:-2], -1))
-    rows = layer.out.rows if anchors is None else anchors.rows
-    programs = -(-rows // (WGRAD_BLOCK * steps))
+    programs = -(-_wgrad_rows(layer) // (WGRAD_BLOCK * steps))
     acc_shape = (f, c) if WGRAD_G_FIRST else (c, f)
     w, b = pl.pallas_call(
         functools.partial(_wgrad_kernel, layer=layer, steps=steps, anchors=anchors),

@@ -125,8 +125,9 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
 @pytest.mark.parametrize(
     "name, settings",
     [
-        ("decoder", {"TAP_LOOP": False, "WGRAD_ANCHORS": True}),
-        ("encoder_shifted", {"TAP_LOOP": False, "WGRAD_G_FIRST": False, "WGRAD_ANCHORS": True}),
+        ("decoder", {"TAP_LOOP": False, "WGRAD_ANCHORS": False}),
+        ("encoder_shifted", {"TAP_LOOP": False, "WGRAD_G_FIRST": True}),
+        ("decoder", {"WGRAD_G_FIRST": True, "WGRAD_ANCHORS": False}),
     ],
 )
 def test_kernel_settings_compute_the_same(monkeypatch, name, settings):
@@ -292,8 +293,8 @@ def _filter_gradient_grids(fn, *args) -> list[tuple[int, ...]]:
 def test_filter_gradient_programs_follow_the_number_of_seeds(monkeypatch):
     """With WGRAD_MIN_PROGRAMS set, a filter gradient's programs on GPUs take fewer steps when
     few seeds are vmapped, so that its grid keeps that many programs; five seeds keep 32 steps.
-    The encoder's 35 x 35 layer at batch 512: 627,200 rows, 307 programs of 32 steps of 64
-    rows, 1,225 of 8."""
+    The encoder's 35 x 35 layer at batch 512: 663,040 anchors (512 x 37 x 35), 324 programs of
+    32 steps of 64 rows, 1,295 of 8."""
     monkeypatch.setattr(wideconv, "INTERPRET", False)  # traced only
     monkeypatch.setattr(wideconv, "WGRAD_MIN_PROGRAMS", 1024)
     assert (wideconv.WGRAD_STEPS, wideconv.WGRAD_BLOCK) == (32, 64)
@@ -309,18 +310,18 @@ def test_filter_gradient_programs_follow_the_number_of_seeds(monkeypatch):
 
     grad = jax.vmap(jax.grad(loss, 1))
     # (a vmapped axis of size 1 is no grid axis)
-    for seeds, grid in ((1, (1225,)), (2, (2, 613)), (5, (5, 307))):
+    for seeds, grid in ((1, (1295,)), (2, (2, 648)), (5, (5, 324))):
         x = jax.ShapeDtypeStruct((seeds, 512, 37, 37, 32), jnp.bfloat16)
         assert _filter_gradient_grids(grad, x, layers(seeds)) == [grid]
     # lanes x seeds: both vmapped axes count; not vmapped, one image set alone
     x = jax.ShapeDtypeStruct((2, 2, 512, 37, 37, 32), jnp.bfloat16)
     ws = jax.tree.map(lambda a: jax.ShapeDtypeStruct((2, *a.shape), a.dtype), layers(2))
-    assert _filter_gradient_grids(jax.vmap(grad), x, ws) == [(2, 2, 307)]
+    assert _filter_gradient_grids(jax.vmap(grad), x, ws) == [(2, 2, 324)]
     x = jax.ShapeDtypeStruct((512, 37, 37, 32), jnp.bfloat16)
     one = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), layers(1))
-    assert _filter_gradient_grids(jax.grad(loss, 1), x, one) == [(1225,)]
+    assert _filter_gradient_grids(jax.grad(loss, 1), x, one) == [(1295,)]
     monkeypatch.setattr(wideconv, "WGRAD_MIN_PROGRAMS", 0)
-    assert _filter_gradient_grids(jax.grad(loss, 1), x, one) == [(307,)]
+    assert _filter_gradient_grids(jax.grad(loss, 1), x, one) == [(324,)]
 
 
 def test_filter_gradients_of_any_steps_are_the_same_under_nested_vmap(monkeypatch):
@@ -402,7 +403,7 @@ def test_kernel_constants_hold_inside_their_block_only():
 
 def test_the_update_is_traced_with_its_configs_kernel_constants(monkeypatch):
     """AgentConfig.kernels holds while the update is traced, for its backward pass too: with
-    WGRAD_MIN_PROGRAMS=1024 a lone seed's filter gradients (batch 8: 9,800 rows at 35 x 35)
+    WGRAD_MIN_PROGRAMS=1024 a lone seed's filter gradients (batch 8: 10,360 anchors at 35 x 35)
     take 1 step per program rather than 32, and the module's value is back after."""
     monkeypatch.setattr(wideconv, "INTERPRET", False)  # traced only
     small = dict(action_dim=2, latent_dim=64, hidden_dim=32, feature_dim=8, conv_stack="pallas")
@@ -427,7 +428,7 @@ def test_the_update_is_traced_with_its_configs_kernel_constants(monkeypatch):
     assert wideconv.WGRAD_MIN_PROGRAMS == 0
     # the encoder's 4 layers and the mask decoder's 4 Pallas layers
     assert len(default) == len(many) == 8
-    assert (5,) in default and (154,) in many  # the 35 x 35 layers: ceil(9,800 / 64 / steps)
+    assert (6,) in default and (162,) in many  # 35 x 35: ceil(10,360 / 64 / steps)
     assert all(m[0] > d[0] for d, m in zip(default, many))
 
 

@@ -101,10 +101,6 @@ WGRAD_G_FIRST = False
 # (`_Anchors`): a step loads k blocks of the input and k of the output gradient rather than
 # k * k and one. On an H200 every method's update took 4-19% less time (benchmarks/RESULTS.md).
 WGRAD_ANCHORS = True
-# The warps of a strided first layer's kernels (`_Pixels`: uint8 pixels gathered a byte at a
-# time through the random shift's crops), forward and filter gradient.
-PIXELS_WARPS = 4
-PIXELS_WGRAD_WARPS = 2
 STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of looped taps)
 # A convolution's taps as a loop (which Triton software-pipelines) rather than unrolled, and
 # its pipeline's stages.
@@ -126,8 +122,6 @@ TUNABLE = (
     "WGRAD_WARPS",
     "WGRAD_G_FIRST",
     "WGRAD_ANCHORS",
-    "PIXELS_WARPS",
-    "PIXELS_WGRAD_WARPS",
     "STAGES",
     "TAP_LOOP",
     "CONV_STAGES",
@@ -135,15 +129,7 @@ TUNABLE = (
 
 
 # Constants that must be powers of two (Triton's block shapes, warps) or at least 1; switches 0/1.
-_POWERS_OF_TWO = (
-    "BLOCK",
-    "NUM_WARPS",
-    "WGRAD_BLOCK",
-    "WGRAD_STEPS",
-    "WGRAD_WARPS",
-    "PIXELS_WARPS",
-    "PIXELS_WGRAD_WARPS",
-)
+_POWERS_OF_TWO = ("BLOCK", "NUM_WARPS", "WGRAD_BLOCK", "WGRAD_STEPS", "WGRAD_WARPS")
 _SWITCHES = ("WGRAD_G_FIRST", "WGRAD_ANCHORS", "TAP_LOOP")
 
 
@@ -543,10 +529,7 @@ def _conv(x, w, layer, *, bias=None, relu=False, mask=None, targets=None):
         grid=(rows // BLOCK,),
         interpret=_interpret(),
         # Triton's parameters also pick Pallas' Triton backend (not Mosaic GPU).
-        compiler_params=plt.CompilerParams(
-            num_warps=PIXELS_WARPS if isinstance(layer, _Pixels) else NUM_WARPS,
-            num_stages=CONV_STAGES,
-        ),
+        compiler_params=plt.CompilerParams(num_warps=NUM_WARPS, num_stages=CONV_STAGES),
     )(*args)
 
 
@@ -705,10 +688,7 @@ def _wgrad_call(layer, c: int, steps: int, *args):
         ),
         grid=(programs,),
         interpret=_interpret(),
-        compiler_params=plt.CompilerParams(
-            num_warps=PIXELS_WGRAD_WARPS if isinstance(layer, _Pixels) else WGRAD_WARPS,
-            num_stages=STAGES,
-        ),
+        compiler_params=plt.CompilerParams(num_warps=WGRAD_WARPS, num_stages=STAGES),
     )(*args)
     w = w.sum(0)
     return (jnp.swapaxes(w, 1, 2) if WGRAD_G_FIRST else w), b.sum(0)

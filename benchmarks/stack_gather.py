@@ -6,8 +6,8 @@ A sampled transition's observation is K stored frames [H, W, C] (uint8) laid out
 [H, W, K * C], the frames' bytes interleaved pixel by pixel (`replay._gather_stack`). In the
 training loop XLA fuses the gather with that interleaving into one kernel that took 0.52 ms of
 a 5-seed DEAR update on an H200 (benchmarks/RESULTS.md). This times `replay.sample` over
-`--seeds` vmapped replays (filled, every entry sampleable) with each way of writing the gather
-(`VARIANTS`), checks each against the current one, and also times the frames gathered without
+`--seeds` vmapped replays (filled, every entry sampleable), `--iters` samples in one program,
+with each way of writing the gather (`VARIANTS`), checks each against the current one, and also times the frames gathered without
 the interleaving ("frames first", [B, K, H, W, C]: what the gather alone costs). Writes JSON.
 """
 
@@ -78,6 +78,17 @@ def filled_replay(seeds: int, envs: int, capacity: int, frame_shape) -> replay.R
     )
 
 
+def _repeated(sample, state, keys):
+    """`sample` at each of keys' first axis in one program (each batch written out whole:
+    `replay.sample_at`'s barrier), so that the GPU's time, not the launch, is what is timed."""
+
+    def body(total, key):
+        batch = sample(state, key)
+        return total + batch.obs[..., 0, 0, 0].astype(jnp.int32).sum(), None
+
+    return jax.lax.scan(body, jnp.int32(0), keys)[0]
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, default=5)
@@ -85,7 +96,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--capacity", type=int, default=100_000)
     parser.add_argument("--batch", type=int, default=512)
     parser.add_argument("--nstep", type=int, default=3)
-    parser.add_argument("--iters", type=int, default=50)
+    parser.add_argument("--iters", type=int, default=20, help="samples per program")
+    parser.add_argument("--calls", type=int, default=5, help="programs timed")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     state = filled_replay(args.seeds, args.envs, args.capacity, (84, 84, 3))
@@ -97,9 +109,11 @@ def main(argv=None) -> dict:
             sample = functools.partial(
                 replay.sample, batch_size=args.batch, nstep=args.nstep, gamma=0.99, frame_stack=3
             )
-            fn = jax.jit(jax.vmap(sample))
-            batch = jax.block_until_ready(fn(state, keys[0]))
-            ms, dispatch = timed_calls(lambda i, fn=fn: fn(state, keys[i]), args.iters)
+            batch = jax.block_until_ready(jax.jit(jax.vmap(sample))(state, keys[0]))
+            fn = jax.jit(functools.partial(_repeated, jax.vmap(sample)))
+            jax.block_until_ready(fn(state, keys))
+            ms, dispatch = timed_calls(lambda i, fn=fn: fn(state, keys), args.calls)
+            ms, dispatch = ms / args.iters, dispatch / args.iters
         finally:
             replay._gather_stack = VARIANTS["current"]
         if reference is None:
@@ -107,8 +121,8 @@ def main(argv=None) -> dict:
         elif batch.obs.shape == reference.obs.shape:
             for a, b in zip(jax.tree.leaves(batch), jax.tree.leaves(reference), strict=True):
                 np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-        rows.append(dict(variant=name, ms_per_call=ms, dispatch_ms=dispatch))
-        print(f"{name}: {ms:.3f} ms per call of {args.seeds} seeds (dispatch {dispatch:.3f})")
+        rows.append(dict(variant=name, ms_per_sample=ms, dispatch_ms_per_sample=dispatch))
+        print(f"{name}: {ms:.3f} ms per sample of {args.seeds} seeds (dispatch {dispatch:.3f})")
     result = dict(args=vars(args), device=jax.devices()[0].device_kind, rows=rows)
     save_json(result, args.out)
     return result

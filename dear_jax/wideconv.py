@@ -50,8 +50,8 @@ Filter gradients' products as g^T x (`WGRAD_G_FIRST`) then took DEAR from 3.23-3
 warps, 4 stages or 128-row steps were slower, 32-row steps no faster (benchmarks/RESULTS.md).
 Nsight Compute found the 9-tap filter gradients (as x^T g) limited by their registers (232-252 a
 thread: 2 warps' programs, 6% occupancy) and L1 traffic (80% of its peak), not by memory. Read
-over anchors (`_Anchors`: 6 loads a step instead of 10), they took DEAR to 2.85 ms for one seed
-and 2.11 per seed for five (commit b902f47).
+over anchors (`_Anchors`: 6 loads a step instead of 10), as x^T g again, they took DEAR to 2.85
+ms for one seed and 2.11 per seed for five on an H200 (commit b902f47).
 
 `conv_stack(x, layers, pads)` is the function of
 `for (k, b), p in zip(layers, pads): x = relu(VALID conv of x zero-padded by p with k, + b)`,

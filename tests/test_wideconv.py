@@ -127,7 +127,6 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     [
         ("decoder", {"TAP_LOOP": False, "WGRAD_ANCHORS": False}),
         ("encoder_shifted", {"TAP_LOOP": False, "WGRAD_G_FIRST": True}),
-        ("decoder", {"WGRAD_G_FIRST": True, "WGRAD_ANCHORS": False}),
     ],
 )
 def test_kernel_settings_compute_the_same(monkeypatch, name, settings):

@@ -99,7 +99,7 @@ WGRAD_WARPS = 2
 WGRAD_G_FIRST = False
 # A padded or VALID layer's filter gradient stepping over anchors rather than output rows
 # (`_Anchors`): a step loads k blocks of the input and k of the output gradient rather than
-# k * k and one. On an H200 every method's update took 4-19% less time (benchmarks/RESULTS.md).
+# k * k and one. On an H200 every method's update took 6-19% less time (benchmarks/RESULTS.md).
 WGRAD_ANCHORS = True
 STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of looped taps)
 # A convolution's taps as a loop (which Triton software-pipelines) rather than unrolled, and

@@ -7,8 +7,10 @@ A sampled transition's observation is K stored frames [H, W, C] (uint8) laid out
 training loop XLA fuses the gather with that interleaving into one kernel that took 0.52 ms of
 a 5-seed DEAR update on an H200 (benchmarks/RESULTS.md). This times `replay.sample` over
 `--seeds` vmapped replays (filled, every entry sampleable), `--iters` samples in one program,
-with each way of writing the gather (`VARIANTS`), checks each against the current one, and also times the frames gathered without
-the interleaving ("frames first", [B, K, H, W, C]: what the gather alone costs). Writes JSON.
+with each way of writing the gather (`VARIANTS`), checks each against the current one, and
+also times the frames gathered without the interleaving ("frames first", [B, K, H, W, C]: what
+the gather alone costs). Writes JSON. On an H200 (commit 5811e91) the interleaving cost a
+5-seed sample ~0.06 of its 0.36 ms.
 """
 
 from __future__ import annotations

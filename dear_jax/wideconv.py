@@ -372,11 +372,16 @@ class _Pixels:
         pixel, channel = jax.lax.div(lanes, self.channels), jax.lax.rem(lanes, self.channels)
         col = self.stride * x + dx - self.shift
         col = jnp.clip(col[:, None] + pixel[None, :], 0, last)
+        # Each lane's offset within an image row, the same for every kernel row: a kernel row's
+        # indices are then one addition per lane (the forward kernel kept 58% of the SM's issue
+        # slots busy: index arithmetic; benchmarks/results/kernels/counters_dear_1seed_h200.json).
+        lane_offset = col * self.channels + channel[None, :]
 
         def load(i):
             row = jnp.clip(self.stride * y + i + dy - self.shift, 0, last)
-            idx = ((image * self.side + row)[:, None] * self.side + col) * self.channels
-            return plt.load(x_ref.at[idx + channel[None, :]], mask=mask, other=0).astype(dtype)
+            start = (image * self.side + row) * (self.side * self.channels)
+            idx = start[:, None] + lane_offset
+            return plt.load(x_ref.at[idx], mask=mask, other=0).astype(dtype)
 
         return load
 

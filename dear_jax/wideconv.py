@@ -276,6 +276,13 @@ def _round_up(n: int, multiple: int) -> int:
     return -(-n // multiple) * multiple
 
 
+def _gather_rows(ref, ok, row, lanes: int) -> jax.Array:
+    """[len(row), lanes]: rows `row` of a flat ref of rows of `lanes` values, zeros where not
+    `ok` (those rows are not read)."""
+    idx = jnp.where(ok, row, 0)[:, None] * lanes + jnp.arange(lanes, dtype=jnp.int32)
+    return plt.load(ref.at[idx], mask=jnp.broadcast_to(ok[:, None], idx.shape), other=0)
+
+
 def _as_float(x: jax.Array, dtype) -> jax.Array:
     """x (pixels, targets) as `dtype`; uint8 through the bits of 2^23 + x with PIXELS_BY_BITS."""
     if not (PIXELS_BY_BITS and x.dtype == jnp.uint8):
@@ -332,9 +339,7 @@ class _Pass:
                 ok &= x + j - self.pad >= 0
             if _traced(t) or j > k - 1 - self.pad:
                 ok &= x + j - self.pad <= last
-            idx = jnp.where(ok, idx, 0)[:, None] * c + lanes
-            mask = jnp.broadcast_to(ok[:, None], idx.shape)
-            return plt.load(x_ref.at[idx], mask=mask, other=0).astype(dtype)
+            return _gather_rows(x_ref, ok, idx, c).astype(dtype)
 
         return load
 
@@ -577,19 +582,15 @@ class _Anchors:
         image, rest = jax.lax.div(rows, tall * s), jax.lax.rem(rows, tall * s)
         y, x = jax.lax.div(rest, s), jax.lax.rem(rest, s)
 
-        def gather(ref, ok, row, lanes):
-            idx = jnp.where(ok, row, 0)[:, None] * lanes + jnp.arange(lanes, dtype=jnp.int32)
-            return plt.load(ref.at[idx], mask=jnp.broadcast_to(ok[:, None], idx.shape), other=0)
-
         xs = []
         for j in range(k):
             ok = keep  # a VALID layer's anchors read inside its input
             if p:
                 ok = ok & (y >= p) & (y - p < side) & (x + j >= p) & (x + j - p < side)
             row = (image * side + y - p) * side + x + j - p
-            xs.append(gather(x_ref, ok, row, c).astype(dtype))
+            xs.append(_gather_rows(x_ref, ok, row, c).astype(dtype))
         gs = [
-            gather(g_ref, keep & (y >= i) & (y - i < s), (image * s + y - i) * s + x, f)
+            _gather_rows(g_ref, keep & (y >= i) & (y - i < s), (image * s + y - i) * s + x, f)
             for i in range(k)
         ]
         return xs, gs

@@ -101,10 +101,6 @@ WGRAD_G_FIRST = False
 # (`_Anchors`): a step loads k blocks of the input and k of the output gradient rather than
 # k * k and one. On an H200 every method's update took 6-19% less time (benchmarks/RESULTS.md).
 WGRAD_ANCHORS = True
-# uint8 pixels and targets made floats exactly through the bits of 2^23 + x (an integer OR, a
-# float subtraction) rather than integer-to-float conversions, which an SM issues at a quarter
-# of the rate of integer and float additions (CUDA's throughput table, compute capability 9.0).
-PIXELS_BY_BITS = False
 STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of looped taps)
 # A convolution's taps as a loop (which Triton software-pipelines) rather than unrolled, and
 # its pipeline's stages.
@@ -126,7 +122,6 @@ TUNABLE = (
     "WGRAD_WARPS",
     "WGRAD_G_FIRST",
     "WGRAD_ANCHORS",
-    "PIXELS_BY_BITS",
     "STAGES",
     "TAP_LOOP",
     "CONV_STAGES",
@@ -135,7 +130,7 @@ TUNABLE = (
 
 # Constants that must be powers of two (Triton's block shapes, warps) or at least 1; switches 0/1.
 _POWERS_OF_TWO = ("BLOCK", "NUM_WARPS", "WGRAD_BLOCK", "WGRAD_STEPS", "WGRAD_WARPS")
-_SWITCHES = ("WGRAD_G_FIRST", "WGRAD_ANCHORS", "PIXELS_BY_BITS", "TAP_LOOP")
+_SWITCHES = ("WGRAD_G_FIRST", "WGRAD_ANCHORS", "TAP_LOOP")
 
 
 def parse_constants(setting: str | dict) -> dict[str, int]:
@@ -283,14 +278,6 @@ def _gather_rows(ref, ok, row, lanes: int) -> jax.Array:
     return plt.load(ref.at[idx], mask=jnp.broadcast_to(ok[:, None], idx.shape), other=0)
 
 
-def _as_float(x: jax.Array, dtype) -> jax.Array:
-    """x (pixels, targets) as `dtype`; uint8 through the bits of 2^23 + x with PIXELS_BY_BITS."""
-    if not (PIXELS_BY_BITS and x.dtype == jnp.uint8):
-        return x.astype(dtype)
-    bits = x.astype(jnp.uint32) | jnp.uint32(0x4B000000)  # the float32 2^23 + x
-    return (jax.lax.bitcast_convert_type(bits, jnp.float32) - jnp.float32(2.0**23)).astype(dtype)
-
-
 @dataclasses.dataclass(frozen=True)
 class _Pass:
     """One convolution of a stack: k x k taps over the `size_in` x `size_in` input zero-padded
@@ -378,7 +365,7 @@ class _Pixels:
 
         def load(i):
             idx = base[:, None] + i * self.side * self.channels + lanes[None, :]
-            return _as_float(plt.load(x_ref.at[idx], mask=mask, other=0), dtype)
+            return plt.load(x_ref.at[idx], mask=mask, other=0).astype(dtype)
 
         return load
 
@@ -399,7 +386,7 @@ class _Pixels:
             row = jnp.clip(self.stride * y + i + dy - self.shift, 0, last)
             start = (image * self.side + row) * (self.side * self.channels)
             idx = start[:, None] + lane_offset
-            return _as_float(plt.load(x_ref.at[idx], mask=mask, other=0), dtype)
+            return plt.load(x_ref.at[idx], mask=mask, other=0).astype(dtype)
 
         return load
 
@@ -446,7 +433,7 @@ class _Targets:
             col = jnp.clip(col + dx[:, None] - self.shift, 0, last)
         idx = ((image[:, None] * self.side + row) * self.side + col) * self.channels
         idx = jnp.where(ok, idx + channel[None, :], 0)
-        return _as_float(plt.load(y_ref.at[idx], mask=ok, other=0), jnp.float32), ok
+        return plt.load(y_ref.at[idx], mask=ok, other=0).astype(jnp.float32), ok
 
 
 def _loader(x_ref, crop_ref, rows, layer, c: int, dtype):

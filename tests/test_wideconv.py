@@ -126,15 +126,15 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     "name, settings",
     [
         ("decoder", {"TAP_LOOP": False, "WGRAD_ANCHORS": False}),
-        ("encoder_shifted", {"TAP_LOOP": False, "WGRAD_G_FIRST": True, "PIXELS_BY_BITS": True}),
+        ("encoder_shifted", {"TAP_LOOP": False, "WGRAD_G_FIRST": True}),
     ],
 )
 def test_kernel_settings_compute_the_same(monkeypatch, name, settings):
     """The kernels' settings change how, not what: a convolution's taps as a loop (traced tap
     indices, every padding check at run time) or unrolled (the checks a tap needs, fixed);
     filter gradients as x^T g or g^T x, over output rows or over anchors (padded and VALID
-    layers; steps of 16 rows, 2 per program, so that steps and programs begin inside images);
-    uint8 pixels made floats through their bits. The same values and gradients as the defaults."""
+    layers; steps of 16 rows, 2 per program, so that steps and programs begin inside images).
+    The same values and gradients as the defaults."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
     monkeypatch.setattr(wideconv, "WGRAD_BLOCK", 16)
     monkeypatch.setattr(wideconv, "WGRAD_STEPS", 2)
@@ -148,19 +148,6 @@ def test_kernel_settings_compute_the_same(monkeypatch, name, settings):
     # float32 sums in another order: equal to rounding, relative to each array's largest value
     for a, b in zip(jax.tree.leaves(changed), jax.tree.leaves(default), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * max(1.0, float(np.abs(b).max())))
-
-
-def test_bytes_made_floats_through_their_bits_are_exact(monkeypatch):
-    """With PIXELS_BY_BITS every uint8 value becomes the same float32 and bfloat16 as a
-    conversion makes it (0 and 255 included); other dtypes are converted as they are."""
-    monkeypatch.setattr(wideconv, "PIXELS_BY_BITS", True)
-    every = jnp.arange(256, dtype=jnp.uint8)
-    for dtype in (jnp.float32, jnp.bfloat16):
-        got = wideconv._as_float(every, dtype)
-        assert got.dtype == dtype
-        np.testing.assert_array_equal(np.asarray(got, np.float32), np.arange(256))
-    ints = jnp.array([-3, 300], jnp.int32)
-    np.testing.assert_array_equal(wideconv._as_float(ints, jnp.float32), [-3.0, 300.0])
 
 
 def _value_and_grad(stack, argnums, scale):

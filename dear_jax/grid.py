@@ -26,7 +26,8 @@ a stopped job cannot resume; `auto`: a job starts only where a minute plus 1.1x 
 its length at the training pace of its cell's finished runs of as many lanes, else of its task
 and method's in other settings, else at most that of runs of other lane counts
 (`report.grid_jobs`; their periodic checkpoints' share too unless
---set checkpoint_every_frames=0; a job without one needs MARGIN of `auto:MARGIN`, a minute by
+--set checkpoint_every_frames=0; with --per-gpu K > 1, at most K times that, as K jobs share a
+GPU and its cores; a job without one needs MARGIN of `auto:MARGIN`, a minute by
 default), and where the next job does not fit, a later one that does goes first), or on SIGTERM,
 SIGINT (Ctrl-C) or SIGHUP, every running job gets SIGTERM, saves a checkpoint and its summary,
 and exits; a second signal stops them at once, and one still running 10 minutes after the first
@@ -132,6 +133,22 @@ def slots(gpus: list[str], per_gpu: int) -> list[Slot]:
     return [
         Slot(gpu, tuple(cores[i * m // n : (i + 1) * m // n] or [cores[i % m]]), fraction)
         for i, gpu in enumerate(places)
+    ]
+
+
+def side_by_side(jobs: list[report.Job], at_a_time: int) -> list[report.Job]:
+    """The jobs' lengths where `at_a_time` of them run at a time on each GPU (or on the
+    CPU): at most that many times their length by the paces of earlier runs, as the jobs share
+    the GPU and split its cores (one after the other they would take no longer). Measured, two
+    finger-spin runs side by side on one H200 with 8 cores each took 1.5x as long as alone
+    (results/README.md), so `auto` would start jobs that the time limit then stops."""
+    if at_a_time == 1:
+        return list(jobs)
+    return [
+        job
+        if job.seconds is None
+        else dataclasses.replace(job, seconds=job.seconds * at_a_time, at_most=True)
+        for job in jobs
     ]
 
 
@@ -368,6 +385,7 @@ def main(argv=None) -> list[dict] | None:
         parser.error(str(e))
     try:
         jobs = report.grid_jobs(grid, args.frames, str(root), extra, args.seeds_per_run)
+        jobs = side_by_side(jobs, args.per_gpu)
     except ValueError as e:
         parser.error(str(e))
     if not jobs:
@@ -385,9 +403,10 @@ def main(argv=None) -> list[dict] | None:
         some = f"{len(known)} of the {len(jobs)} runs (no length known for the rest)"
         runs = f"{len(jobs)} runs" if len(known) == len(jobs) else some
         at_most = "at most " if any(job.at_most for job in jobs) else ""
+        shared = f", times {args.per_gpu}: {args.per_gpu} per GPU" if args.per_gpu > 1 else ""
         print(
             f"{at_most}~{sum(known) / 3600:.1f} h of training in all, {runs}, at the pace of the "
-            "runs named on their own devices"
+            f"runs named on their own devices{shared}"
         )
     if args.dry_run or not jobs:
         return None

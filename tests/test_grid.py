@@ -431,3 +431,26 @@ def test_a_dry_run_prints_the_queue_of_the_runs_under_root(tmp_path, capsys):
         "~0.3 h of training in all, 1 of the 2 runs (no length known for the rest), at the pace "
         "of the runs named on their own devices"
     )
+
+
+def test_jobs_side_by_side_on_a_gpu_take_at_most_as_many_times_as_long(tmp_path, capsys):
+    """With --per-gpu 2 a new seed-run's length is a bound, twice its length alone (the
+    earlier runs' paces are of runs alone), for `auto` and in the queue printed; a job of
+    unknown length stays unknown."""
+    root = tmp_path / "runs"
+    done = paper_run(root / "walker_dear_s0", "walker,dear", 0, 1_000_000)
+    (done / "summary.json").write_text(json.dumps({"frames_per_seed": 1_000_000, "wall_s": 1.2e3}))
+    jobs = [report.Job("a", (), 600.0), report.Job("b", ())]
+    assert grid.side_by_side(jobs, 1) == jobs
+    assert grid.side_by_side(jobs, 3) == [report.Job("a", (), 1800.0, True), report.Job("b", ())]
+    grid.main(
+        ["--root", str(root), "--tasks", "walker", "--methods", "dear", "--gpus", "0"]
+        + ["--per-gpu", "2", "--seeds", "2", "--dry-run"]
+    )
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "1 runs to complete the grid, 2 at a time:"
+    assert lines[1].startswith("  walker_dear_s1 (at most ~40 min of training): python run.py")
+    assert lines[2] == (
+        "at most ~0.7 h of training in all, 1 runs, at the pace of the runs named on their own "
+        "devices, times 2: 2 per GPU"
+    )

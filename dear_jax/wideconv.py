@@ -106,10 +106,6 @@ STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of 
 # its pipeline's stages.
 TAP_LOOP = True
 CONV_STAGES = 3
-# The pipeline stages of a strided first layer's kernels (`_Pixels`: uint8 pixels gathered a byte
-# at a time, which Triton cannot copy asynchronously, so each stage holds its loads in
-# registers), forward and filter gradient; 0: CONV_STAGES and STAGES as the other layers'.
-PIXELS_STAGES = 0
 # The float32 dots' precision on GPUs: None lets them run in TF32, as XLA's float32 convolutions
 # do there by default; jax.lax.Precision.HIGHEST makes them IEEE float32 (the GPU tests).
 PRECISION: jax.lax.Precision | None = None
@@ -129,7 +125,6 @@ TUNABLE = (
     "STAGES",
     "TAP_LOOP",
     "CONV_STAGES",
-    "PIXELS_STAGES",
 )
 
 
@@ -164,7 +159,7 @@ def parse_constants(setting: str | dict) -> dict[str, int]:
             raise ValueError(f"kernel constant {item!r}: {name} is a switch, 0 or 1")
         if name in _POWERS_OF_TWO and (number < 1 or number & (number - 1)):
             raise ValueError(f"kernel constant {item!r}: {name} must be a power of two")
-        minimum = 1 if name in ("STAGES", "CONV_STAGES") else 0
+        minimum = 1 if name.endswith("STAGES") else 0
         if number < minimum:
             raise ValueError(f"kernel constant {item!r}: {name} must be at least {minimum}")
         parsed[name] = number
@@ -511,11 +506,6 @@ def _clipped_squares(out, y):
 LOSSES = {"bce": _bce, "clipped_squares": _clipped_squares}
 
 
-def _stages(layer, stages: int) -> int:
-    """A kernel's pipeline stages: `stages`, or PIXELS_STAGES for a strided first layer."""
-    return PIXELS_STAGES if isinstance(layer, _Pixels) and PIXELS_STAGES else stages
-
-
 def _conv(x, w, layer, *, bias=None, relu=False, mask=None, targets=None):
     """The rows of layer.out: out[q] = sum_t (tap t of x for q) @ w[t] (+ bias, ReLU) in w's
     dtype, zero where `mask` (of the same rows) is not positive (if given) and past the
@@ -549,9 +539,7 @@ def _conv(x, w, layer, *, bias=None, relu=False, mask=None, targets=None):
         grid=(rows // BLOCK,),
         interpret=_interpret(),
         # Triton's parameters also pick Pallas' Triton backend (not Mosaic GPU).
-        compiler_params=plt.CompilerParams(
-            num_warps=NUM_WARPS, num_stages=_stages(layer, CONV_STAGES)
-        ),
+        compiler_params=plt.CompilerParams(num_warps=NUM_WARPS, num_stages=CONV_STAGES),
     )(*args)
 
 
@@ -706,9 +694,7 @@ def _wgrad_call(layer, c: int, steps: int, *args):
         ),
         grid=(programs,),
         interpret=_interpret(),
-        compiler_params=plt.CompilerParams(
-            num_warps=WGRAD_WARPS, num_stages=_stages(layer, STAGES)
-        ),
+        compiler_params=plt.CompilerParams(num_warps=WGRAD_WARPS, num_stages=STAGES),
     )(*args)
     w = w.sum(0)
     return (jnp.swapaxes(w, 1, 2) if WGRAD_G_FIRST else w), b.sum(0)

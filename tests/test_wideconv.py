@@ -391,7 +391,6 @@ def test_kernel_constants_hold_inside_their_block_only():
         ("TAP_LOOP=7", "TAP_LOOP is a switch, 0 or 1"),
         ("CONV_STAGES=0", "CONV_STAGES must be at least 1"),
         ("WGRAD_MIN_PROGRAMS=-1", "WGRAD_MIN_PROGRAMS must be at least 0"),
-        ("PIXELS_STAGES=-1", "PIXELS_STAGES must be at least 0"),
     ]:
         with pytest.raises(ValueError, match=why):
             wideconv.parse_constants(bad)
@@ -496,32 +495,6 @@ def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypat
     touching = [line for line in text.splitlines() if f"x{rows}x16x" in line]
     ops = {re.search(r"stablehlo\.\w+", line).group() for line in touching}
     assert ops == {"stablehlo.custom_call", "stablehlo.reshape"}
-
-
-def test_the_first_layers_stages_are_a_setting_of_their_own(monkeypatch):
-    """PIXELS_STAGES sets the pipeline stages of a strided first layer's forward and filter
-    gradient, lowered for CUDA, and no other kernel's; 0 leaves them as the others'."""
-    monkeypatch.setattr(wideconv, "INTERPRET", False)
-    x = jax.ShapeDtypeStruct((8, 84, 84, 9), jnp.uint8)
-    layers = tuple(
-        (jax.ShapeDtypeStruct((3, 3, c, f), jnp.float32), jax.ShapeDtypeStruct((f,), jnp.float32))
-        for c, f in [(9, 32), (32, 32)]
-    )
-
-    def loss(x, ws):
-        return jnp.sum(wideconv.conv_stack(x, ws, 0, True, jnp.bfloat16, 2).astype(jnp.float32))
-
-    def stages(setting):  # each Triton kernel's, in the program's order
-        with wideconv.constants(setting):
-            lowered = (
-                jax.jit(jax.grad(loss, 1)).trace(x, layers).lower(lowering_platforms=("cuda",))
-            )
-        return [int(n) for n in re.findall(r"num_stages = (\d+) : i32", lowered.as_text())]
-
-    # forward: the first layer, the second; backward: the second's filter gradient and input
-    # gradient, the first's filter gradient
-    assert stages({}) == [3, 3, 3, 3, 3]
-    assert stages({"PIXELS_STAGES": 1, "STAGES": 2}) == [1, 3, 2, 3, 1]
 
 
 def test_networks_with_pallas_stacks_are_the_same_function(monkeypatch):

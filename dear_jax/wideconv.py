@@ -1,17 +1,11 @@
 """Stacks of convolutions (with ReLU) as Pallas (Triton) kernels on rows of pixels.
 
-Why: the stride-1 layers of the encoder (41 -> 39 -> 37 -> 35) and of the mask decoder
-(35 -> 37 -> 39 -> 41, transposed) are most of a DEAR update, and on an H100 cuDNN runs them well
-above the memory floor: a bf16 forward convolution at [512, 41, 41, 32] takes ~94 µs and a filter
-gradient ~165 µs, where reading and writing the activations takes ~35 µs
-(benchmarks/results/dispatch_h100.json). With seeds in the hybrid update, cutting each seed's
-operands out of the stacked batch and stacking the results back cost another 4.1 ms of a 24.8 ms
-5-seed call (benchmarks/results/profile_dear_hybrid_h100.json). Here each layer is one kernel for
-all seeds (Pallas batches the grid under `jax.vmap`), with bias, ReLU and the ReLU gradient fused.
-The strided layers around them join the stacks (`networks.ConvTrunk`, `networks.PoolDecoder`):
-the encoder's stride-2 first layer reads the uint8 frames themselves (through the random
-shift's crops, so no shifted copy is made), and the decoder's last layer, a stride-2 transposed
-convolution, is the 2x2 convolution that produces its four output phases.
+What this file owns: the encoder's conv trunk and the decoders' convolutions as one kernel per
+layer and pass (forward, input gradient, filter gradient) for all vmapped seeds at once (Pallas
+batches the grid under `jax.vmap`), with bias, ReLU and the ReLU gradient fused. Why: cuDNN runs
+these small-channel layers well above the memory floor, and in the hybrid update cutting each
+seed's operands out of the stacked batch and stacking the results back costs as much again
+(benchmarks/RESULTS.md, "The update" and "Roofline of the updates").
 
 The layout. Every activation of a stack is its pixels as rows, [N * side * side, C] (`_Grid`;
 zero rows pad it to a multiple of the blocks). A convolution is one [BLOCK, C] x [C, F] product
@@ -19,51 +13,33 @@ per kernel tap for each block of output rows (implicit GEMM without the im2col c
 (i, j) of a layer padded by p, output pixel (y, x) of image n reads input row
 (n * side_in + y + i - p) * side_in + x + j - p, computed once per row from the output row's
 (n, y, x), the tap adding a constant. A VALID layer's taps never leave its input; the taps that
-can reach a padded layer's padding are masked loads that read zeros there. Its input gradient
-is the convolution of the output gradient padded by k - 1 - p with the kernel flipped and
-transposed. Before commit 0a9beda every activation sat in one layout of the
-stack's largest side, with zeros around smaller ones, so that a tap was a fixed shift of the
-rows; the kernels then also computed those zeros (27% of the rows of a 35 x 35 layer), and the
-bf16 DEAR update took 3.39 instead of 3.11 ms per seed
-(benchmarks/results/update_wideconv_h100_{crops,grid}.json).
+can reach a padded layer's padding are masked loads that read zeros there (`_Pass`). Its input
+gradient is the convolution of the output gradient padded by k - 1 - p with the kernel flipped
+and transposed. The taps run as a loop, which Triton software-pipelines (`TAP_LOOP`).
 
-The settings below are the fastest of staged sweeps on an H100 (the sweep script ran at commits
-3ec3f18 and 91f0f71; benchmarks/results/wideconv_h100_sweep_*.json, benchmarks/RESULTS.md):
-programs of 256 rows with 4 warps, and filter gradients of 32 steps of 64 rows with 2 warps
-and 3 pipeline stages. With them the bf16 DEAR update of 5 seeds at batch 512 took 3.07 ms per
-seed against 4.93 with cuDNN (3.03 with the BCE's own gradient, losses.py). Slower in those
-sweeps and removed: loads of 4-pixel windows (3 taps and a zero-weighted pixel per load),
-programs of several image rows that share their windows, several blocks per program with the
-weights loaded once (commit 6d204e7), and eviction policies on the loads.
+The layers around the stride-1 ones join the stacks (`networks.ConvTrunk`,
+`networks.PoolDecoder`): the encoder's stride-2 first layer reads the uint8 frames themselves,
+a kernel row of pixels per load, through the random shift's crops, so no shifted copy is made
+(`_Pixels`); the decoder's last layer, a stride-2 transposed convolution, is the 2x2 convolution
+that produces its four output phases. PyTorch's ConvTranspose2d(k=3, stride=1) is a layer with
+pad 2 (`networks.ConvTranspose`).
 
-A convolution's taps then became a loop, which Triton software-pipelines (each tap's gathered
-rows are fetched while the previous tap's product runs), in programs of 128 rows: the same
-update took 2.61-2.62 ms per seed against 2.89-2.90 with the taps unrolled in programs of 256
-(`python -m benchmarks.update ... --kernels`, benchmarks/results/kernels/). Slower there: the
-loop's 2 or 4 stages, 8 warps, programs of 64 or 512 rows; and filter gradients with a program
-per tap and block of rows (3.56 ms; commit f4ae598); a kernel row's taps as one load and
-one product of K = 3 * C, padded to 128 lanes (slower in every setting; commit f1ae683); and
-padded layers reading a zero-padded copy of their input as VALID layers, without load masks
-(the copies cost more than the masks, on an H100 and on an H200; commit f5ff609).
-Filter gradients' products as g^T x (`WGRAD_G_FIRST`) then took DEAR from 3.23-3.25 to
-3.10-3.12 ms for one seed and 2.37-2.38 to 2.28-2.29 per seed for five on an H200; with them 4
-warps, 4 stages or 128-row steps were slower, 32-row steps no faster (benchmarks/RESULTS.md).
-Nsight Compute found the 9-tap filter gradients (as x^T g) limited by their registers (232-252 a
-thread: 2 warps' programs, 6% occupancy) and L1 traffic (80% of its peak), not by memory. Read
-over anchors (`_Anchors`: 6 loads a step instead of 10), as x^T g again, they took DEAR to 2.85
-ms for one seed and 2.11 per seed for five on an H200 (commit b902f47).
+Filter gradients sum x^T g over the rows in programs of WGRAD_STEPS steps of WGRAD_BLOCK rows,
+each program writing partial sums that XLA adds up. A 3 x 3 (or 2 x 2) layer steps over anchors
+(`_Anchors`): each step loads k blocks of the input and k of the output gradient rather than
+k * k of the input and one of the gradient.
 
 `conv_stack(x, layers, pads)` is the function of
 `for (k, b), p in zip(layers, pads): x = relu(VALID conv of x zero-padded by p with k, + b)`,
-the last ReLU optional. PyTorch's ConvTranspose2d(k=3, stride=1) is such a layer with pad 2
-(`networks.ConvTranspose`). Off GPUs the kernels run in Pallas' interpreter (slow; for tests).
-tests/test_wideconv.py checks values and gradients against lax.conv.
+the last ReLU optional. `conv_stack_loss` is such a stack with a loss of its last layer's output
+fused into that layer's kernel (`LOSSES`: the mask decoder's binary cross-entropy, SEAR's
+reconstruction error), whose output is then the loss's gradient: the logits are never written.
 
-`conv_stack_loss` is such a stack with a loss of its last layer's output fused into that
-layer's kernel: the mask decoder's binary cross-entropy, SEAR's reconstruction error. The mask
-loss had been two XLA passes over the logits, 0.54 ms of a 15.2 ms 5-seed update; fused, the
-kernel's epilogue costs ~0.2 ms, and the update went from 3.01 to 2.95 ms per seed on an H100
-(commit 981cf76, benchmarks/results/update_bce_fused_ab_h100.json).
+The settings below (block sizes, warps, pipeline stages, switches) are the fastest found by
+`python -m benchmarks.update ... --kernels` on an H100 and an H200; the measurements, and the
+variants that were slower and removed, are in benchmarks/RESULTS.md ("The conv kernels'
+settings"). Off GPUs the kernels run in Pallas' interpreter (slow; for tests).
+tests/test_wideconv.py checks values and gradients against lax.conv.
 """
 
 from __future__ import annotations

@@ -89,8 +89,8 @@ def _start_processes() -> int:
 
 
 def _check(config) -> None:
-    """The trainer's checks of a config, and its background videos' folder, before the run
-    writes anything."""
+    """The trainer's checks of a config, its background videos' folder and the runs beside it
+    on its GPU ($DEAR_JAX_RUNS_PER_GPU), before the run writes anything."""
     root = logging.getLogger()
     level = root.level
     # Libraries' notes (imports, backends) are for the log; the trainer's warnings come again,
@@ -99,10 +99,12 @@ def _check(config) -> None:
     try:
         with contextlib.redirect_stdout(io.StringIO()):
             from dear_jax.experiment import validate
+            from dear_jax.summary import runs_per_gpu
             from envs.distractions import check_background_dir
 
             validate(config)
             check_background_dir(config.env)
+            runs_per_gpu()  # $DEAR_JAX_RUNS_PER_GPU, as the grid sets it
     finally:
         root.setLevel(level)
 

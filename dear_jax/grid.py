@@ -19,11 +19,13 @@ walker_beta=10_dear_s0), task by task, the methods of a task taking turns.
 
 Each GPU (`--gpus`: ids as CUDA_VISIBLE_DEVICES takes them, in nvidia-smi's PCI order; default
 every GPU visible) runs --per-gpu jobs at a time, each pinned (taskset) to its equal share of
-this process's cores, with its share of the GPU's memory when several share it; when a job ends
-the next starts. A job's console goes to --root as NAME.out. At --time-limit (90m, 3h, 2h30m or
-seconds; no job starts in its last --start-margin, a minute by default: give a job's length where
+this process's cores, with its share of the GPU's memory when several share it, and told how
+many do ($DEAR_JAX_RUNS_PER_GPU, which its summary records); when a job ends the next starts.
+A job's console goes to --root as NAME.out. At --time-limit (90m, 3h, 2h30m or seconds; no
+job starts in its last --start-margin, a minute by default: give a job's length where
 a stopped job cannot resume; `auto`: a job starts only where a minute plus 1.1x its length fit,
-its length at the training pace of its cell's finished runs of as many lanes, else of its task
+its length at the training pace of its cell's finished runs of as many lanes (each alone on
+its GPU), else of its task
 and method's in other settings, else at most that of runs of other lane counts
 (`report.grid_jobs`; their periodic checkpoints' share too unless
 --set checkpoint_every_frames=0; with --per-gpu K > 1, at most K times that, as K jobs share a
@@ -60,6 +62,7 @@ import time
 from dear_jax import lanes, report
 from dear_jax.logger import format_table
 from dear_jax.signals import SIGNALS
+from dear_jax.summary import RUNS_PER_GPU_ENV
 
 REPO = pathlib.Path(__file__).resolve().parents[1]  # run.py and configs/ are here
 STOPPED = (143, 130, -signal.SIGTERM, -signal.SIGINT)  # how a run ends when asked to stop
@@ -89,14 +92,17 @@ class Slot:
     gpu: str | None
     cores: tuple[int, ...]
     memory_fraction: float | None = None
+    per_gpu: int = 1  # jobs at a time on its GPU (or the CPU), its own included
 
     def __str__(self) -> str:
         where = "CPU" if self.gpu is None else f"GPU {self.gpu}"
         return f"{where}, cores {_ranges(self.cores)}"
 
     def env(self) -> dict[str, str]:
-        """The job's environment: this process's, with its GPU (and memory share)."""
+        """The job's environment: this process's, with its GPU (and memory share), and how many
+        jobs run beside it there (its summary records it: `summary.RUNS_PER_GPU_ENV`)."""
         env = dict(os.environ, CUDA_VISIBLE_DEVICES="" if self.gpu is None else self.gpu)
+        env[RUNS_PER_GPU_ENV] = str(self.per_gpu)
         env.setdefault("CUDA_DEVICE_ORDER", "PCI_BUS_ID")  # nvidia-smi's numbering
         if self.memory_fraction is not None:
             env.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", f"{self.memory_fraction:.2f}")
@@ -131,15 +137,16 @@ def slots(gpus: list[str], per_gpu: int) -> list[Slot]:
     n, m = len(places), len(cores)
     fraction = 0.9 / per_gpu if gpus and per_gpu > 1 else None
     return [
-        Slot(gpu, tuple(cores[i * m // n : (i + 1) * m // n] or [cores[i % m]]), fraction)
+        Slot(gpu, tuple(cores[i * m // n : (i + 1) * m // n] or [cores[i % m]]), fraction, per_gpu)
         for i, gpu in enumerate(places)
     ]
 
 
 def side_by_side(jobs: list[report.Job], at_a_time: int) -> list[report.Job]:
     """The jobs' lengths where `at_a_time` of them run at a time on each GPU (or on the
-    CPU): at most that many times their length by the paces of earlier runs, as the jobs share
-    the GPU and split its cores (one after the other they would take no longer). Measured, two
+    CPU): at most that many times their length by the paces of earlier runs alone on theirs
+    (`report.grid_jobs`), as the jobs share the GPU and split its cores (one after the other
+    they would take no longer). Measured, two
     finger-spin runs side by side on one H200 with 8 cores each took 1.5x as long as alone
     (results/README.md), so `auto` would start jobs that the time limit then stops."""
     if at_a_time == 1:

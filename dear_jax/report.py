@@ -207,6 +207,9 @@ def _source(workdir: pathlib.Path, config: dict, summary: dict, seeds: int) -> d
             "eval_every_frames": config.get("eval_every_frames"),
             "eval_processes": summary.get("eval_processes", 1),  # before the field: one
         },
+        # runs that trained side by side on its GPU (`summary.RUNS_PER_GPU_ENV`; before the field:
+        # the run alone)
+        "runs_per_gpu": summary.get("runs_per_gpu", 1),
         "workdir": str(workdir),
         "seeds": seeds,
         "frames_per_seed": summary["frames_per_seed"],
@@ -290,10 +293,13 @@ def pooled_rows(
             for k in sources[0]["evaluation"]
         }
         differ = "; ".join(f"{k} {v}" for k, v in differ.items() if "/" in v)
+        # and pooled runs paced beside others on their GPU and alone (the s / 1000 frames columns)
+        sharing = "/".join(dict.fromkeys(str(s["runs_per_gpu"]) for s in sources))
         rows.append(
             {
                 "run": f"{' + '.join(names)} {pool.label}".strip()
-                + (f" (evaluations differ: {differ})" if differ else ""),
+                + (f" (evaluations differ: {differ})" if differ else "")
+                + (f" (runs per GPU differ: {sharing})" if "/" in sharing else ""),
                 "method": agent["method"],
                 "task": plot.task_name(config),
                 "seeds": len(dirs),
@@ -736,7 +742,9 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
         summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
         reached = summary.get("frames_per_seed")
         pace = None
-        if reached is not None and reached >= frames:
+        # A job's length goes by runs that trained alone on their GPU (`grid.side_by_side`
+        # bounds those of jobs that share one)
+        if reached is not None and reached >= frames and summary.get("runs_per_gpu", 1) == 1:
             pace = training_pace(workdir, config, summary)
             if pace is not None:
                 key = (fields["env.task"], fields["agent.method"])
@@ -852,7 +860,8 @@ def grid_jobs(
     seed-runs (a field they name is theirs, not the agreed value). Job names are unique (suffixes _1,
     _2, ... where resumed workdirs share a name). A new seed-run's `seconds`: `frames` at the
     median `training_pace` of the cell's runs of as many lanes that reached the grid's frames
-    (whatever their devices; start-up and the closing evaluation not in it), their periodic
+    alone on their GPU (whatever their devices; start-up and the closing evaluation not in it;
+    runs that trained beside others, summary "runs_per_gpu" > 1, not counted), their periodic
     checkpoints' share left out where `overrides` set checkpoint_every_frames=0; a cell without
     such runs goes by those of its task and method in other settings, whatever differs (meant for
     the full suite's cell and the weight ablations', whose work is the paper setting's). Without

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 
 import jax
 import numpy as np
@@ -13,6 +14,23 @@ import envs
 from dear_jax import lanes, networks
 from dear_jax.logger import format_table, read_csv, write_text_atomic
 from dear_jax.provenance import provenance
+
+# How many runs share this run's GPU (or CPU) side by side, its own included: `dear_jax.grid
+# --per-gpu K` starts its jobs with this set to K. The summary records it, so that a run's pace
+# says what it was measured beside (`report table` notes pooled runs that differ in it).
+RUNS_PER_GPU_ENV = "DEAR_JAX_RUNS_PER_GPU"
+
+
+def runs_per_gpu() -> int:
+    """$DEAR_JAX_RUNS_PER_GPU (1 when unset); a clear error for a value that is no count."""
+    text = os.environ.get(RUNS_PER_GPU_ENV, "1")
+    count = int(text) if text.strip().isdigit() else 0
+    if count < 1:
+        raise ValueError(
+            f"{RUNS_PER_GPU_ENV}={text!r}: give how many runs share this run's GPU side by side "
+            "(its own included), an integer >= 1"
+        )
+    return count
 
 
 def _best(values: np.ndarray) -> float:
@@ -74,10 +92,12 @@ def write_summary(
     stopped: str | None = None,
     evaluated_on: str,
     eval_processes: int = 1,
+    runs_per_gpu: int = 1,
 ) -> dict:
     """Summary per seed from the eval logs, saved as summary.md / summary.json and printed
     unless the run was `stopped` (by that signal's name) before its end. `evaluated_on`: the
-    resolved eval_device; `eval_processes`: how many evaluated side by side."""
+    resolved eval_device; `eval_processes`: how many evaluated side by side; `runs_per_gpu`:
+    how many runs trained side by side on its GPU (`runs_per_gpu()`)."""
     wall = counters["wall_s"]
     runs = lanes.lanes(config)
     fps = counters["frame"] * len(runs) / max(wall, 1e-9)
@@ -138,6 +158,7 @@ def write_summary(
         "render_quality": config.env.render.quality,
         "eval_device": evaluated_on,
         "eval_processes": eval_processes,
+        "runs_per_gpu": runs_per_gpu,
         "distraction": config.env.distraction,
         "distraction_types": list(spec.distraction_types),
         "backgrounds": spec.backgrounds,
@@ -158,6 +179,7 @@ def write_summary(
         else ""
     )
     evaluators = f", {eval_processes} processes" if eval_processes > 1 else ""
+    evaluators += f"; {runs_per_gpu} runs side by side on this device" if runs_per_gpu > 1 else ""
     held = config.agent.noise_hold
     notes = f"; exploration draws held {held:g} agent steps" if held != 1 else ""
     notes += "; replay sampled by episode" if config.replay.sampling == "episode" else ""

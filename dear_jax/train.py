@@ -45,7 +45,7 @@ from dear_jax.logger import RunLogger, write_text_atomic
 from dear_jax.loop import Loop
 from dear_jax.programs import cached_programs
 from dear_jax.signals import AgreedStop, Stopped, StopRequest
-from dear_jax.summary import write_summary
+from dear_jax.summary import runs_per_gpu, write_summary
 
 log = logging.getLogger("dear_jax")
 
@@ -57,6 +57,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
     (`"stopped"`: the signal's name) and raises signals.Stopped.
     """
     validate(config)
+    sharing = runs_per_gpu()  # read first: a bad value fails before any work
     mesh = seed_mesh(config.devices, lanes.num_lanes(config), config.devices_per_seed)
     hosts = Hosts(mesh, lanes.num_lanes(config))
     workdir = pathlib.Path(workdir)
@@ -133,6 +134,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 stopped=stop.name if stop else None,
                 evaluated_on=where,
                 eval_processes=processes,
+                runs_per_gpu=sharing,
             )
         except Exception as e:  # a stopped run still exits as stopped (and resumable)
             if not stop:

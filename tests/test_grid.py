@@ -15,7 +15,7 @@ import time
 import pytest
 from test_outputs import REPO, paper_run
 
-from dear_jax import grid, report
+from dear_jax import grid, report, summary
 
 # A job: records its GPU, memory share, cores and times in OUT/NAME.json; sleeps SECONDS, or
 # until SIGTERM (SECONDS = -1), which it records and answers with exit 143, as run.py does after
@@ -202,6 +202,12 @@ def test_slots_split_the_cores_and_share_a_gpus_memory(monkeypatch):
     assert all(len(p.cores) >= 1 and p.memory_fraction == 0.3 for p in many)
     monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)
     assert many[0].env()["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.30"
+    # each job's summary records how many trained beside it (`summary.runs_per_gpu`)
+    monkeypatch.setenv(summary.RUNS_PER_GPU_ENV, "7")  # the queue's own setting wins
+    assert [many[0].env()[summary.RUNS_PER_GPU_ENV], two[0].env()[summary.RUNS_PER_GPU_ENV]] == [
+        "3",
+        "1",
+    ]
     monkeypatch.setenv("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.5")  # the caller's share is kept
     assert many[0].env()["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.5"
     assert grid.slots([], per_gpu=2)[0].env()["CUDA_VISIBLE_DEVICES"] == ""
@@ -434,22 +440,26 @@ def test_a_dry_run_prints_the_queue_of_the_runs_under_root(tmp_path, capsys):
 
 
 def test_jobs_side_by_side_on_a_gpu_take_at_most_as_many_times_as_long(tmp_path, capsys):
-    """With --per-gpu 2 a new seed-run's length is a bound, twice its length alone (the
-    earlier runs' paces are of runs alone), for `auto` and in the queue printed; a job of
-    unknown length stays unknown."""
+    """With --per-gpu 2 a new seed-run's length is a bound, twice its length alone, for `auto`
+    and in the queue printed; a job of unknown length stays unknown. The lengths alone go by
+    runs that trained alone: one that trained beside another (its summary's runs_per_gpu) does
+    not count."""
     root = tmp_path / "runs"
     done = paper_run(root / "walker_dear_s0", "walker,dear", 0, 1_000_000)
     (done / "summary.json").write_text(json.dumps({"frames_per_seed": 1_000_000, "wall_s": 1.2e3}))
+    beside = paper_run(root / "walker_dear_s1", "walker,dear", 1, 1_000_000)
+    shared = {"frames_per_seed": 1_000_000, "wall_s": 9e3, "runs_per_gpu": 2}
+    (beside / "summary.json").write_text(json.dumps(shared))
     jobs = [report.Job("a", (), 600.0), report.Job("b", ())]
     assert grid.side_by_side(jobs, 1) == jobs
     assert grid.side_by_side(jobs, 3) == [report.Job("a", (), 1800.0, True), report.Job("b", ())]
     grid.main(
         ["--root", str(root), "--tasks", "walker", "--methods", "dear", "--gpus", "0"]
-        + ["--per-gpu", "2", "--seeds", "2", "--dry-run"]
+        + ["--per-gpu", "2", "--seeds", "3", "--dry-run"]
     )
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == "1 runs to complete the grid, 2 at a time:"
-    assert lines[1].startswith("  walker_dear_s1 (at most ~40 min of training): python run.py")
+    assert lines[1].startswith("  walker_dear_s2 (at most ~40 min of training): python run.py")
     assert lines[2] == (
         "at most ~0.7 h of training in all, 1 runs, at the pace of the runs named on their own "
         "devices, times 2: 2 per GPU"

@@ -612,11 +612,11 @@ def test_plot_draws_each_experiments_mean_and_band(tmp_path, monkeypatch):
 def test_seeds_of_one_experiment_pool_over_workdirs(tmp_path):
     """Runs of the same config with other config.seed values (other machines, other days) are
     one experiment: one curve holding all their seeds, one Table II row naming where its seeds
-    come from. Another method, or another learning setting, stays apart; the same seed twice is
-    refused."""
+    come from, and how its runs evaluated and trained where they differ. Another method, or
+    another learning setting, stays apart; the same seed twice is refused."""
     from configs import base
 
-    def full(name, method, seed, changes=()):
+    def full(name, method, seed, changes=(), runs_per_gpu=None):
         c = base.make("walker", method)
         c.seeds, c.seed = 3, seed
         for dotted, value in changes:
@@ -628,11 +628,15 @@ def test_seeds_of_one_experiment_pool_over_workdirs(tmp_path):
         workdir = _fake_workdir(tmp_path, name, method, offset=seed, **c.to_dict())
         summary = {"frames_per_seed": 30_000, "wall_s": 100.0 + seed, "action_dim": 6}
         summary["provenance"] = {"commit": f"{seed}" * 40, "device_kind": "H100", "jax": "0.11"}
+        if runs_per_gpu is not None:  # older summaries have no such field: the run alone
+            summary["runs_per_gpu"] = runs_per_gpu
         (workdir / "summary.json").write_text(json.dumps(summary))
         return workdir
 
-    # A field a run may change without changing what it learns does not split an experiment.
-    a, b = full("a", "dear", 0), full("b", "dear", 7, [("num_eval_episodes", 5)])
+    # A field a run may change without changing what it learns does not split an experiment;
+    # nor does training beside another run on its GPU.
+    a = full("a", "dear", 0)
+    b = full("b", "dear", 7, [("num_eval_episodes", 5)], runs_per_gpu=2)
     other = full("c", "dear", 1, [("agent.beta", 10.0)])
     drq = full("d", "drqv2", 0)
     pools = plot.pools([a, drq, b, other])
@@ -643,8 +647,12 @@ def test_seeds_of_one_experiment_pool_over_workdirs(tmp_path):
     rows = report.pooled_rows([a, b, drq], threshold=150.0)
     assert [(r["method"], r["seeds"]) for r in rows] == [("dear", 6), ("drqv2", 3)]
     row = rows[0]
-    # b evaluated over 5 episodes where a took 10: pooled, and said.
-    assert row["run"] == "a (3) + b (3) (evaluations differ: num_eval_episodes 10/5)"
+    # b evaluated over 5 episodes where a took 10, and trained beside another run: pooled, and
+    # said.
+    assert row["run"] == (
+        "a (3) + b (3) (evaluations differ: num_eval_episodes 10/5) (runs per GPU differ: 1/2)"
+    )
+    assert rows[1]["run"] == "d"  # one run: nothing differs
     finals = np.array([300, 310, 350, 307, 317, 357])
     assert row["final_return_mean"] == pytest.approx(finals.mean())
     assert row["final_return_std"] == pytest.approx(finals.std())

@@ -40,6 +40,7 @@ from dear_jax.config import load_config, resolve_config_path
 from dear_jax.devices import Hosts
 from dear_jax.logger import read_csv
 from dear_jax.programs import build_programs, hold_keys
+from dear_jax.summary import RUNS_PER_GPU_ENV, runs_per_gpu
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -412,6 +413,19 @@ def test_report_evals_sets_evaluations_against_the_training_between_them(run):
     assert f"| {workdir.name} " in text and f"{row['train_s']:.1f}" in text
 
 
+def test_runs_beside_others_on_their_gpu_are_counted_from_the_environment(monkeypatch):
+    """$DEAR_JAX_RUNS_PER_GPU (set by `dear_jax.grid --per-gpu`) is how many runs train side by
+    side on a run's GPU: 1 when unset; anything but a count >= 1 is refused by name."""
+    monkeypatch.delenv(RUNS_PER_GPU_ENV, raising=False)
+    assert runs_per_gpu() == 1
+    monkeypatch.setenv(RUNS_PER_GPU_ENV, "3")
+    assert runs_per_gpu() == 3
+    for bad in ("0", "two", "-1", ""):
+        monkeypatch.setenv(RUNS_PER_GPU_ENV, bad)
+        with pytest.raises(ValueError, match=f"DEAR_JAX_RUNS_PER_GPU='{bad}': give how many"):
+            runs_per_gpu()
+
+
 def test_evaluations_in_two_processes_log_what_one_evaluator_logs(run, tmp_path, monkeypatch):
     """eval_processes=2: the evaluations at frames 0 and 240 (and the closing one at 280) run in
     one process, the one at 120 in the other, side by side. Stopped at 240 and resumed to 280
@@ -425,6 +439,7 @@ def test_evaluations_in_two_processes_log_what_one_evaluator_logs(run, tmp_path,
         return evaluate(self, *args, **kwargs)
 
     monkeypatch.setattr(evaluator.EvalProcess, "evaluate", counted)
+    monkeypatch.setenv(RUNS_PER_GPU_ENV, "2")  # as the grid starts a job beside another
     for frames in (240, 280):
         train.train(tiny_config(total_frames=frames, eval_device="cpu", eval_processes=2), tmp_path)
     # 0, 120, 240; resumed: 240 again (its checkpoint, saved first, holds it as due), 280
@@ -438,7 +453,9 @@ def test_evaluations_in_two_processes_log_what_one_evaluator_logs(run, tmp_path,
                 np.testing.assert_array_equal(logs[0][column], logs[1][column], err_msg=column)
     assert list(read_csv(tmp_path / "seed_0" / "eval.csv")["frame"]) == [0, 120, 240, 280]
     assert report.eval_rows([tmp_path])[0]["eval_processes"] == 2  # from the summary
-    assert "evaluations on cpu, 2 processes" in (tmp_path / "summary.md").read_text()
+    text = (tmp_path / "summary.md").read_text()
+    assert "evaluations on cpu, 2 processes; 2 runs side by side on this device)" in text
+    assert json.loads((tmp_path / "summary.json").read_text())["runs_per_gpu"] == 2
     ckpt = Checkpointer(tmp_path / "checkpoints", fingerprint={})
     saved = ckpt.read_meta(ckpt.latest_step())[2]["eval_env_rng"]
     states = evaluator.eval_states(saved)

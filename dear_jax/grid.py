@@ -142,7 +142,7 @@ def slots(gpus: list[str], per_gpu: int) -> list[Slot]:
     ]
 
 
-def side_by_side(jobs: list[report.Job], at_a_time: int) -> list[report.Job]:
+def shared_gpu_lengths(jobs: list[report.Job], at_a_time: int) -> list[report.Job]:
     """The jobs' lengths where `at_a_time` of them run at a time on each GPU (or on the
     CPU): at most that many times their length by the paces of earlier runs alone on theirs
     (`report.grid_jobs`), as the jobs share the GPU and split its cores (one after the other
@@ -392,7 +392,7 @@ def main(argv=None) -> list[dict] | None:
         parser.error(str(e))
     try:
         jobs = report.grid_jobs(grid, args.frames, str(root), extra, args.seeds_per_run)
-        jobs = side_by_side(jobs, args.per_gpu)
+        jobs = shared_gpu_lengths(jobs, args.per_gpu)
     except ValueError as e:
         parser.error(str(e))
     if not jobs:

@@ -742,7 +742,7 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
         summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
         reached = summary.get("frames_per_seed")
         pace = None
-        # A job's length goes by runs that trained alone on their GPU (`grid.side_by_side`
+        # A job's length goes by runs that trained alone on their GPU (`grid.shared_gpu_lengths`
         # bounds those of jobs that share one)
         if reached is not None and reached >= frames and summary.get("runs_per_gpu", 1) == 1:
             pace = training_pace(workdir, config, summary)

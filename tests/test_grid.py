@@ -451,8 +451,11 @@ def test_jobs_side_by_side_on_a_gpu_take_at_most_as_many_times_as_long(tmp_path,
     shared = {"frames_per_seed": 1_000_000, "wall_s": 9e3, "runs_per_gpu": 2}
     (beside / "summary.json").write_text(json.dumps(shared))
     jobs = [report.Job("a", (), 600.0), report.Job("b", ())]
-    assert grid.side_by_side(jobs, 1) == jobs
-    assert grid.side_by_side(jobs, 3) == [report.Job("a", (), 1800.0, True), report.Job("b", ())]
+    assert grid.shared_gpu_lengths(jobs, 1) == jobs
+    assert grid.shared_gpu_lengths(jobs, 3) == [
+        report.Job("a", (), 1800.0, True),
+        report.Job("b", ()),
+    ]
     grid.main(
         ["--root", str(root), "--tasks", "walker", "--methods", "dear", "--gpus", "0"]
         + ["--per-gpu", "2", "--seeds", "3", "--dry-run"]

@@ -127,9 +127,6 @@ def get_config() -> ConfigDict:
     # the kitchen's DEAR loop drawn on a second GPU ran at 1,076 env frames/s against 879
     # (benchmarks/RESULTS.md, "Kitchen end to end").
     c.env.render.gpus = "auto"
-    # The render workers' GL contexts' priority on the GPU: "default" | "low" | "high"
-    # (EGL_IMG_context_priority; envs/render.py).
-    c.env.render.gl_priority = "default"
 
     c.agent = ConfigDict()
     c.agent.method = "dear"  # "drqv2" | "dear" | "sear" | "ted"

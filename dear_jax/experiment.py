@@ -44,7 +44,6 @@ RESUMABLE_CHANGES = (
     "env.render.num_workers",
     "env.render.envs_per_worker",
     "env.render.gpus",
-    "env.render.gl_priority",
     "env.eval_backend",
     "env.physics_threads",
     "env.eval_physics_threads",

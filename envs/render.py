@@ -63,10 +63,6 @@ PERTURB_KEYS = ("mat_rgb", "geom_rgb", "cam_sphere", "cam_lookat")
 
 
 QUALITIES = ("dm_control", "fast")
-# EGL_IMG_context_priority's levels (EGL_CONTEXT_PRIORITY_*_IMG); "default" asks for none.
-_EGL_PRIORITY_LEVEL = 0x3100
-GL_PRIORITY_VALUES = {"high": 0x3101, "medium": 0x3102, "low": 0x3103}
-GL_PRIORITIES = ("default", "low", "high")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,10 +131,6 @@ class RenderSettings:
     # Drawing shares its GPU with the updates: the kitchen's loop drawn on a second GPU ran at
     # 1,076 env frames/s against 879 (benchmarks/RESULTS.md, "Kitchen end to end").
     gpus: str = "auto"
-    # The GL contexts' scheduling priority on the GPU (EGL_IMG_context_priority): "default"
-    # (the driver's, medium) | "low" | "high". A hint the driver may lower; the granted one is in
-    # each worker's `gl_info`. Drivers without the extension take only "default".
-    gl_priority: str = "default"
     # For measurements only (benchmarks/render.py), never set by configs:
     # visuals: effects other than the quality's (None = the quality's);
     # in_place: draw each sample straight into its place in a sheet-sized MuJoCo buffer (the
@@ -158,10 +150,6 @@ class RenderSettings:
             raise ValueError(
                 f"render gpus {self.gpus!r}: 'auto' or GPU numbers separated by commas, e.g. '1' "
                 "or '0,1'"
-            )
-        if self.gl_priority not in GL_PRIORITIES:
-            raise ValueError(
-                f"unknown gl_priority {self.gl_priority!r}; valid: {', '.join(GL_PRIORITIES)}"
             )
         if self.mesh_faces < 0 or 0 < self.mesh_faces < MIN_MESH_FACES:
             raise ValueError(
@@ -252,34 +240,6 @@ def apply_scene_flags(scene: mujoco.MjvScene, visuals: Visuals) -> None:
     scene.flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = visuals.skybox
 
 
-def _prioritise(gl, priority: str) -> str:
-    """Replaces EGL context `gl`'s context (not yet current, nothing made in it) by one of
-    `priority`; returns the level the driver granted."""
-    if os.environ.get("MUJOCO_GL") != "egl":
-        raise ValueError(f"gl_priority={priority!r} needs MUJOCO_GL=egl")
-    import mujoco.egl as mjegl
-
-    egl, display = mjegl.EGL, mjegl.EGL_DISPLAY
-    extensions = egl.eglQueryString(display, egl.EGL_EXTENSIONS) or b""
-    if b"EGL_IMG_context_priority" not in extensions.split():
-        raise RuntimeError(
-            f"gl_priority={priority!r}: this EGL driver lacks EGL_IMG_context_priority; "
-            "valid here: 'default'"
-        )
-    configs, found = (egl.EGLConfig * 1)(), ctypes.c_long()
-    egl.eglChooseConfig(display, mjegl.EGL_ATTRIBUTES, configs, 1, found)
-    attributes = (egl.EGLint * 3)(_EGL_PRIORITY_LEVEL, GL_PRIORITY_VALUES[priority], egl.EGL_NONE)
-    context = egl.eglCreateContext(display, configs[0], egl.EGL_NO_CONTEXT, attributes)
-    if not context:
-        raise RuntimeError(f"gl_priority={priority!r}: the EGL driver made no context")
-    granted = egl.EGLint()
-    egl.eglQueryContext(display, context, _EGL_PRIORITY_LEVEL, ctypes.byref(granted))
-    egl.eglDestroyContext(display, gl._context)
-    gl._context = context
-    names = {v: k for k, v in GL_PRIORITY_VALUES.items()}
-    return names.get(granted.value, str(granted.value))
-
-
 _SHEET_AUX = 0  # index of the MuJoCo auxiliary buffer that holds the sheet
 
 
@@ -347,9 +307,6 @@ class TileRenderer:
         # The offscreen buffer (not this surface) receives the pictures; its size is a model
         # option read when the MuJoCo context is made, so the sheet is decided first.
         self.gl = gl_context.GLContext(w, h)
-        self.gl_priority = None
-        if settings.gl_priority != "default":
-            self.gl_priority = _prioritise(self.gl, settings.gl_priority)
         self.gl.make_current()
         self.tiles = settings.tiles_per_sheet or self._auto_tiles()
         self.cols = min(self.tiles, 16)  # sample pairs across a sheet
@@ -404,7 +361,6 @@ class TileRenderer:
             "GL_VENDOR": GL.glGetString(GL.GL_VENDOR).decode(),
             "GL_RENDERER": GL.glGetString(GL.GL_RENDERER).decode(),
             "GL_VERSION": GL.glGetString(GL.GL_VERSION).decode(),
-            "gl_priority": self.gl_priority or "default",
         }
 
     def _scene_labels(self) -> np.ndarray:

@@ -537,26 +537,3 @@ def test_a_worker_without_an_offscreen_buffer_names_the_setting_to_lower():
     error = "mujoco.FatalError: Offscreen framebuffer is not complete, error 0x8cdd"
     assert "env.render.num_workers" in _hint(error, 8) and "8 render workers" in _hint(error, 8)
     assert _hint("ValueError: camera 'x' not in the model", 8) == ""
-
-
-def test_gl_priority_is_checked_and_asked_of_the_driver():
-    with pytest.raises(ValueError, match="unknown gl_priority 'urgent'; valid: default, low, high"):
-        R.RenderSettings(gl_priority="urgent")
-    model, agent, floor, cam = task_facts("walker")
-    settings = R.RenderSettings(gl_priority="low")
-    import mujoco.egl as mjegl
-
-    extensions = mjegl.EGL.eglQueryString(mjegl.EGL_DISPLAY, mjegl.EGL.EGL_EXTENSIONS) or b""
-    if b"EGL_IMG_context_priority" in extensions.split():
-        tr = R.TileRenderer(
-            model, camera=cam, agent_geom_ids=agent, floor_geom_ids=floor, settings=settings
-        )
-        try:  # a hint: the driver may grant another level, which gl_info reports
-            assert tr.gl_info()["gl_priority"] in ("low", "medium", "high")
-        finally:
-            tr.close()
-    else:
-        with pytest.raises(RuntimeError, match="lacks EGL_IMG_context_priority; valid here"):
-            R.TileRenderer(
-                model, camera=cam, agent_geom_ids=agent, floor_geom_ids=floor, settings=settings
-            )

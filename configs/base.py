@@ -124,8 +124,8 @@ def get_config() -> ConfigDict:
     # The GPUs the render workers draw on: "auto", those that train the env's lanes (or run the
     # evaluation's policy; MUJOCO_EGL_DEVICE_ID instead where it is set), or GPU numbers of this
     # process, e.g. "1": a GPU the updates do not use. Drawing shares its GPU with the updates:
-    # the kitchen's DEAR loop drawn on a second GPU ran at 1,076 env frames/s against 879
-    # (benchmarks/RESULTS.md, "Kitchen end to end").
+    # DEAR walker's loop, 5 lanes, drawn on a second GPU ran at 1,709-1,711 env frames/s against
+    # 1,355-1,398, the kitchen's at 1,076 against 879 (benchmarks/RESULTS.md, "End to end").
     c.env.render.gpus = "auto"
 
     c.agent = ConfigDict()

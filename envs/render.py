@@ -128,8 +128,8 @@ class RenderSettings:
     # the process's first GPU; `dear_jax.experiment.make_env` makes it the GPUs of the env's
     # lanes) or GPU numbers as MUJOCO_EGL_DEVICE_ID takes them (the process's visible GPUs, in
     # CUDA's order), e.g. "1" or "0,1": the workers spread over them in blocks (`worker_gpus`).
-    # Drawing shares its GPU with the updates: the kitchen's loop drawn on a second GPU ran at
-    # 1,076 env frames/s against 879 (benchmarks/RESULTS.md, "Kitchen end to end").
+    # Drawing shares its GPU with the updates: DEAR walker's loop, 5 lanes, drawn on a second GPU
+    # ran at 1,709-1,711 env frames/s against 1,355-1,398 (benchmarks/RESULTS.md, "End to end").
     gpus: str = "auto"
     # For measurements only (benchmarks/render.py), never set by configs:
     # visuals: effects other than the quality's (None = the quality's);

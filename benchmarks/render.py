@@ -17,6 +17,12 @@ JSON records the GL renderer string, so a run on Mesa llvmpipe cannot pass for a
 clock: on a shared CPU-only machine the ratios between variants stay meaningful (with Mesa,
 LP_NUM_THREADS=0 keeps rasterisation in this process's thread).
 
+`--gpu-time` (with `--workers 0`) adds what the GPU spends on one call, by GL timer queries
+(GL_TIME_ELAPSED) around each picture's drawing and copy into its sheet and each sheet's readback:
+ms per observation for the RGB pictures, the segmentation pictures and the readbacks
+(`gpu_ms_rgb`, `gpu_ms_labels`, `gpu_ms_readback`). That is the GL work a training loop's updates
+wait behind when the frames are drawn on their GPU; with Mesa it is the CPU's rasterising time.
+
 `--mesh-faces N` draws every row with meshes simplified to about N faces (`env.render.mesh_faces`:
 the kitchen's arm); |d| and the labels are still compared with mujoco.Renderer's picture of the
 shipped meshes, and each row adds its checked frames' difference from the same variant drawn
@@ -35,6 +41,7 @@ envs of methods that read no mask and composite no background).
 from __future__ import annotations
 
 import argparse
+import ctypes
 import dataclasses
 import itertools
 import os
@@ -99,12 +106,61 @@ def reference(task, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack(rgb), np.stack(labels)
 
 
+def gpu_times(renderer: TileRenderer, qpos: np.ndarray) -> dict[str, float]:
+    """The GPU's time for one `renderer.render(qpos)`, in ms per observation, from timer queries
+    around the renderer's own steps: each picture's drawing and copy (RGB and segmentation
+    apart, told by the scene's segmentation flag) and each sheet's readback."""
+    from OpenGL import GL
+
+    queries = {"rgb": [], "labels": [], "readback": []}
+    draw, read = renderer._draw, renderer._read
+    segment = mujoco.mjtRndFlag.mjRND_SEGMENT
+
+    def timed(kind, step, *args):
+        query = int(GL.glGenQueries(1)[0])
+        GL.glBeginQuery(GL.GL_TIME_ELAPSED, query)
+        step(*args)
+        GL.glEndQuery(GL.GL_TIME_ELAPSED)
+        queries[kind].append(query)
+
+    renderer._draw = lambda *a: timed(
+        "labels" if renderer.scene.flags[segment] else "rgb", draw, *a
+    )
+    renderer._read = lambda *a: timed("readback", read, *a)
+    batch = qpos.shape[0]
+    try:
+        renderer.render(
+            qpos, np.empty((batch, 84, 84, 3), np.uint8), np.empty((batch, 84, 84), np.uint8)
+        )
+    finally:
+        del renderer._draw, renderer._read  # the instance's wrappers; the methods again
+    elapsed, times = ctypes.c_uint64(), {}
+    for kind, ids in queries.items():
+        total = 0
+        for query in ids:
+            GL.glGetQueryObjectui64v(query, GL.GL_QUERY_RESULT, ctypes.byref(elapsed))
+            total += elapsed.value
+            GL.glDeleteQueries(1, [query])
+        times[f"gpu_ms_{kind}"] = total / 1e6 / batch
+    return times
+
+
 def measure(
-    task, variant, workers, tiles, qpos, calls, ref_rgb, ref_labels, mesh_faces=0, primitives=(0, 0)
+    task,
+    variant,
+    workers,
+    tiles,
+    qpos,
+    calls,
+    ref_rgb,
+    ref_labels,
+    mesh_faces=0,
+    primitives=(0, 0),
+    gpu_time=False,
 ):
     """Pool throughput (wall clock), or with workers=0 one TileRenderer in this process timed by
-    this process's CPU time (best of `calls`): a proxy that other load on the machine barely moves.
-    """
+    this process's CPU time (best of `calls`): a proxy that other load on the machine barely moves;
+    gpu_time (workers=0): with `gpu_times` of one more call."""
     settings = dataclasses.replace(
         VARIANTS[variant],
         num_workers=workers,
@@ -130,9 +186,13 @@ def measure(
             t0 = time.process_time()
             renderer.render(qpos, rgb, labels)
             best = min(best, time.process_time() - t0)
+        gpu = gpu_times(renderer, qpos) if gpu_time else {}
         renderer.close()
         dt = best * calls
     else:
+        if gpu_time:
+            raise ValueError("--gpu-time times one renderer in this process: give --workers 0")
+        gpu = {}
         with RenderPool(
             task.render_factory(mesh_faces),
             camera=task.camera,
@@ -178,6 +238,7 @@ def measure(
         compared.update(versus("model_primitives", num_slices=0, num_stacks=0))
     return {
         **compared,
+        **gpu,
         "task": task.name,
         "variant": variant,
         "workers": workers,
@@ -234,8 +295,17 @@ def main(argv=None) -> dict:
         help="SLICESxSTACKS of spheres, capsules, cylinders (env.render.num_slices, num_stacks; "
         "0x0: the model's own)",
     )
+    parser.add_argument(
+        "--gpu-time",
+        action="store_true",
+        help="with --workers 0: the GPU's ms per observation by GL timer queries",
+    )
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
+    if args.gpu_time and any(args.workers):
+        parser.error(
+            f"--gpu-time times one renderer in this process: give --workers 0, not {args.workers}"
+        )
     rows = []
     head = (
         f"{'task':<18} {'variant':<20} {'workers':>7} {'tiles':>5} {'obs/s':>8} {'x fast':>6} "
@@ -264,6 +334,7 @@ def main(argv=None) -> dict:
                         ref_labels,
                         faces,
                         primitives,
+                        args.gpu_time,
                     )
                 except Exception as err:  # noqa: BLE001 - one variant must not end the run
                     rows.append(
@@ -288,7 +359,13 @@ def main(argv=None) -> dict:
                     f"{row['label_pixels_differing']:>8} {faces:>6} "
                     f"{row.get('mean_abs_diff_vs_shipped_meshes', 0.0):>14.3f} "
                     f"{'x'.join(map(str, primitives)):>10} "
-                    f"{row.get('mean_abs_diff_vs_model_primitives', 0.0):>12.3f}",
+                    f"{row.get('mean_abs_diff_vs_model_primitives', 0.0):>12.3f}"
+                    + (
+                        f"  GPU ms/obs: RGB {row['gpu_ms_rgb']:.4f}, labels "
+                        f"{row['gpu_ms_labels']:.4f}, readback {row['gpu_ms_readback']:.4f}"
+                        if args.gpu_time
+                        else ""
+                    ),
                     flush=True,
                 )
     print("GL_RENDERER:", {row["gl_renderer"] for row in rows if "gl_renderer" in row})

@@ -396,6 +396,39 @@ def test_render_benchmark_compares_coarser_primitives_with_the_models(tmp_path):
         bench.main([*argv.split(), "--primitives", "16"])
 
 
+def test_render_benchmark_times_the_gl_work_of_rgb_and_label_pictures(tmp_path):
+    """benchmarks/render.py --gpu-time: the timer queries see both kinds of picture (RGB and
+    segmentation, > 0 ms each), and the renderer draws the same frames after them, its own
+    steps back in place; the flag asks for one renderer in this process."""
+    from benchmarks import render as bench
+
+    model, agent, floor, cam = task_facts("walker")
+    settings = R.RenderSettings(quality="fast")
+    qpos = random_qpos(model, 3, seed=2)
+    before = tile_render(model, qpos, cam, agent, floor, settings)
+    tr = R.TileRenderer(
+        copy.deepcopy(model),
+        camera=cam,
+        agent_geom_ids=agent,
+        floor_geom_ids=floor,
+        settings=settings,
+    )
+    try:
+        times = bench.gpu_times(tr, qpos)
+        assert times["gpu_ms_rgb"] > 0 and times["gpu_ms_labels"] > 0
+        assert times["gpu_ms_readback"] >= 0
+        assert "_draw" not in vars(tr) and "_read" not in vars(tr)
+        rgb, labels = np.zeros_like(before[0]), np.zeros_like(before[1])
+        tr.render(qpos, rgb, labels)
+    finally:
+        tr.close()
+    np.testing.assert_array_equal(rgb, before[0])
+    np.testing.assert_array_equal(labels, before[1])
+    argv = "--tasks walker-walk --batch 4 --calls 1 --check 2 --variants fast --gpu-time"
+    with pytest.raises(SystemExit):
+        bench.main([*argv.split(), "--workers", "2"])
+
+
 def test_in_place_sheet_matches_renderer_up_to_rasterisation():
     """The measuring layout (pictures drawn in place on a sheet-sized buffer): labels exact; RGB
     off in under 0.2% of pixels (0.07% on Mesa llvmpipe)."""

@@ -347,6 +347,16 @@ def render_gpus(setting: str, devices) -> str:
     return "auto" if set(ids) == {0} else ",".join(map(str, ids))
 
 
+def drawing_devices(lane_devices: list, local_devices: list) -> list:
+    """The devices env.render.gpus "auto" draws a training env's frames on: the first GPU of
+    this process that none of its lanes trains on, where there is one (where the evaluations
+    run their policy too: evaluator.spare_device), else the lanes' own. Drawn beside the
+    updates, the frames' GL work slows them: DEAR walker's 5 lanes ran at 1,709-1,711 env
+    frames/s drawn on a second H200 against 1,355-1,398 (benchmarks/RESULTS.md, "End to end")."""
+    idle = [d for d in local_devices if d.platform == "gpu" and d not in lane_devices]
+    return idle[:1] or list(lane_devices)
+
+
 def make_env(
     config: ConfigDict,
     *,
@@ -370,12 +380,14 @@ def make_env(
     without it the masks are all 0. label_envs: only the first label_envs envs of each seed draw
     it where no background is composited (envs.Env's). video_seed: the built-in background
     videos' (default: `seed`), the same on every process of the run. render_devices: the
-    devices env.render.gpus "auto" draws on (default: those of this process's lanes)."""
+    devices env.render.gpus "auto" draws on (default: `drawing_devices`, a GPU this process's
+    lanes leave idle or else theirs)."""
     e = config.env
     hosts = hosts or Hosts(mesh, lanes.num_lanes(config))
     if render_devices is None:
         local = hosts.local
-        render_devices = jax.local_devices()[:1] if local is None else list(local.mesh.devices.flat)
+        lane_devices = jax.local_devices()[:1] if local is None else list(local.mesh.devices.flat)
+        render_devices = drawing_devices(lane_devices, jax.local_devices())
     render = envs.RenderSettings(
         **e.render.to_dict(),
         labels=config.agent.method in update.MASK_METHODS if labels is None else labels,

@@ -399,7 +399,7 @@ def test_render_benchmark_compares_coarser_primitives_with_the_models(tmp_path):
         bench.main([*argv.split(), "--primitives", "16"])
 
 
-def test_render_benchmark_times_the_gl_work_of_rgb_and_label_pictures(tmp_path):
+def test_render_benchmark_times_the_gl_work_of_rgb_and_label_pictures():
     """benchmarks/render.py --gpu-time: the timer queries see both kinds of picture (RGB and
     segmentation, > 0 ms each), and the renderer draws the same frames after them, its own
     steps back in place; the flag asks for one renderer in this process."""
@@ -527,14 +527,21 @@ def test_workers_draw_on_the_gpus_named_each_on_its_block_of_the_batch():
 
 
 def test_auto_draws_on_the_gpus_of_the_envs_lanes_and_numbers_are_checked(monkeypatch):
-    """env.render.gpus "auto": the GPU numbers of the devices the env's lanes live on, in their
-    order; left to MuJoCo off GPUs, on the first GPU alone, or where MUJOCO_EGL_DEVICE_ID is
-    set. Numbers given are checked against the GPUs the training process sees."""
+    """env.render.gpus "auto": a training env's frames on the first GPU its lanes leave idle,
+    where the process has one, else on the GPU numbers of the devices the lanes live on, in
+    their order; left to MuJoCo off GPUs, on the first GPU alone, or where MUJOCO_EGL_DEVICE_ID
+    is set. Numbers given are checked against the GPUs the training process sees."""
     from types import SimpleNamespace
 
     from dear_jax import experiment
 
-    gpus = [SimpleNamespace(platform="gpu", local_hardware_id=i) for i in range(2)]
+    gpus = [SimpleNamespace(platform="gpu", local_hardware_id=i) for i in range(3)]
+    cpu = [SimpleNamespace(platform="cpu", local_hardware_id=0)]
+    assert experiment.drawing_devices(gpus[:1], gpus) == [gpus[1]]
+    assert experiment.drawing_devices(gpus[:2], gpus) == [gpus[2]]
+    assert experiment.drawing_devices(gpus, gpus) == gpus  # none idle: the lanes' own
+    assert experiment.drawing_devices(cpu, cpu) == cpu
+    gpus = gpus[:2]
     monkeypatch.delenv("MUJOCO_EGL_DEVICE_ID", raising=False)
     assert experiment.render_gpus("auto", gpus[::-1]) == "1,0"
     assert experiment.render_gpus("auto", gpus[1:]) == "1"  # an evaluation's spare GPU

@@ -5,7 +5,8 @@
     python -m benchmarks.scaling --devices 1 2 4 --seeds-per-device 1 3
 
 For each seeds-per-device count K and device count N, a run of N x K seeds with
-`config.devices = N` (the seeds split over the first N devices, one render pool on the host) is
+`config.devices = N` (the seeds split over the first N devices, one render pool on the host
+drawing on those N GPUs) is
 measured as `benchmarks/train.py` measures a run: the real training loop, the rates of its
 train-log rows after warm-up. Scaling efficiency = fps(N) / (N x fps(1)) at the same K: 1 when
 every device trains its seeds as fast as one device alone trains its own. The defaults are the
@@ -65,6 +66,11 @@ def main():
             args.seeds = n * k
             config = bench_config(args)
             config.devices = n
+            lanes_gpus = [d for d in jax.local_devices()[:n] if d.platform == "gpu"]
+            if config.env.render.gpus == "auto" and lanes_gpus:
+                # Drawn on the N GPUs that train, as on a machine of N GPUs: "auto" would draw
+                # on a GPU the run leaves idle, which the machine has for N below its count.
+                config.env.render.gpus = ",".join(str(d.local_hardware_id) for d in lanes_gpus)
             tp = throughput(config, args.warmup_frames)
             run = dict(devices=n, seeds_per_device=k, seeds=args.seeds, **tp)
             if n == 1:

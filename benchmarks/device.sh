@@ -24,8 +24,10 @@
 #                       `XLA_PYTHON_CLIENT_MEM_FRACTION=0.22 bash benchmarks/device.sh start ...`
 #                       CORES=LIST (taskset's syntax, e.g. 0-15,48-52) pins the run there instead.
 #                       A run given one GPU more than it trains on evaluates on the last one
-#                       (evaluator.spare_device); runs sharing that GPU for their evaluations
-#                       start with XLA_PYTHON_CLIENT_PREALLOCATE=false, or each would claim
+#                       (evaluator.spare_device) and draws its frames there (env.render.gpus
+#                       "auto"; several runs sharing it for that, not measured: give
+#                       `--config.env.render.gpus=0` to draw beside the updates); runs sharing
+#                       it start with XLA_PYTHON_CLIENT_PREALLOCATE=false, or each would claim
 #                       most of its memory
 #   grid ARGS...        the paper's grid's missing seed-runs as a detached queue, one per GPU at a
 #                       time (`python -m dear_jax.grid ARGS --root runs`, e.g. `grid results/*/*/

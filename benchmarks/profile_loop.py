@@ -21,7 +21,7 @@ import tempfile
 import jax
 
 from benchmarks.common import save_json
-from benchmarks.train import add_run_arguments, bench_config
+from benchmarks.train import add_run_arguments, bench_config, drawn_beside_lanes
 from dear_jax import train
 from dear_jax.logger import read_csv
 
@@ -98,7 +98,7 @@ def main():
     p.add_argument("--top", type=int, default=25)
     p.add_argument("--out", default=None)
     args = p.parse_args()
-    config = bench_config(args)
+    config = drawn_beside_lanes(bench_config(args))
     config.replay.disk = False
     # Two log rows after warm-up (updates compiled and running) give the untraced rate.
     config.profile.at_frame = args.warmup_frames + 2 * args.log_every

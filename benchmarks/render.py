@@ -20,8 +20,9 @@ LP_NUM_THREADS=0 keeps rasterisation in this process's thread).
 `--gpu-time` (with `--workers 0`) adds what the GPU spends on one call, by GL timer queries
 (GL_TIME_ELAPSED) around each picture's drawing and copy into its sheet and each sheet's readback:
 ms per observation for the RGB pictures, the segmentation pictures and the readbacks
-(`gpu_ms_rgb`, `gpu_ms_labels`, `gpu_ms_readback`). That is the GL work a training loop's updates
-wait behind when the frames are drawn on their GPU; with Mesa it is the CPU's rasterising time.
+(`gpu_ms_rgb`, `gpu_ms_labels`, `gpu_ms_readback`; each query's span, idle gaps included). That
+is the GL work a training loop's updates wait behind when the frames are drawn on their GPU;
+with Mesa, the CPU's rasterising.
 
 `--mesh-faces N` draws every row with meshes simplified to about N faces (`env.render.mesh_faces`:
 the kitchen's arm); |d| and the labels are still compared with mujoco.Renderer's picture of the
@@ -107,31 +108,35 @@ def reference(task, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def gpu_times(renderer: TileRenderer, qpos: np.ndarray) -> dict[str, float]:
-    """The GPU's time for one `renderer.render(qpos)`, in ms per observation, from timer queries
-    around the renderer's own steps: each picture's drawing and copy (RGB and segmentation
-    apart, told by the scene's segmentation flag) and each sheet's readback."""
+    """The GPU's time for one `renderer.render(qpos)` (after an untimed one: a new context's
+    first queries can read garbage), in ms per observation, from timer queries around the
+    renderer's own steps: each picture's drawing and copy (RGB and segmentation apart, told by
+    the scene's segmentation flag) and each sheet's readback. A query spans the GPU's time
+    from its start to its end, idle gaps within included: an upper bound of its busy time."""
     from OpenGL import GL
 
+    batch, h, w = qpos.shape[0], renderer.settings.height, renderer.settings.width
+    rgb, labels = np.empty((batch, h, w, 3), np.uint8), np.empty((batch, h, w), np.uint8)
+    renderer.render(qpos, rgb, labels)
     queries = {"rgb": [], "labels": [], "readback": []}
     draw, read = renderer._draw, renderer._read
     segment = mujoco.mjtRndFlag.mjRND_SEGMENT
 
     def timed(kind, step, *args):
         query = int(GL.glGenQueries(1)[0])
-        GL.glBeginQuery(GL.GL_TIME_ELAPSED, query)
-        step(*args)
-        GL.glEndQuery(GL.GL_TIME_ELAPSED)
         queries[kind].append(query)
+        GL.glBeginQuery(GL.GL_TIME_ELAPSED, query)
+        try:
+            step(*args)
+        finally:
+            GL.glEndQuery(GL.GL_TIME_ELAPSED)
 
     renderer._draw = lambda *a: timed(
         "labels" if renderer.scene.flags[segment] else "rgb", draw, *a
     )
     renderer._read = lambda *a: timed("readback", read, *a)
-    batch = qpos.shape[0]
     try:
-        renderer.render(
-            qpos, np.empty((batch, 84, 84, 3), np.uint8), np.empty((batch, 84, 84), np.uint8)
-        )
+        renderer.render(qpos, rgb, labels)
     finally:
         del renderer._draw, renderer._read  # the instance's wrappers; the methods again
     elapsed, times = ctypes.c_uint64(), {}
@@ -190,8 +195,6 @@ def measure(
         renderer.close()
         dt = best * calls
     else:
-        if gpu_time:
-            raise ValueError("--gpu-time times one renderer in this process: give --workers 0")
         gpu = {}
         with RenderPool(
             task.render_factory(mesh_faces),

@@ -66,11 +66,6 @@ def main():
             args.seeds = n * k
             config = bench_config(args)
             config.devices = n
-            lanes_gpus = [d for d in jax.local_devices()[:n] if d.platform == "gpu"]
-            if config.env.render.gpus == "auto" and lanes_gpus:
-                # Drawn on the N GPUs that train, as on a machine of N GPUs: "auto" would draw
-                # on a GPU the run leaves idle, which the machine has for N below its count.
-                config.env.render.gpus = ",".join(str(d.local_hardware_id) for d in lanes_gpus)
             tp = throughput(config, args.warmup_frames)
             run = dict(devices=n, seeds_per_device=k, seeds=args.seeds, **tp)
             if n == 1:

@@ -9,7 +9,9 @@
    the loop would cost without overlap): physics (dispatch + compute), physics-state transfer to
    the host, render (RGB + labels), upload + compositing/masks/stack, the E/update_every updates
    per seed, and acting + replay insertion ("other").
-Prints tables and writes JSON to benchmarks/results/train_<device>.json (or --out).
+Prints tables and writes JSON to benchmarks/results/train_<device>.json (or --out). The frames are
+drawn on the GPUs that train, as a machine of only those draws them (`drawn_beside_lanes`), unless
+`--set env.render.gpus=...` says where (`--vary env.render.gpus 0 1`: on a second GPU or not).
 
 `--vary KEY V1 V2 ...` (repeatable) measures the throughput of every combination of the values
 in one process, in turn `--rounds` times, every other round in reverse (an A/B on the same
@@ -21,9 +23,11 @@ The PyTorch pipeline of the reference's shape: `python -m benchmarks.torch_refer
 from __future__ import annotations
 
 import argparse
+import copy
 import functools
 import itertools
 import logging
+import os
 import pathlib
 import tempfile
 import time
@@ -94,7 +98,26 @@ def variants(vary: list[list[str]]) -> list[list[str]]:
     return [list(c) for c in itertools.product(*axes)]
 
 
+def drawn_beside_lanes(config):
+    """`config` with env.render.gpus "auto" made the GPUs that train its lanes (the first
+    `config.devices`) where the process sees more GPUs than those: "auto" would draw on one the
+    run leaves idle (experiment.drawing_devices), and a figure would depend on how many GPUs the
+    machine has. Numbers given, CPU devices and a set MUJOCO_EGL_DEVICE_ID stay as they are."""
+    local = [d for d in jax.local_devices() if d.platform == "gpu"]
+    used = len(local) if config.devices == "all" else int(config.devices)
+    if (
+        config.env.render.gpus != "auto"
+        or used >= len(local)
+        or os.environ.get("MUJOCO_EGL_DEVICE_ID")
+    ):
+        return config
+    config = copy.deepcopy(config)
+    config.env.render.gpus = ",".join(str(d.local_hardware_id) for d in local[:used])
+    return config
+
+
 def throughput(config, warmup_frames) -> dict:
+    config = drawn_beside_lanes(config)
     with tempfile.TemporaryDirectory() as workdir:
         t0 = time.perf_counter()
         try:
@@ -137,6 +160,7 @@ def _timed(fn, reps):
 
 def stage_split(config, reps) -> dict:
     """Milliseconds per loop iteration, each stage synchronised on its own."""
+    config = drawn_beside_lanes(config)
     num_seeds, num_envs = config.seeds, config.envs_per_seed
     env = experiment.make_env(config, envs_per_seed=num_envs, split="train", seed=0)
     try:

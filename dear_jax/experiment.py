@@ -348,13 +348,14 @@ def render_gpus(setting: str, devices) -> str:
 
 
 def drawing_devices(lane_devices: list, local_devices: list) -> list:
-    """The devices env.render.gpus "auto" draws a training env's frames on: the first GPU of
-    this process that none of its lanes trains on, where there is one (where the evaluations
-    run their policy too: evaluator.spare_device), else the lanes' own. Drawn beside the
-    updates, the frames' GL work slows them: DEAR walker's 5 lanes ran at 1,709-1,711 env
-    frames/s drawn on a second H200 against 1,355-1,398 (benchmarks/RESULTS.md, "End to end")."""
+    """The devices env.render.gpus "auto" draws a training env's frames on: the GPUs of this
+    process that none of its lanes trains on, up to as many as the lanes' devices, where there
+    are any (the first is where evaluations on the accelerator run their policy:
+    evaluator.spare_device), else the lanes' own. Drawn beside the updates, the frames' GL work
+    slows them: DEAR walker's 5 lanes on one H200 ran at 1,709-1,711 env frames/s drawn on a
+    second against 1,355-1,398 (benchmarks/RESULTS.md, "End to end")."""
     idle = [d for d in local_devices if d.platform == "gpu" and d not in lane_devices]
-    return idle[:1] or list(lane_devices)
+    return idle[: len(lane_devices)] or list(lane_devices)
 
 
 def make_env(

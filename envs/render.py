@@ -125,7 +125,7 @@ class RenderSettings:
     # agent mask and composites no background (dear_jax.experiment.make_env decides, by method).
     labels: bool = True
     # The GPUs the workers draw on: "auto" (MuJoCo's choice: MUJOCO_EGL_DEVICE_ID if set, else
-    # the process's first GPU; `dear_jax.experiment.make_env` makes it a GPU the training leaves
+    # the process's first GPU; `dear_jax.experiment.make_env` makes it GPUs the training leaves
     # idle, else the GPUs of the env's lanes) or GPU numbers as MUJOCO_EGL_DEVICE_ID takes them (the process's visible GPUs, in
     # CUDA's order), e.g. "1" or "0,1": the workers spread over them in blocks (`worker_gpus`).
     # Drawing shares its GPU with the updates: DEAR walker's loop, 5 lanes, drawn on a second GPU

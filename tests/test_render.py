@@ -7,6 +7,7 @@ import importlib.util
 import json
 import os
 import pathlib
+import time
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -400,26 +401,41 @@ def test_render_benchmark_compares_coarser_primitives_with_the_models(tmp_path):
 
 
 def test_render_benchmark_times_the_gl_work_of_rgb_and_label_pictures():
-    """benchmarks/render.py --gpu-time: the timer queries see both kinds of picture (RGB and
-    segmentation, > 0 ms each), and the renderer draws the same frames after them, its own
-    steps back in place; the flag asks for one renderer in this process."""
+    """benchmarks/render.py --gpu-time: the timer queries time both kinds of picture (RGB and
+    segmentation; none of the second without the segmentation pass), within the order of a
+    call's time (on Mesa, which rasterises on the CPU, most of it, and more with the picture's
+    effects); the renderer draws the same frames after them, its own steps back in place; the
+    flag asks for one renderer in this process."""
     from benchmarks import render as bench
 
     model, agent, floor, cam = task_facts("walker")
-    settings = R.RenderSettings(quality="fast")
     qpos = random_qpos(model, 3, seed=2)
     times = {}
 
     def timed_first(tr):
-        times.update(bench.gpu_times(tr, qpos))
+        times[tr.settings] = bench.gpu_times(tr, qpos)
+        t0 = time.perf_counter()  # a call like the timed one, by the clock
+        tr.render(qpos, *(np.empty_like(a) for a in untimed))
+        times[tr.settings]["wall_ms"] = 1e3 * (time.perf_counter() - t0) / len(qpos)
+        software = tr.gl_info()["GL_RENDERER"].lower().startswith(("llvmpipe", "softpipe"))
+        times[tr.settings]["software"] = software
         assert "_draw" not in vars(tr) and "_read" not in vars(tr)
 
-    untimed = tile_render(model, qpos, cam, agent, floor, settings)
-    after_timing = tile_render(model, qpos, cam, agent, floor, settings, before=timed_first)
-    assert times["gpu_ms_rgb"] > 0 and times["gpu_ms_labels"] > 0
-    assert times["gpu_ms_readback"] >= 0
+    fast, effects = R.RenderSettings(quality="fast"), R.RenderSettings(quality="dm_control")
+    no_labels = R.RenderSettings(quality="fast", labels=False)
+    untimed = tile_render(model, qpos, cam, agent, floor, fast)
+    after_timing = tile_render(model, qpos, cam, agent, floor, fast, before=timed_first)
     for a, b in zip(after_timing, untimed):
         np.testing.assert_array_equal(a, b)
+    for settings in (effects, no_labels):
+        tile_render(model, qpos, cam, agent, floor, settings, before=timed_first)
+    for t in times.values():  # of the order of such a call's time at most
+        assert 0 < t["gpu_ms_rgb"] and t["gpu_ms_rgb"] + t["gpu_ms_labels"] < 3 * t["wall_ms"]
+    assert times[fast]["gpu_ms_labels"] > 0 and times[no_labels]["gpu_ms_labels"] == 0
+    if times[effects]["software"]:  # rasterised on the CPU, most of a call's time
+        for t in times.values():
+            assert t["gpu_ms_rgb"] + t["gpu_ms_labels"] > 0.1 * t["wall_ms"]
+        assert times[effects]["gpu_ms_rgb"] > 2 * times[fast]["gpu_ms_rgb"]  # effects, MSAA
     argv = "--tasks walker-walk --batch 4 --calls 1 --check 2 --variants fast --gpu-time"
     with pytest.raises(SystemExit):
         bench.main([*argv.split(), "--workers", "2"])
@@ -526,23 +542,31 @@ def test_workers_draw_on_the_gpus_named_each_on_its_block_of_the_batch():
             R.RenderSettings(gpus=bad)
 
 
-def test_auto_draws_on_the_gpus_of_the_envs_lanes_and_numbers_are_checked(monkeypatch):
-    """env.render.gpus "auto": a training env's frames on the first GPU its lanes leave idle,
-    where the process has one, else on the GPU numbers of the devices the lanes live on, in
-    their order; left to MuJoCo off GPUs, on the first GPU alone, or where MUJOCO_EGL_DEVICE_ID
-    is set. Numbers given are checked against the GPUs the training process sees."""
+def test_auto_draws_on_idle_gpus_else_the_lanes_and_numbers_are_checked(monkeypatch):
+    """env.render.gpus "auto": a training env's frames on the GPUs its lanes leave idle (as
+    many as the lanes' devices at most), where the process has any, else on the GPU numbers of
+    the devices the lanes live on, in their order; left to MuJoCo off GPUs, on the first GPU
+    alone, or where MUJOCO_EGL_DEVICE_ID is set. make_env hands the env what it resolves to.
+    Numbers given are checked against the GPUs the training process sees."""
     from types import SimpleNamespace
 
     from dear_jax import experiment
 
-    gpus = [SimpleNamespace(platform="gpu", local_hardware_id=i) for i in range(3)]
+    gpus = [SimpleNamespace(platform="gpu", local_hardware_id=i) for i in range(4)]
     cpu = [SimpleNamespace(platform="cpu", local_hardware_id=0)]
     assert experiment.drawing_devices(gpus[:1], gpus) == [gpus[1]]
-    assert experiment.drawing_devices(gpus[:2], gpus) == [gpus[2]]
+    assert experiment.drawing_devices(gpus[:2], gpus) == gpus[2:]
+    assert experiment.drawing_devices(gpus[:3], gpus) == [gpus[3]]
     assert experiment.drawing_devices(gpus, gpus) == gpus  # none idle: the lanes' own
     assert experiment.drawing_devices(cpu, cpu) == cpu
-    gpus = gpus[:2]
     monkeypatch.delenv("MUJOCO_EGL_DEVICE_ID", raising=False)
+    drawn_on = []
+    monkeypatch.setattr(experiment.envs, "make", lambda *a, render, **k: drawn_on.append(render))
+    for visible, expected in [(gpus[:2], "1"), (gpus[:1], "auto"), (cpu, "auto")]:
+        monkeypatch.setattr(experiment.jax, "local_devices", lambda v=visible: v)
+        experiment.make_env(smoke_config.get_config(), envs_per_seed=1, split="train", seed=0)
+        assert drawn_on.pop().gpus == expected
+    gpus = gpus[:2]
     assert experiment.render_gpus("auto", gpus[::-1]) == "1,0"
     assert experiment.render_gpus("auto", gpus[1:]) == "1"  # an evaluation's spare GPU
     assert experiment.render_gpus("auto", gpus[:1]) == "auto"  # the first GPU: MuJoCo's choice

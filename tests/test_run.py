@@ -1147,6 +1147,29 @@ def test_benchmarks_vary_fields_over_every_combination():
         variants([["env.physics_threads"]])
 
 
+def test_benchmarks_draw_on_the_gpus_that_train_unless_told(monkeypatch):
+    """benchmarks/train.py's figures do not depend on a machine's spare GPUs: "auto" becomes
+    the GPUs of the run's lanes where the process sees more; settings given stay."""
+    from types import SimpleNamespace
+
+    from benchmarks.train import drawn_beside_lanes
+
+    gpus = [SimpleNamespace(platform="gpu", local_hardware_id=i) for i in range(3)]
+    monkeypatch.setattr(jax, "local_devices", lambda: gpus)
+    monkeypatch.delenv("MUJOCO_EGL_DEVICE_ID", raising=False)
+    config = smoke.get_config()
+    for devices, drawn in [(1, "0"), (2, "0,1"), (3, "auto"), ("all", "auto")]:
+        config.devices = devices
+        assert drawn_beside_lanes(config).env.render.gpus == drawn
+    assert config.env.render.gpus == "auto"  # a copy was changed, not the config given
+    config.devices = 1
+    config.env.render.gpus = "2"
+    assert drawn_beside_lanes(config).env.render.gpus == "2"
+    config.env.render.gpus = "auto"
+    monkeypatch.setenv("MUJOCO_EGL_DEVICE_ID", "1")
+    assert drawn_beside_lanes(config).env.render.gpus == "auto"
+
+
 def test_benchmarks_vary_stops_at_a_signal(tmp_path, monkeypatch, capsys):
     """A setting cut short by a signal (a time limit's SIGTERM) keeps its rows, and the settings
     after it are not started: the command ends instead of measuring on past its limit."""

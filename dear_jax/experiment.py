@@ -381,7 +381,7 @@ def make_env(
     without it the masks are all 0. label_envs: only the first label_envs envs of each seed draw
     it where no background is composited (envs.Env's). video_seed: the built-in background
     videos' (default: `seed`), the same on every process of the run. render_devices: the
-    devices env.render.gpus "auto" draws on (default: `drawing_devices`, a GPU this process's
+    devices env.render.gpus "auto" draws on (default: `drawing_devices`, GPUs this process's
     lanes leave idle or else theirs)."""
     e = config.env
     hosts = hosts or Hosts(mesh, lanes.num_lanes(config))

@@ -63,6 +63,14 @@ out=${OUT:-/tmp/out}
 mkdir -p "$out" runs
 
 if [ -d .gl ]; then for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; fi
+if [ -d .mesa ]; then  # benchmarks/device_mesa.sh: each package one of whose libraries is missing
+  for f in .mesa/*.deb; do
+    for lib in $(dpkg-deb -c "$f" | awk '$1 ~ /^-/ && $6 ~ /\.so/ {print substr($6, 2)}'); do
+      [ -e "$lib" ] || { dpkg -x "$f" /; echo "unpacked $(basename "$f")"; break; }
+    done
+  done
+  ldconfig
+fi
 if [ -d .whl ] && [ ! -d /tmp/site ]; then
   python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl || exit 1
 fi

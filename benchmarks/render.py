@@ -32,6 +32,10 @@ cylinders with S slices and T stacks (`env.render.num_slices`, `num_stacks`; 0x0
 own), each row adding its difference from the same variant drawn with the model's own
 (`*_vs_model_primitives`).
 
+`--gpus` draws each row's pool where `env.render.gpus` says: "auto", GPU numbers, or "cpu"
+(Mesa's llvmpipe on the CPU's cores, whatever GPUs the machine has); the reference frames are
+drawn in this process, on its default EGL device.
+
 Variants: "default" and "fast" are the two qualities (envs/render.py); the others change one
 thing of "default": an effect off, another shadow map size, or "-in-place" (each picture drawn in
 its place on a sheet-sized MuJoCo buffer, the layout before pictures were drawn at the origin and
@@ -162,6 +166,7 @@ def measure(
     mesh_faces=0,
     primitives=(0, 0),
     gpu_time=False,
+    gpus="auto",
 ):
     """Pool throughput (wall clock), or with workers=0 one TileRenderer in this process timed by
     this process's CPU time (best of `calls`): a proxy that other load on the machine barely moves;
@@ -173,6 +178,7 @@ def measure(
         mesh_faces=mesh_faces,
         num_slices=primitives[0],
         num_stacks=primitives[1],
+        gpus=gpus,
     )
     model = task.render_model(mesh_faces)
     agent, floor = task.agent_geom_ids(model), task.floor_geom_ids(model)
@@ -303,6 +309,12 @@ def main(argv=None) -> dict:
         action="store_true",
         help="with --workers 0: the GPU's ms per observation by GL timer queries",
     )
+    parser.add_argument(
+        "--gpus",
+        nargs="+",
+        default=["auto"],
+        help="env.render.gpus of the pool's workers, one row each (cpu: Mesa's llvmpipe)",
+    )
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     if args.gpu_time and any(args.workers):
@@ -311,7 +323,7 @@ def main(argv=None) -> dict:
         )
     rows = []
     head = (
-        f"{'task':<18} {'variant':<20} {'workers':>7} {'tiles':>5} {'obs/s':>8} {'x fast':>6} "
+        f"{'task':<18} {'variant':<20} {'gpus':>5} {'workers':>7} {'tiles':>5} {'obs/s':>8} {'x fast':>6} "
         f"{'ms/call':>8} {'|d| vs Renderer':>15} {'label px':>8} {'faces':>6} {'|d| vs shipped':>14} "
         f"{'primitives':>10} {'|d| vs model':>12}"
     )
@@ -320,11 +332,13 @@ def main(argv=None) -> dict:
         task = TASKS[name]
         qpos = random_states(task.render_model(), args.batch)
         ref_rgb, ref_labels = reference(task, qpos[: args.check])
-        grid = itertools.product(args.workers, args.tiles, args.mesh_faces, args.primitives)
-        for workers, tiles, faces, primitives in grid:
+        grid = itertools.product(
+            args.gpus, args.workers, args.tiles, args.mesh_faces, args.primitives
+        )
+        for gpus, workers, tiles, faces, primitives in grid:
             fast_obs = None
             for variant in sorted(args.variants, key=lambda v: v != "fast"):  # fast first
-                where = f"{name:<18} {variant:<20} {workers:>7} {tiles:>5}"
+                where = f"{name:<18} {variant:<20} {gpus:>5} {workers:>7} {tiles:>5}"
                 try:
                     row = measure(
                         task,
@@ -338,6 +352,7 @@ def main(argv=None) -> dict:
                         faces,
                         primitives,
                         args.gpu_time,
+                        gpus,
                     )
                 except Exception as err:  # noqa: BLE001 - one variant must not end the run
                     rows.append(
@@ -348,6 +363,7 @@ def main(argv=None) -> dict:
                             tiles=tiles,
                             mesh_faces=faces,
                             primitives=list(primitives),
+                            gpus=gpus,
                             error=repr(err),
                         )
                     )

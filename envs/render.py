@@ -95,6 +95,10 @@ QUALITY_VISUALS = {
 # meshes' at 4,000, 1.4 at 1,000: benchmarks/results/render_kitchen_mesh_faces_cpu.json), and
 # targets of a few hundred faces are not met.
 MIN_MESH_FACES = 1000
+# RenderSettings.gpus for drawing on the CPU's cores (Mesa's llvmpipe) instead of a GPU.
+CPU = "cpu"
+# Where glvnd looks for EGL vendor files unless __EGL_VENDOR_LIBRARY_DIRS says otherwise.
+EGL_VENDOR_DIRS = ("/etc/glvnd/egl_vendor.d", "/usr/share/glvnd/egl_vendor.d")
 # A cylinder is drawn as a prism of `num_slices` sides: fewer than 8 no longer look round. One
 # stack draws no sphere at all (and capsules without their caps).
 MIN_SLICES = 8
@@ -108,9 +112,11 @@ class RenderSettings:
     width: int = 84
     height: int = 84
     quality: str = "dm_control"  # QUALITIES: "dm_control" (its picture) | "fast" (no effects)
-    num_workers: int = 0  # 0 -> min(cores this process may use, 8), capped by envs_per_worker
-    # With num_workers 0: at least this many envs per worker (fewer workers for small batches:
-    # each worker holds a GL context on the GPU the updates run on); 0: no cap.
+    # 0 -> min(cores this process may use, 8), capped by envs_per_worker; drawn on the CPU
+    # (gpus "cpu"): those cores but one, uncapped.
+    num_workers: int = 0
+    # With num_workers 0 and GPUs drawing: at least this many envs per worker (fewer workers
+    # for small batches: each worker holds a GL context on the GPU the updates run on); 0: no cap.
     envs_per_worker: int = 0
     # Samples drawn before one readback (one "sheet"). 0 -> auto: 64.
     tiles_per_sheet: int = 0
@@ -128,7 +134,9 @@ class RenderSettings:
     # the process's first GPU; `dear_jax.experiment.make_env` makes it GPUs the training leaves
     # idle, else the GPUs of the env's lanes) or GPU numbers as MUJOCO_EGL_DEVICE_ID takes them
     # (the process's visible GPUs, in CUDA's order), e.g. "1" or "0,1": the workers spread over
-    # them in blocks (`worker_gpus`).
+    # them in blocks (`worker_gpus`). "cpu": no GPU; Mesa's software rasteriser (llvmpipe)
+    # draws on the CPU's cores, through EGL as well (`mesa_egl_vendor`), one worker per core
+    # the process may use but one unless num_workers says otherwise.
     # Drawing shares its GPU with the updates: DEAR walker's loop, 5 lanes, drawn on a second GPU
     # ran at 1,709-1,711 env frames/s against 1,355-1,398 (benchmarks/RESULTS.md, "End to end").
     gpus: str = "auto"
@@ -147,10 +155,10 @@ class RenderSettings:
         for name in ("num_workers", "envs_per_worker"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be 0 (auto) or more, got {getattr(self, name)}")
-        if self.gpus != "auto" and not re.fullmatch(r"\d+(,\d+)*", self.gpus):
+        if self.gpus not in ("auto", CPU) and not re.fullmatch(r"\d+(,\d+)*", self.gpus):
             raise ValueError(
-                f"render gpus {self.gpus!r}: 'auto' or GPU numbers separated by commas, e.g. '1' "
-                "or '0,1'"
+                f"render gpus {self.gpus!r}: 'auto', 'cpu' or GPU numbers separated by commas, "
+                "e.g. '1' or '0,1'"
             )
         if self.mesh_faces < 0 or 0 < self.mesh_faces < MIN_MESH_FACES:
             raise ValueError(
@@ -168,16 +176,21 @@ class RenderSettings:
         if self.num_workers > 0:
             return self.num_workers
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        if self.gpus == CPU:
+            return max((cores or 1) - 1, 1)
         workers = min(cores or 1, 8)
         if self.envs_per_worker > 0 and batch:
             workers = min(workers, -(-batch // self.envs_per_worker))
         return workers
 
-    def worker_gpus(self, workers: int) -> list[int | None]:
-        """The GPU each of `workers` workers draws on (None: MuJoCo's choice): worker i of W on
+    def worker_gpus(self, workers: int) -> list[int | str | None]:
+        """The GPU each of `workers` workers draws on (None: MuJoCo's choice; "cpu": Mesa's
+        software rasteriser, `use_cpu_drawing`): worker i of W on
         gpus[i * G // W], so that each GPU draws for the block of the batch its lanes own."""
         if self.gpus == "auto":
             return [None] * workers
+        if self.gpus == CPU:
+            return [CPU] * workers
         gpus = [int(g) for g in self.gpus.split(",")]
         return [gpus[i * len(gpus) // workers] for i in range(workers)]
 
@@ -214,6 +227,35 @@ def simplify_meshes(spec: mujoco.MjSpec, max_faces: int, meshdir: str) -> list[s
         mesh.userface = np.asarray(faces, np.int32).ravel()
         names.append(mesh.name)
     return names
+
+
+def mesa_egl_vendor() -> str:
+    """Mesa's EGL vendor file (glvnd's JSON naming libEGL_mesa), which `use_cpu_drawing` makes
+    EGL load alone; a clear error where Mesa's EGL is not installed."""
+    listed = os.environ.get("__EGL_VENDOR_LIBRARY_DIRS", "")
+    dirs = [d for d in listed.split(":") if d] or list(EGL_VENDOR_DIRS)
+    for folder in dirs:
+        if os.path.isdir(folder):
+            found = sorted(f for f in os.listdir(folder) if "mesa" in f and f.endswith(".json"))
+            if found:
+                return os.path.join(folder, found[0])
+    raise FileNotFoundError(
+        f"render gpus 'cpu' draws with Mesa's software rasteriser through EGL, but no Mesa EGL "
+        f"vendor file (*mesa*.json) is in {', '.join(dirs)}. Install Mesa's EGL and drivers "
+        "(apt-get install libegl-mesa0 libgl1-mesa-dri), or draw on a GPU (render gpus 'auto' "
+        "or GPU numbers)."
+    )
+
+
+def use_cpu_drawing() -> None:
+    """Make this process's EGL contexts Mesa's llvmpipe on the CPU, whatever GPUs the machine
+    has: EGL loads Mesa's vendor alone (__EGL_VENDOR_LIBRARY_FILENAMES), whose one device is
+    the software rasteriser. Call it before the process's first EGL call (a render worker does,
+    first thing). Each picture is rasterised in the calling thread (LP_NUM_THREADS=0, unless
+    set): a worker per core draws its pictures side by side."""
+    os.environ["__EGL_VENDOR_LIBRARY_FILENAMES"] = mesa_egl_vendor()
+    os.environ.pop("MUJOCO_EGL_DEVICE_ID", None)
+    os.environ.setdefault("LP_NUM_THREADS", "0")
 
 
 def apply_visuals(model: mujoco.MjModel, visuals: Visuals) -> None:

@@ -18,7 +18,7 @@ import mujoco
 import numpy as np
 
 from envs import forkserver
-from envs.render import PERTURB_KEYS, RenderSettings, TileRenderer
+from envs.render import CPU, PERTURB_KEYS, RenderSettings, TileRenderer, use_cpu_drawing
 
 _WORKER_TIMEOUT_S = 600.0
 
@@ -34,7 +34,7 @@ def _attach_shm(name: str) -> shared_memory.SharedMemory:
         resource_tracker.register = register
 
 
-def _worker_main(conn, model_fn, init_kwargs, gpu: int | None) -> None:
+def _worker_main(conn, model_fn, init_kwargs, gpu: int | str | None) -> None:
     # A stop signal sent to the whole process group is the parent's to handle: it finishes its
     # step, checkpoints and then closes the pool. A worker also ends when the parent's end of
     # the pipe closes (EOF below), so it never outlives the parent.
@@ -42,7 +42,9 @@ def _worker_main(conn, model_fn, init_kwargs, gpu: int | None) -> None:
     renderer = None
     shm = None
     try:
-        if gpu is not None:  # read by MuJoCo's EGL backend when it makes the context
+        if gpu == CPU:
+            use_cpu_drawing()
+        elif gpu is not None:  # read by MuJoCo's EGL backend when it makes the context
             os.environ["MUJOCO_EGL_DEVICE_ID"] = str(gpu)
         renderer = TileRenderer(model_fn(), **init_kwargs)
         conn.send(("ok", None))

@@ -64,7 +64,7 @@ mkdir -p "$out" runs
 
 if [ -d .gl ]; then for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; fi
 if [ -d .mesa ]; then  # benchmarks/device_mesa.sh: each package one of whose libraries is missing
-  for f in .mesa/*.deb; do
+  for f in .mesa/*/*.deb; do
     for lib in $(dpkg-deb -c "$f" | awk '$1 ~ /^-/ && $6 ~ /\.so/ {print substr($6, 2)}'); do
       [ -e "$lib" ] || { dpkg -x "$f" /; echo "unpacked $(basename "$f")"; break; }
     done

@@ -1,16 +1,18 @@
 #!/usr/bin/env bash
 # Mesa's EGL and software rasteriser (llvmpipe) for a GPU machine without network access, so
 # that render workers can draw on its CPU cores (env.render.gpus "cpu"): downloads the Debian
-# packages Mesa's EGL needs into .mesa/ (git-ignored, ~50 MB; carry it in a call of its own:
-# what one call may carry is limited). benchmarks/device.sh unpacks each package the machine
-# lacks (by its libraries' names in the loader's cache) into /, as it does .gl/.
+# packages Mesa's EGL needs into .mesa/llvm/ (LLVM, 23 MB) and .mesa/rest/ (27 MB), git-ignored.
+# What one call may carry is limited: carry each folder in a call of its own, before the calls
+# that need it, on the same machine. benchmarks/device.sh unpacks into / each package one of
+# whose libraries the machine lacks, as it does .gl/.
 set -euo pipefail
 cd "$(git rev-parse --show-toplevel)"
-rm -rf .mesa && mkdir -p .mesa /tmp/apt-amd64/partial
+rm -rf .mesa && mkdir -p .mesa/llvm .mesa/rest /tmp/apt-amd64/partial
 o='-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/apt-amd64'
 apt-get $o update >/dev/null
 # libegl-mesa0 / libgl1-mesa-dri and what they link that a CUDA image may not have.
-(cd .mesa && apt-get -q $o download libegl-mesa0 libgl1-mesa-dri libglapi-mesa libgbm1 libllvm15 \
+(cd .mesa/llvm && apt-get -q $o download libllvm15 2>/dev/null)
+(cd .mesa/rest && apt-get -q $o download libegl-mesa0 libgl1-mesa-dri libglapi-mesa libgbm1 \
   libz3-4 libdrm2 libdrm-amdgpu1 libdrm-intel1 libdrm-nouveau2 libdrm-radeon1 libpciaccess0 \
   libelf1 libedit2 libbsd0 libmd0 libsensors5 libwayland-client0 libwayland-server0 libx11-xcb1 \
   libxcb1 libxau6 libxdmcp6 libxcb-dri2-0 libxcb-dri3-0 libxcb-present0 libxcb-randr0 \

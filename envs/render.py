@@ -38,6 +38,7 @@ H100 + 16 cores, walker, 84x84, batch 1024): 64 tiles per sheet 8.1k obs/s with 
 
 from __future__ import annotations
 
+import atexit
 import ctypes
 import dataclasses
 import os
@@ -97,8 +98,6 @@ QUALITY_VISUALS = {
 MIN_MESH_FACES = 1000
 # RenderSettings.gpus for drawing on the CPU's cores (Mesa's llvmpipe) instead of a GPU.
 CPU = "cpu"
-# Where glvnd looks for EGL vendor files unless __EGL_VENDOR_LIBRARY_DIRS says otherwise.
-EGL_VENDOR_DIRS = ("/etc/glvnd/egl_vendor.d", "/usr/share/glvnd/egl_vendor.d")
 # A cylinder is drawn as a prism of `num_slices` sides: fewer than 8 no longer look round. One
 # stack draws no sphere at all (and capsules without their caps).
 MIN_SLICES = 8
@@ -135,7 +134,7 @@ class RenderSettings:
     # idle, else the GPUs of the env's lanes) or GPU numbers as MUJOCO_EGL_DEVICE_ID takes them
     # (the process's visible GPUs, in CUDA's order), e.g. "1" or "0,1": the workers spread over
     # them in blocks (`worker_gpus`). "cpu": no GPU; Mesa's software rasteriser (llvmpipe)
-    # draws on the CPU's cores, through EGL as well (`mesa_egl_vendor`), one worker per core
+    # draws on the CPU's cores, through EGL as well (`use_cpu_drawing`), one worker per core
     # the process may use but one unless num_workers says otherwise.
     # Drawing shares its GPU with the updates: DEAR walker's loop, 5 lanes, drawn on a second GPU
     # ran at 1,709-1,711 env frames/s against 1,355-1,398 (benchmarks/RESULTS.md, "End to end").
@@ -229,33 +228,35 @@ def simplify_meshes(spec: mujoco.MjSpec, max_faces: int, meshdir: str) -> list[s
     return names
 
 
-def mesa_egl_vendor() -> str:
-    """Mesa's EGL vendor file (glvnd's JSON naming libEGL_mesa), which `use_cpu_drawing` makes
-    EGL load alone; a clear error where Mesa's EGL is not installed."""
-    listed = os.environ.get("__EGL_VENDOR_LIBRARY_DIRS", "")
-    dirs = [d for d in listed.split(":") if d] or list(EGL_VENDOR_DIRS)
-    for folder in dirs:
-        if os.path.isdir(folder):
-            found = sorted(f for f in os.listdir(folder) if "mesa" in f and f.endswith(".json"))
-            if found:
-                return os.path.join(folder, found[0])
-    raise FileNotFoundError(
-        f"render gpus 'cpu' draws with Mesa's software rasteriser through EGL, but no Mesa EGL "
-        f"vendor file (*mesa*.json) is in {', '.join(dirs)}. Install Mesa's EGL and drivers "
-        "(apt-get install libegl-mesa0 libgl1-mesa-dri), or draw on a GPU (render gpus 'auto' "
-        "or GPU numbers)."
-    )
-
-
 def use_cpu_drawing() -> None:
     """Make this process's EGL contexts Mesa's llvmpipe on the CPU, whatever GPUs the machine
-    has: EGL loads Mesa's vendor alone (__EGL_VENDOR_LIBRARY_FILENAMES), whose one device is
-    the software rasteriser. Call it before the process's first EGL call (a render worker does,
-    first thing). Each picture is rasterised in the calling thread (LP_NUM_THREADS=0, unless
-    set): a worker per core draws its pictures side by side."""
-    os.environ["__EGL_VENDOR_LIBRARY_FILENAMES"] = mesa_egl_vendor()
-    os.environ.pop("MUJOCO_EGL_DEVICE_ID", None)
-    os.environ.setdefault("LP_NUM_THREADS", "0")
+    has: MuJoCo's EGL display is made on Mesa's software device (EGL_MESA_device_software),
+    which EGL lists beside the GPUs' where Mesa's EGL is installed. Call it before the process
+    makes its first context (a render worker does, first thing). Each picture is rasterised in
+    the calling thread (LP_NUM_THREADS=0, unless set): a worker per core draws side by side."""
+    import mujoco.egl
+    from mujoco.egl import egl_ext as EGL
+
+    if mujoco.egl.EGL_DISPLAY is not None:
+        raise RuntimeError("this process has made an EGL display already: draw on the CPU first")
+    os.environ.setdefault("LP_NUM_THREADS", "0")  # read when the display is initialised
+    query = ctypes.CFUNCTYPE(ctypes.c_char_p, EGL.EGLDeviceEXT, EGL.EGLint)(
+        EGL.eglGetProcAddress("eglQueryDeviceStringEXT")
+    )
+    devices = EGL.eglQueryDevicesEXT()
+    for device in devices:
+        if b"EGL_MESA_device_software" in (query(device, EGL.EGL_EXTENSIONS) or b"").split():
+            display = EGL.eglGetPlatformDisplayEXT(EGL.EGL_PLATFORM_DEVICE_EXT, device, None)
+            if display != EGL.EGL_NO_DISPLAY and EGL.eglInitialize(display, None, None):
+                mujoco.egl.EGL_DISPLAY = display
+                atexit.register(mujoco.egl._terminate_display)
+                return
+    raise RuntimeError(
+        f"render gpus 'cpu' draws with Mesa's software rasteriser through EGL, but none of the "
+        f"{len(devices)} EGL devices is Mesa's (EGL_MESA_device_software). Install Mesa's EGL "
+        "and drivers (apt-get install libegl-mesa0 libgl1-mesa-dri), or draw on a GPU (render "
+        "gpus 'auto' or GPU numbers)."
+    )
 
 
 def apply_visuals(model: mujoco.MjModel, visuals: Visuals) -> None:

@@ -223,7 +223,8 @@ def test_the_fork_server_outlives_a_stop_signal_to_the_process_group():
 
 def test_the_number_of_workers_follows_the_settings_the_cores_and_the_batch(monkeypatch):
     """num_workers > 0 is taken as it is; 0 is min(cores, 8), and with envs_per_worker K no more
-    than one worker per K samples of the pool's batch (when it is known)."""
+    than one worker per K samples of the pool's batch (when it is known); drawn on the CPU,
+    cores - 1 (at least one)."""
     monkeypatch.setattr(R.os, "sched_getaffinity", lambda pid: set(range(16)), raising=False)
     assert R.RenderSettings(num_workers=3).resolved_workers(batch=1) == 3
     assert R.RenderSettings().resolved_workers(batch=5) == 8
@@ -237,8 +238,12 @@ def test_the_number_of_workers_follows_the_settings_the_cores_and_the_batch(monk
         6,
         8,
     ]
+    # Drawn on the CPU: a worker per core but one, whatever the batch.
+    on_cpu = R.RenderSettings(gpus="cpu", envs_per_worker=8)
+    assert [on_cpu.resolved_workers(b) for b in (None, 1, 80)] == [15, 15, 15]
     monkeypatch.setattr(R.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
     assert capped.resolved_workers(48) == 2 and R.RenderSettings().resolved_workers() == 2
+    assert on_cpu.resolved_workers(80) == 1
     with pytest.raises(ValueError, match="envs_per_worker must be 0 \\(auto\\) or more, got -1"):
         R.RenderSettings(envs_per_worker=-1)
 
@@ -530,6 +535,38 @@ def test_bad_input_is_named():
             np.testing.assert_array_equal(a, b)
 
 
+def test_drawn_on_the_cpu_by_mesa_whatever_the_gpus(monkeypatch):
+    """gpus "cpu": each worker makes MuJoCo's EGL display on Mesa's software device (llvmpipe).
+    Where that is the default device too (a machine without GPUs), the frames and labels are the
+    default pool's bit for bit; beside a GPU's, within a level. Without Mesa's device, or after
+    the process made its display, it says what is wrong."""
+    import mujoco.egl
+
+    model, agent, floor, cam = task_facts("walker")
+    qpos = random_qpos(model, 3, seed=2, scale=0.3)
+    with model_pool(model, agent, floor, cam, R.RenderSettings(num_workers=1)) as pool:
+        expected = pool.render(qpos)
+        default_renderer = pool.gl_info()[0]["GL_RENDERER"]
+    with model_pool(model, agent, floor, cam, R.RenderSettings(num_workers=2, gpus="cpu")) as pool:
+        assert pool.num_workers == 2
+        assert all("llvmpipe" in info["GL_RENDERER"] for info in pool.gl_info())
+        rgb, labels = pool.render(qpos)
+    if "llvmpipe" in default_renderer:
+        np.testing.assert_array_equal(rgb, expected[0])
+    else:
+        assert np.abs(rgb.astype(int) - expected[0]).mean() < 1.0
+    np.testing.assert_array_equal(labels, expected[1])
+
+    monkeypatch.setenv("LP_NUM_THREADS", "0")
+    monkeypatch.setattr(mujoco.egl, "EGL_DISPLAY", None)
+    monkeypatch.setattr(mujoco.egl.egl_ext, "eglQueryDevicesEXT", lambda: [])
+    with pytest.raises(RuntimeError, match=r"none of the 0 EGL devices is Mesa's.*libegl-mesa0"):
+        R.use_cpu_drawing()
+    monkeypatch.setattr(mujoco.egl, "EGL_DISPLAY", object())
+    with pytest.raises(RuntimeError, match="made an EGL display already"):
+        R.use_cpu_drawing()
+
+
 def test_workers_draw_on_the_gpus_named_each_on_its_block_of_the_batch():
     """Worker i of W draws on gpus[i * G // W]: the GPU whose lanes own the start of its block."""
     assert R.RenderSettings(gpus="0,1").worker_gpus(8) == [0, 0, 0, 0, 1, 1, 1, 1]
@@ -537,8 +574,9 @@ def test_workers_draw_on_the_gpus_named_each_on_its_block_of_the_batch():
     assert R.RenderSettings(gpus="3,1,2").worker_gpus(2) == [3, 1]
     assert R.RenderSettings(gpus="1").worker_gpus(2) == [1, 1]
     assert R.RenderSettings().worker_gpus(2) == [None, None]  # MuJoCo's choice
+    assert R.RenderSettings(gpus="cpu").worker_gpus(3) == ["cpu"] * 3
     for bad in ("gpu1", "0,", "-1", ""):
-        with pytest.raises(ValueError, match="'auto' or GPU numbers separated by commas"):
+        with pytest.raises(ValueError, match="'auto', 'cpu' or GPU numbers separated by commas"):
             R.RenderSettings(gpus=bad)
 
 
@@ -579,7 +617,7 @@ def test_auto_draws_on_idle_gpus_else_the_lanes_and_numbers_are_checked(monkeypa
     monkeypatch.setattr(experiment.jax, "local_devices", lambda: gpus)
     for setting, message in [
         ("0,2", r"env.render.gpus='0,2': this process sees 2 GPU\(s\) \(0-1\)$"),
-        ("gpu1", r"env.render: render gpus 'gpu1': 'auto' or GPU numbers separated by commas"),
+        ("gpu1", r"env.render: render gpus 'gpu1': 'auto', 'cpu' or GPU numbers separated by"),
     ]:
         config.env.render.gpus = setting
         with pytest.raises(ValueError, match=message):
@@ -589,6 +627,9 @@ def test_auto_draws_on_idle_gpus_else_the_lanes_and_numbers_are_checked(monkeypa
     monkeypatch.setattr(experiment.jax, "local_devices", lambda: [])
     with pytest.raises(ValueError, match=r"sees 0 GPU\(s\)$"):
         experiment.validate(config)
+    config.env.render.gpus = "cpu"  # no GPU needed; the env keeps it
+    experiment.validate(config)
+    assert experiment.render_gpus("cpu", gpus) == "cpu"
 
 
 def test_a_worker_without_an_offscreen_buffer_names_the_setting_to_lower():

@@ -405,6 +405,18 @@ def test_render_benchmark_compares_coarser_primitives_with_the_models(tmp_path):
         bench.main([*argv.split(), "--primitives", "16"])
 
 
+def test_render_benchmark_draws_each_row_where_gpus_says():
+    """benchmarks/render.py --gpus: a pool row per setting, drawn where it says ("cpu": Mesa's
+    llvmpipe, whatever the default device), the setting in the row's JSON."""
+    from benchmarks import render as bench
+
+    argv = "--tasks walker-walk --workers 1 --batch 4 --calls 1 --check 2 --variants fast"
+    rows = bench.main([*argv.split(), "--gpus", "auto", "cpu"])["rows"]
+    assert [row["settings"]["gpus"] for row in rows] == ["auto", "cpu"]
+    assert "llvmpipe" in rows[1]["gl_renderer"]
+    assert rows[1]["label_pixels_differing"] <= 20  # against labels drawn on the default device
+
+
 def test_render_benchmark_times_the_gl_work_of_rgb_and_label_pictures():
     """benchmarks/render.py --gpu-time: the timer queries time both kinds of picture (RGB and
     segmentation; none of the second without the segmentation pass), within the order of a

@@ -54,7 +54,8 @@
 # wheels in .whl/ and EGL loaders in .gl/ (any folder of wheels `pip install --no-index` takes;
 # the pinned packages it lacks: mujoco, mujoco-mjx, ml-collections, tensorboardX, and for the
 # kitchen's simplified meshes fast-simplification),
-# dm_control's suite models in .dmc/ (benchmarks/device_dmc.sh). The tree sent there has no
+# dm_control's suite models in .dmc/ (benchmarks/device_dmc.sh); for env.render.gpus "cpu", Mesa's
+# EGL and llvmpipe in .mesa/ (benchmarks/device_mesa.sh). The tree sent there has no
 # .git: export DEAR_JAX_COMMIT=<commit> so JSON and summaries name the code's commit. JAX's
 # compilation cache is $JAX_COMPILATION_CACHE_DIR (default /tmp/jax_cache).
 set -uo pipefail
@@ -64,8 +65,8 @@ mkdir -p "$out" runs
 
 if [ -d .gl ]; then for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; fi
 if [ -d .mesa ]; then  # benchmarks/device_mesa.sh: each package one of whose libraries is missing
-  for f in .mesa/*/*.deb; do
-    for lib in $(dpkg-deb -c "$f" | awk '$1 ~ /^-/ && $6 ~ /\.so/ {print substr($6, 2)}'); do
+  for f in .mesa/*/*.deb; do  # by the names the loader asks for: libffi.so.8, swrast_dri.so
+    for lib in $(dpkg-deb -c "$f" | awk '$6 ~ /\.so(\.[0-9]+)?$/ {print substr($6, 2)}'); do
       [ -e "$lib" ] || { dpkg -x "$f" /; echo "unpacked $(basename "$f")"; break; }
     done
   done

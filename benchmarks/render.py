@@ -317,6 +317,11 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
+    if 0 in args.workers and set(args.gpus) != {"auto"}:
+        parser.error(
+            "--workers 0 draws in this process, on its default device: --gpus applies to pools "
+            f"(--workers 1 or more), got --gpus {' '.join(args.gpus)}"
+        )
     if args.gpu_time and any(args.workers):
         parser.error(
             f"--gpu-time times one renderer in this process: give --workers 0, not {args.workers}"

@@ -124,7 +124,8 @@ def get_config() -> ConfigDict:
     # The GPUs the render workers draw on: "auto", GPUs of this process that the training leaves
     # idle (where evaluations on the accelerator run: start a run with one GPU more), else those
     # that train the env's lanes (an evaluation's: its policy's; MUJOCO_EGL_DEVICE_ID instead where
-    # it is set), or GPU numbers of this process, e.g. "0": beside the updates. Drawing slows the
+    # it is set), or GPU numbers of this process, e.g. "0": beside the updates; "cpu": Mesa's
+    # llvmpipe on the cores (for GPUs without EGL; 0.63x DEAR walker's frames/s). Drawing slows the
     # updates on their GPU: DEAR walker's loop, 5 lanes, drawn on a second GPU ran at 1,709-1,711
     # env frames/s against 1,355-1,398, the kitchen's at 1,076 against 879 (benchmarks/RESULTS.md).
     c.env.render.gpus = "auto"

@@ -153,7 +153,10 @@ def validate(config: ConfigDict) -> None:
         seen = len([d for d in jax.local_devices() if d.platform == "gpu"])
         if any(int(g) >= seen for g in gpus.split(",")):
             visible = f" (0-{seen - 1})" if seen else ""
-            raise ValueError(f"env.render.gpus={gpus!r}: this process sees {seen} GPU(s){visible}")
+            raise ValueError(
+                f"env.render.gpus={gpus!r}: this process sees {seen} GPU(s){visible}; valid: "
+                "'auto', 'cpu' or GPU numbers it sees"
+            )
     try:
         wideconv.parse_constants(config.agent.kernels)
     except ValueError as e:

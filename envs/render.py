@@ -38,7 +38,6 @@ H100 + 16 cores, walker, 84x84, batch 1024): 64 tiles per sheet 8.1k obs/s with 
 
 from __future__ import annotations
 
-import atexit
 import ctypes
 import dataclasses
 import os
@@ -112,7 +111,8 @@ class RenderSettings:
     height: int = 84
     quality: str = "dm_control"  # QUALITIES: "dm_control" (its picture) | "fast" (no effects)
     # 0 -> min(cores this process may use, 8), capped by envs_per_worker; drawn on the CPU
-    # (gpus "cpu"): those cores but one, uncapped.
+    # (gpus "cpu"): those cores but one, uncapped (each pool: the training env's and each
+    # evaluation process's, which share the cores while an evaluation runs).
     num_workers: int = 0
     # With num_workers 0 and GPUs drawing: at least this many envs per worker (fewer workers
     # for small batches: each worker holds a GL context on the GPU the updates run on); 0: no cap.
@@ -234,28 +234,40 @@ def use_cpu_drawing() -> None:
     which EGL lists beside the GPUs' where Mesa's EGL is installed. Call it before the process
     makes its first context (a render worker does, first thing). Each picture is rasterised in
     the calling thread (LP_NUM_THREADS=0, unless set): a worker per core draws side by side."""
+    if os.environ.get("MUJOCO_GL", "egl") != "egl":
+        raise RuntimeError(
+            f"render gpus 'cpu' draws through EGL, but MUJOCO_GL={os.environ['MUJOCO_GL']!r}: "
+            "unset it or set it to 'egl'"
+        )
     import mujoco.egl
     from mujoco.egl import egl_ext as EGL
+    from OpenGL import error
 
     if mujoco.egl.EGL_DISPLAY is not None:
-        raise RuntimeError("this process has made an EGL display already: draw on the CPU first")
+        raise RuntimeError(
+            "render gpus 'cpu': this process has an EGL display already (its contexts are on it); "
+            "call use_cpu_drawing before the process's first context"
+        )
     os.environ.setdefault("LP_NUM_THREADS", "0")  # read when the display is initialised
-    query = ctypes.CFUNCTYPE(ctypes.c_char_p, EGL.EGLDeviceEXT, EGL.EGLint)(
-        EGL.eglGetProcAddress("eglQueryDeviceStringEXT")
-    )
-    devices = EGL.eglQueryDevicesEXT()
+    address = EGL.eglGetProcAddress("eglQueryDeviceStringEXT")
+    devices = EGL.eglQueryDevicesEXT(max_devices=64) if address else []
+    query = ctypes.CFUNCTYPE(ctypes.c_char_p, EGL.EGLDeviceEXT, EGL.EGLint)(address or 0)
     for device in devices:
-        if b"EGL_MESA_device_software" in (query(device, EGL.EGL_EXTENSIONS) or b"").split():
-            display = EGL.eglGetPlatformDisplayEXT(EGL.EGL_PLATFORM_DEVICE_EXT, device, None)
-            if display != EGL.EGL_NO_DISPLAY and EGL.eglInitialize(display, None, None):
-                mujoco.egl.EGL_DISPLAY = display
-                atexit.register(mujoco.egl._terminate_display)
-                return
+        if b"EGL_MESA_device_software" not in (query(device, EGL.EGL_EXTENSIONS) or b"").split():
+            continue
+        display = EGL.eglGetPlatformDisplayEXT(EGL.EGL_PLATFORM_DEVICE_EXT, device, None)
+        try:
+            ready = display != EGL.EGL_NO_DISPLAY and EGL.eglInitialize(display, None, None)
+        except error.GLError:
+            ready = False
+        if ready:
+            mujoco.egl.EGL_DISPLAY = display
+            return
     raise RuntimeError(
         f"render gpus 'cpu' draws with Mesa's software rasteriser through EGL, but none of the "
-        f"{len(devices)} EGL devices is Mesa's (EGL_MESA_device_software). Install Mesa's EGL "
-        "and drivers (apt-get install libegl-mesa0 libgl1-mesa-dri), or draw on a GPU (render "
-        "gpus 'auto' or GPU numbers)."
+        f"{len(devices)} EGL devices is Mesa's (EGL_MESA_device_software) and usable. Install "
+        "Mesa's EGL and drivers (apt-get install libegl-mesa0 libgl1-mesa-dri), or draw on a GPU "
+        "(render gpus 'auto' or GPU numbers)."
     )
 
 

@@ -407,7 +407,8 @@ def test_render_benchmark_compares_coarser_primitives_with_the_models(tmp_path):
 
 def test_render_benchmark_draws_each_row_where_gpus_says():
     """benchmarks/render.py --gpus: a pool row per setting, drawn where it says ("cpu": Mesa's
-    llvmpipe, whatever the default device), the setting in the row's JSON."""
+    llvmpipe, whatever the default device), the setting in the row's JSON; refused for the
+    renderer in this process (--workers 0)."""
     from benchmarks import render as bench
 
     argv = "--tasks walker-walk --workers 1 --batch 4 --calls 1 --check 2 --variants fast"
@@ -415,6 +416,8 @@ def test_render_benchmark_draws_each_row_where_gpus_says():
     assert [row["settings"]["gpus"] for row in rows] == ["auto", "cpu"]
     assert "llvmpipe" in rows[1]["gl_renderer"]
     assert rows[1]["label_pixels_differing"] <= 20  # against labels drawn on the default device
+    with pytest.raises(SystemExit):  # a renderer in this process draws on its default device
+        bench.main(["--workers", "0", "--gpus", "cpu"])
 
 
 def test_render_benchmark_times_the_gl_work_of_rgb_and_label_pictures():
@@ -565,17 +568,21 @@ def test_drawn_on_the_cpu_by_mesa_whatever_the_gpus(monkeypatch):
         rgb, labels = pool.render(qpos)
     if "llvmpipe" in default_renderer:
         np.testing.assert_array_equal(rgb, expected[0])
-    else:
-        assert np.abs(rgb.astype(int) - expected[0]).mean() < 1.0
-    np.testing.assert_array_equal(labels, expected[1])
+        np.testing.assert_array_equal(labels, expected[1])
+    else:  # an H200's: 0.94 levels, 9 label pixels of 4 x 84 x 84 (benchmarks/RESULTS.md)
+        assert np.abs(rgb.astype(int) - expected[0]).mean() < 2.0
+        assert (labels != expected[1]).sum() <= 20
 
     monkeypatch.setenv("LP_NUM_THREADS", "0")
     monkeypatch.setattr(mujoco.egl, "EGL_DISPLAY", None)
-    monkeypatch.setattr(mujoco.egl.egl_ext, "eglQueryDevicesEXT", lambda: [])
+    monkeypatch.setattr(mujoco.egl.egl_ext, "eglQueryDevicesEXT", lambda max_devices: [])
     with pytest.raises(RuntimeError, match=r"none of the 0 EGL devices is Mesa's.*libegl-mesa0"):
         R.use_cpu_drawing()
     monkeypatch.setattr(mujoco.egl, "EGL_DISPLAY", object())
-    with pytest.raises(RuntimeError, match="made an EGL display already"):
+    with pytest.raises(RuntimeError, match="has an EGL display already"):
+        R.use_cpu_drawing()
+    monkeypatch.setenv("MUJOCO_GL", "osmesa")
+    with pytest.raises(RuntimeError, match="through EGL, but MUJOCO_GL='osmesa'"):
         R.use_cpu_drawing()
 
 
@@ -628,7 +635,7 @@ def test_auto_draws_on_idle_gpus_else_the_lanes_and_numbers_are_checked(monkeypa
     config = smoke_config.get_config()
     monkeypatch.setattr(experiment.jax, "local_devices", lambda: gpus)
     for setting, message in [
-        ("0,2", r"env.render.gpus='0,2': this process sees 2 GPU\(s\) \(0-1\)$"),
+        ("0,2", r"env.render.gpus='0,2': this process sees 2 GPU\(s\) \(0-1\); valid: 'auto'"),
         ("gpu1", r"env.render: render gpus 'gpu1': 'auto', 'cpu' or GPU numbers separated by"),
     ]:
         config.env.render.gpus = setting
@@ -637,11 +644,10 @@ def test_auto_draws_on_idle_gpus_else_the_lanes_and_numbers_are_checked(monkeypa
     config.env.render.gpus = "1"
     experiment.validate(config)
     monkeypatch.setattr(experiment.jax, "local_devices", lambda: [])
-    with pytest.raises(ValueError, match=r"sees 0 GPU\(s\)$"):
+    with pytest.raises(ValueError, match=r"sees 0 GPU\(s\); valid: 'auto', 'cpu' or GPU numbers"):
         experiment.validate(config)
-    config.env.render.gpus = "cpu"  # no GPU needed; the env keeps it
+    config.env.render.gpus = "cpu"  # no GPU needed
     experiment.validate(config)
-    assert experiment.render_gpus("cpu", gpus) == "cpu"
 
 
 def test_a_worker_without_an_offscreen_buffer_names_the_setting_to_lower():

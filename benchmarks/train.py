@@ -13,6 +13,9 @@ Prints tables and writes JSON to benchmarks/results/train_<device>.json (or --ou
 drawn on the GPUs that train, as a machine of only those draws them (`drawn_beside_lanes`), unless
 `--set env.render.gpus=...` says where (`--vary env.render.gpus 0 1`: on a second GPU or not).
 
+`--label-pass off`: the training env draws no segmentation pass (its masks all 0), a diagnostic of
+what that pass costs the loop where it is drawn; never a run's setting.
+
 `--vary KEY V1 V2 ...` (repeatable) measures the throughput of every combination of the values
 in one process, in turn `--rounds` times, every other round in reverse (an A/B on the same
 machine state; programs compile once where only env fields vary), e.g. `--vary
@@ -23,6 +26,7 @@ The PyTorch pipeline of the reference's shape: `python -m benchmarks.torch_refer
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import functools
 import itertools
@@ -31,6 +35,7 @@ import os
 import pathlib
 import tempfile
 import time
+from unittest import mock
 
 import jax
 import jax.numpy as jnp
@@ -116,9 +121,21 @@ def drawn_beside_lanes(config):
     return config
 
 
-def throughput(config, warmup_frames) -> dict:
+@contextlib.contextmanager
+def label_pass(setting: str):
+    """Within it, `train.train`'s env draws the segmentation pass where the method reads masks
+    ("auto") or nowhere ("off": `experiment.make_env(labels=False)`, masks all 0)."""
+    if setting == "auto":
+        yield
+        return
+    without = functools.partial(experiment.make_env, labels=False)
+    with mock.patch.object(train, "make_env", without):
+        yield
+
+
+def throughput(config, warmup_frames, labels: str = "auto") -> dict:
     config = drawn_beside_lanes(config)
-    with tempfile.TemporaryDirectory() as workdir:
+    with tempfile.TemporaryDirectory() as workdir, label_pass(labels):
         t0 = time.perf_counter()
         try:
             updates = train.train(config, workdir)["updates_per_seed"]
@@ -267,6 +284,12 @@ def main():
         help="a field and its values: the throughput of each combination (repeatable)",
     )
     p.add_argument("--rounds", type=int, default=1, help="with --vary: combinations in turn")
+    p.add_argument(
+        "--label-pass",
+        choices=["auto", "off"],
+        default="auto",
+        help="off: the training env draws no segmentation pass (a diagnostic; masks all 0)",
+    )
     p.add_argument("--out", default=None)
     args = p.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
@@ -286,6 +309,7 @@ def main():
         batch_size=config.agent.batch_size,
         method=config.agent.method,
         task=config.env.task,
+        label_pass=args.label_pass,
     )
 
     def save():  # after every stage, so a run cut off in the next stage keeps this one
@@ -323,7 +347,7 @@ def main():
             varied = bench_config(args)
             for item in config_set:
                 set_field(varied, item)
-            tp = throughput(varied, args.warmup_frames)
+            tp = throughput(varied, args.warmup_frames, args.label_pass)
             result["variants"].append(dict(set=config_set, round=round_, **tp))
             rows.append([" ".join(config_set), round_, f"{tp['aggregate_fps']:.0f}"])
             save()
@@ -333,7 +357,7 @@ def main():
         print(f"\nEnd to end ({device.device_kind}), env frames/s in all:")
         print(format_table(["setting", "round", "frames/s"], rows))
     elif "throughput" not in args.skip:
-        tp = throughput(config, args.warmup_frames)
+        tp = throughput(config, args.warmup_frames, args.label_pass)
         result["throughput"] = tp
         print(
             f"\nEnd to end ({device.device_kind}): {tp['aggregate_fps']:.0f} env frames/s in all "

@@ -1170,6 +1170,25 @@ def test_benchmarks_draw_on_the_gpus_that_train_unless_told(monkeypatch):
     assert drawn_beside_lanes(config).env.render.gpus == "auto"
 
 
+def test_the_train_benchmark_can_leave_out_the_label_pass(monkeypatch):
+    """benchmarks/train.py --label-pass off: the training loop's env is made without the
+    segmentation pass (a DEAR config draws it otherwise); "auto" leaves make_env as it is."""
+    from benchmarks import train as bench
+    from dear_jax import experiment, train
+
+    drawn = []
+    monkeypatch.setattr(
+        experiment.envs, "make", lambda *a, render, **k: drawn.append(render.labels)
+    )
+    config = smoke.get_config()
+    assert config.agent.method == "dear"
+    for setting in ("off", "auto"):
+        with bench.label_pass(setting):
+            train.make_env(config, envs_per_seed=1, split="train", seed=0)
+    assert drawn == [False, True]
+    assert train.make_env is experiment.make_env
+
+
 def test_benchmarks_vary_stops_at_a_signal(tmp_path, monkeypatch, capsys):
     """A setting cut short by a signal (a time limit's SIGTERM) keeps its rows, and the settings
     after it are not started: the command ends instead of measuring on past its limit."""
@@ -1179,7 +1198,8 @@ def test_benchmarks_vary_stops_at_a_signal(tmp_path, monkeypatch, capsys):
 
     measured = []
 
-    def throughput(config, warmup_frames):  # the second setting is stopped
+    def throughput(config, warmup_frames, labels):  # the second setting is stopped
+        assert labels == "auto"
         measured.append(config.env.physics_threads)
         return {"aggregate_fps": 1.0, "updates_per_seed": None if len(measured) == 2 else 5}
 

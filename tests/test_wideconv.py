@@ -464,11 +464,13 @@ def test_supported_shapes():
 def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypatch, pixel_taps):
     """Compiled (not interpreted) on any machine: forward, input gradient and filter gradient
     of each layer are one Triton kernel each, for all vmapped seeds; the uint8 input of the
-    encoder's stack gets no input gradient. Its pixels read by kernel row or by tap alike."""
+    encoder's stack, read through the random shift, gets no input gradient. Its pixels read
+    by kernel row or by tap (then padded to 16 channels, one 16 x 32 matrix per tap) alike."""
     monkeypatch.setattr(wideconv, "INTERPRET", False)
     monkeypatch.setattr(wideconv, "PIXEL_TAPS", pixel_taps)
     encoder = (84, (3, 3, 3, 3), 0, (9, 32, 32, 32, 32), True, jnp.uint8, 2, 4 + 4 + 3)
     decoder = (35, (3, 3, 3, 2), (2, 2, 2, 1), (16, 32, 32, 32, 16), False, jnp.bfloat16, 1, 12)
+    crops = jax.ShapeDtypeStruct((2, 8, 2), jnp.int32)
     for size, kernels, pads, channels, relu_last, dtype, stride, kernel_count in (
         encoder,
         decoder,
@@ -482,14 +484,20 @@ def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypat
             for n, c, f in zip(kernels, channels, channels[1:])
         )
 
-        def loss(x, ws, pads=pads, relu_last=relu_last, stride=stride):
-            y = wideconv.conv_stack(x, ws, pads, relu_last, jnp.bfloat16, stride)
+        shift = 4 if stride > 1 else 0
+
+        def loss(x, ws, crops, pads=pads, relu_last=relu_last, stride=stride, shift=shift):
+            c = crops if shift else None
+            y = wideconv.conv_stack(x, ws, pads, relu_last, jnp.bfloat16, stride, shift, c)
             return jnp.sum(y.astype(jnp.float32))
 
         argnums = 1 if dtype == jnp.uint8 else (0, 1)
         fn = jax.vmap(jax.value_and_grad(loss, argnums))
-        text = jax.jit(fn).trace(x, layers).lower(lowering_platforms=("cuda",)).as_text()
+        text = jax.jit(fn).trace(x, layers, crops).lower(lowering_platforms=("cuda",)).as_text()
         assert text.count("xla.gpu.triton") == kernel_count
+        if stride > 1:  # the pixels as the first layer's kernels read them, and its weights
+            assert ("x84x84x16xui8>" in text) == pixel_taps
+            assert ("x9x16x32xbf16>" in text) == pixel_taps
     # the decoder's stack fused with the mask loss: the same kernels, and no XLA op but free
     # reshapes touches the fused kernel's output (the logits' gradient, as its rows)
     labels = jax.ShapeDtypeStruct((2, 8, 84, 84, 3), jnp.uint8)

@@ -19,8 +19,7 @@ and transposed. The taps run as a loop, which Triton software-pipelines (`TAP_LO
 
 The layers around the stride-1 ones join the stacks (`networks.ConvTrunk`,
 `networks.PoolDecoder`): the encoder's stride-2 first layer reads the uint8 frames themselves,
-a kernel row of pixels per load (or, with `PIXEL_TAPS`, a tap's pixel per aligned load of the
-frames padded to 16 channels), through the random shift's crops, so no shifted copy is made
+a kernel row of pixels per load, through the random shift's crops, so no shifted copy is made
 (`_Pixels`); the decoder's last layer, a stride-2 transposed convolution, is the 2x2 convolution
 that produces its four output phases. PyTorch's ConvTranspose2d(k=3, stride=1) is a layer with
 pad 2 (`networks.ConvTranspose`).
@@ -83,12 +82,6 @@ STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of 
 # its pipeline's stages.
 TAP_LOOP = True
 CONV_STAGES = 3
-# A strided first layer's pixels read a tap at a time, each pixel's channels one aligned load of
-# 16 bytes (the pixels padded to 16 channels in XLA first; `_Pixels.by_tap`), rather than a
-# kernel row of pixels at a time with an index per byte: fewer loads and less index arithmetic
-# (the row loads kept 58% of the SM's issue slots busy), for K = 16 products of 9 taps instead of
-# K = 32 of 3 kernel rows.
-PIXEL_TAPS = False
 # The float32 dots' precision on GPUs: None lets them run in TF32, as XLA's float32 convolutions
 # do there by default; jax.lax.Precision.HIGHEST makes them IEEE float32 (the GPU tests).
 PRECISION: jax.lax.Precision | None = None
@@ -108,13 +101,12 @@ TUNABLE = (
     "STAGES",
     "TAP_LOOP",
     "CONV_STAGES",
-    "PIXEL_TAPS",
 )
 
 
 # Constants that must be powers of two (Triton's block shapes, warps) or at least 1; switches 0/1.
 _POWERS_OF_TWO = ("BLOCK", "NUM_WARPS", "WGRAD_BLOCK", "WGRAD_STEPS", "WGRAD_WARPS")
-_SWITCHES = ("WGRAD_G_FIRST", "WGRAD_ANCHORS", "TAP_LOOP", "PIXEL_TAPS")
+_SWITCHES = ("WGRAD_G_FIRST", "WGRAD_ANCHORS", "TAP_LOOP")
 
 
 def parse_constants(setting: str | dict) -> dict[str, int]:
@@ -320,8 +312,7 @@ class _Pixels:
     """The input of a strided first layer: x itself ([N, side, side, channels]), read for
     each output pixel one kernel row at a time: the `kernel` pixels of row i are kernel *
     channels consecutive values, one load of `width` lanes (a power of two >= 16; the lanes
-    past them read zeros). With `by_tap` (`PIXEL_TAPS`), x padded to `width` channels
-    (`padded`), read a tap at a time: one pixel's `width` lanes, aligned."""
+    past them read zeros)."""
 
     side: int
     channels: int
@@ -329,42 +320,18 @@ class _Pixels:
     kernel: int
     out: _Grid  # the layer's output
     shift: int = 0  # the pad of a random shift read with the pixels (augment.shift); 0: none
-    by_tap: bool = False
 
     @property
     def width(self) -> int:
-        return channels_for(self.channels if self.by_tap else self.kernel * self.channels)
-
-    @property
-    def loads(self) -> int:
-        """Loads (and products) per output pixel: its taps, or its kernel rows."""
-        return self.kernel**2 if self.by_tap else self.kernel
-
-    def padded(self, x: jax.Array) -> jax.Array:
-        """The pixels as the kernels read them: with `by_tap`, zero channels up to `width`."""
-        if not self.by_tap:
-            return x
-        return jnp.pad(x, ((0, 0),) * (x.ndim - 1) + ((0, self.width - x.shape[-1]),))
-
-    def weights(self, k: jax.Array) -> jax.Array:
-        """[K, K, C, F] -> one [width, F] matrix per load: per tap (i * K + j) its C rows, or
-        per kernel row its K * C rows, then zeros."""
-        k = k.reshape(self.loads, -1, k.shape[-1])
-        return jnp.pad(k, ((0, 0), (0, self.width - k.shape[1]), (0, 0)))
-
-    def unpadded(self, dk: jax.Array) -> jax.Array:
-        """A filter gradient in the layout of `weights` -> its C (or K * C) rows per load."""
-        return dk[:, : self.channels if self.by_tap else self.kernel * self.channels]
+        return channels_for(self.kernel * self.channels)
 
     def loader(self, x_ref, crop_ref, rows, dtype):
-        """load l -> [len(rows), width]: for each output pixel at `rows`, its input pixels of
-        kernel row l, or of tap l with `by_tap` (zeros past the pixels). With a shift, the
-        pixels of each image's crop at its (dy, dx) in crop_ref (flat [N * 2]): pixel (Y, X)
-        of the crop is pixel (clip(Y + dy - shift), clip(X + dx - shift)) of the image, as
-        `augment.shift` crops the edge-padded image."""
+        """kernel row i -> [len(rows), width]: for each output pixel at `rows`, its input
+        pixels of that row (zeros past the pixels). With a shift, the pixels of each image's
+        crop at its (dy, dx) in crop_ref (flat [N * 2]): pixel (Y, X) of the crop is pixel
+        (clip(Y + dy - shift), clip(X + dx - shift)) of the image, as `augment.shift` crops
+        the edge-padded image."""
         keep, image, y, x = self.out.position(rows)
-        if self.by_tap:
-            return self._by_tap(x_ref, crop_ref, image, y, x, keep, dtype)
         base = ((image * self.side + self.stride * y) * self.side + self.stride * x) * self.channels
         base = jnp.where(keep, base, 0)
         lanes = jnp.arange(self.width, dtype=jnp.int32)
@@ -395,28 +362,6 @@ class _Pixels:
             row = jnp.clip(self.stride * y + i + dy - self.shift, 0, last)
             start = (image * self.side + row) * (self.side * self.channels)
             idx = start[:, None] + lane_offset
-            return plt.load(x_ref.at[idx], mask=mask, other=0).astype(dtype)
-
-        return load
-
-    def _by_tap(self, x_ref, crop_ref, image, y, x, keep, dtype):
-        """The loader of `by_tap`: a row's index arithmetic is per pixel, not per lane."""
-        image = jnp.where(keep, image, 0)
-        top, left = self.stride * y, self.stride * x
-        if self.shift:
-            dy, dx = _crop_offsets(crop_ref, image, keep)
-            top, left = top + dy - self.shift, left + dx - self.shift
-        last, k = self.side - 1, self.kernel
-        lanes = jnp.arange(self.width, dtype=jnp.int32)[None, :]
-        mask = jnp.broadcast_to(keep[:, None], (keep.shape[0], self.width))
-
-        def load(t):
-            i, j = (jax.lax.div(t, k), jax.lax.rem(t, k)) if _traced(t) else divmod(t, k)
-            row, col = top + i, left + j
-            if self.shift:  # a VALID layer's taps stay inside the image
-                row, col = jnp.clip(row, 0, last), jnp.clip(col, 0, last)
-            pixel = jnp.where(keep, (image * self.side + row) * self.side + col, 0)
-            idx = pixel[:, None] * self.width + lanes
             return plt.load(x_ref.at[idx], mask=mask, other=0).astype(dtype)
 
         return load
@@ -541,8 +486,7 @@ def _conv(x, w, layer, *, bias=None, relu=False, mask=None, targets=None):
     """The rows of layer.out: out[q] = sum_t (tap t of x for q) @ w[t] (+ bias, ReLU) in w's
     dtype, zero where `mask` (of the same rows) is not positive (if given) and past the
     pixels. x may be of another dtype (uint8 pixels): each tap is converted to w's. For a
-    `_Pixels` layer x is its pixels as `_Pixels.padded` leaves them (with a shift, x is (pixels,
-    crop offsets)).
+    `_Pixels` layer x is its pixels (with a shift, x is (pixels, crop offsets)).
 
     With `targets` = (a `_Targets`, its arguments: the targets, and with a shift their crop
     offsets), the output is instead the gradient of its loss for that output (zero where no
@@ -712,7 +656,7 @@ def _wgrad_rows(layer) -> int:
 
 def _wgrad_call(layer, c: int, steps: int, *args):
     f = args[-1].shape[-1]
-    taps = layer.loads if isinstance(layer, _Pixels) else layer.kernel**2
+    taps = layer.kernel if isinstance(layer, _Pixels) else layer.kernel**2
     anchors = _anchors(layer)
     if anchors is not None:  # the output gradient gathered too
         args = (*args[:-1], args[-1].reshape(*args[-1].shape[:-2], -1))
@@ -740,18 +684,17 @@ def _plan(x_shape, layers, pads, stride, shift=0) -> tuple[list[int], list]:
     n = x_shape[0]
     passes = [_Pass(n, sizes[i], sizes[i + 1], k, p) for i, (k, p) in enumerate(zip(kernels, pads))]
     if stride > 1:
-        passes[0] = _Pixels(
-            x_shape[1], x_shape[-1], stride, kernels[0], _Grid(n, sizes[1]), shift, PIXEL_TAPS
-        )
+        passes[0] = _Pixels(x_shape[1], x_shape[-1], stride, kernels[0], _Grid(n, sizes[1]), shift)
     return sizes, passes
 
 
 def _taps_of(k: jax.Array, layer, flip: bool = False) -> jax.Array:
     """[K, K, C, F] -> one [C, F] matrix per tap (i, j), in the order i * K + j; flipped and
     transposed for an input gradient ([F, C] at tap (K-1-i, K-1-j)); for a `_Pixels` layer, one
-    [layer.width, F] matrix per load (`_Pixels.weights`)."""
+    [layer.width, F] matrix per kernel row (its K * C rows, then zeros)."""
     if isinstance(layer, _Pixels):
-        return layer.weights(k)
+        k = k.reshape(k.shape[0], -1, k.shape[-1])
+        return jnp.pad(k, ((0, 0), (0, layer.width - k.shape[1]), (0, 0)))
     if flip:
         k = jnp.swapaxes(jnp.flip(k, (0, 1)), 2, 3)
     return k.reshape(-1, *k.shape[2:])
@@ -783,7 +726,6 @@ def _forward(x, layers, pads, relu_last, dtype, stride, shift, crops, targets=No
     pads = _pads(pads, len(layers))
     sizes, passes = _plan(x.shape, layers, pads, stride, shift)
     if stride > 1:  # pixels read as they are (through the crops, with a shift)
-        x = passes[0].padded(x)
         acts = [(x, crops) if shift else x]
     else:
         acts = [_Grid(x.shape[0], sizes[0]).flatten(x)]
@@ -831,7 +773,7 @@ def _backward(acts, layers, passes, g, x_like, scale=None):
         w = _taps_of(k, layer, flip=True)
         if scale is not None and i == len(layers) - 1:
             dk, db, w = dk * scale, db * scale, w * scale
-        dk = layer.unpadded(dk) if isinstance(layer, _Pixels) else dk
+        dk = dk[:, : k.shape[1] * k.shape[2]] if isinstance(layer, _Pixels) else dk
         grads.append((dk.reshape(k.shape).astype(k.dtype), db.astype(b.dtype)))
         if i == 0 and not jnp.issubdtype(x_like.dtype, jnp.floating):
             return None, tuple(reversed(grads))

@@ -486,7 +486,7 @@ def _conv(x, w, layer, *, bias=None, relu=False, mask=None, targets=None):
     """The rows of layer.out: out[q] = sum_t (tap t of x for q) @ w[t] (+ bias, ReLU) in w's
     dtype, zero where `mask` (of the same rows) is not positive (if given) and past the
     pixels. x may be of another dtype (uint8 pixels): each tap is converted to w's. For a
-    `_Pixels` layer x is its pixels (with a shift, x is (pixels, crop offsets)).
+    `_Pixels` layer x is its input as it is (with a shift, x is (pixels, crop offsets)).
 
     With `targets` = (a `_Targets`, its arguments: the targets, and with a shift their crop
     offsets), the output is instead the gradient of its loss for that output (zero where no

@@ -30,7 +30,8 @@ and method's in other settings, else at most that of runs of other lane counts
 (`report.grid_jobs`; their periodic checkpoints' share too unless
 --set checkpoint_every_frames=0; with --per-gpu K > 1, at most K times that, as K jobs share a
 GPU and its cores; a job without one needs MARGIN of `auto:MARGIN`, a minute by
-default), and where the next job does not fit, a later one that does goes first), or on SIGTERM,
+default), and where the next job does not fit, a later one that does goes first; with a fixed
+margin, the queue printed first warns of the jobs whose lengths pass the limit), or on SIGTERM,
 SIGINT (Ctrl-C) or SIGHUP, every running job gets SIGTERM, saves a checkpoint and its summary,
 and exits; a second signal stops them at once, and one still running 10 minutes after the first
 gets SIGKILL. The same command later resumes them.
@@ -340,6 +341,22 @@ def _workdirs(runs, root: pathlib.Path) -> list:
     return [*runs, *(p.parent for p in sorted(root.glob("*/config.json")))]
 
 
+def overrun_warning(jobs: list[report.Job], limit: float) -> str | None:
+    """A line naming the jobs whose length (or bound) passes the time limit, or None: with a
+    fixed --start-margin the queue starts them anyway and stops them short at the limit."""
+    longer = [job for job in jobs if job.seconds is not None and job.seconds > limit]
+    if not longer:
+        return None
+    named = ", ".join(
+        f"{job.name} ({'at most ' if job.at_most else ''}~{job.seconds / 60:.0f} min)"
+        for job in longer
+    )
+    return (
+        f"warning: {len(longer)} of the runs may outlast the {limit / 60:.0f} min time limit and "
+        f"be stopped short: {named}; with --start-margin auto only the runs that fit start"
+    )
+
+
 def main(argv=None) -> list[dict] | None:
     parser = argparse.ArgumentParser(
         prog="python -m dear_jax.grid",
@@ -367,7 +384,7 @@ def main(argv=None) -> list[dict] | None:
     parser.add_argument(
         "--dry-run",
         action="store_true",
-        help="print the queue (lengths where known, and their sum), run nothing",
+        help="print the queue (lengths where known, their sum, those past --time-limit), run nothing",
     )
     args = parser.parse_args(argv)
     if str(REPO) not in sys.path:  # configs/, as run.py finds it
@@ -415,6 +432,10 @@ def main(argv=None) -> list[dict] | None:
             f"{at_most}~{sum(known) / 3600:.1f} h of training in all, {runs}, at the pace of the "
             f"runs named on their own devices{shared}"
         )
+    if limit is not None and not fit:
+        warning = overrun_warning(jobs, limit)
+        if warning:
+            print(warning)
     if args.dry_run or not jobs:
         return None
     queue = Queue(

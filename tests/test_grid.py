@@ -467,3 +467,17 @@ def test_jobs_side_by_side_on_a_gpu_take_at_most_as_many_times_as_long(tmp_path,
         "at most ~0.7 h of training in all, 1 runs, at the pace of the runs named on their own "
         "devices, times 2: 2 per GPU"
     )
+    assert not any(line.startswith("warning") for line in lines)  # no time limit, no warning
+    # A time limit shorter than a run's bound: with a fixed start margin the queue would start it
+    # and stop it short, so the dry run says so; with `auto` the queue starts only what fits.
+    base = ["--root", str(root), "--tasks", "walker", "--methods", "dear", "--gpus", "0"]
+    base += ["--per-gpu", "2", "--seeds", "3", "--dry-run", "--time-limit", "30m"]
+    grid.main([*base, "--start-margin", "60"])
+    assert capsys.readouterr().out.splitlines()[3] == (
+        "warning: 1 of the runs may outlast the 30 min time limit and be stopped short: "
+        "walker_dear_s2 (at most ~40 min); with --start-margin auto only the runs that fit start"
+    )
+    grid.main([*base, "--start-margin", "auto"])
+    assert "warning" not in capsys.readouterr().out
+    grid.main([*base[:-1], "45m", "--start-margin", "60"])
+    assert "warning" not in capsys.readouterr().out

@@ -275,7 +275,7 @@ class Queue:
             for k, (_, job) in enumerate([] if self.stopping else queued):
                 need = self.start_margin
                 if self.fit and job.seconds is not None:
-                    need = START_MARGIN_S + FIT_FACTOR * job.seconds
+                    need = time_needed(job.seconds)
                 if left >= need:
                     return k
                 if not self.fit:
@@ -341,10 +341,16 @@ def _workdirs(runs, root: pathlib.Path) -> list:
     return [*runs, *(p.parent for p in sorted(root.glob("*/config.json")))]
 
 
-def overrun_warning(jobs: list[report.Job], limit: float) -> str | None:
-    """A line naming the jobs whose length (or bound) passes the time limit, or None: with a
-    fixed --start-margin the queue starts them anyway and stops them short at the limit."""
-    longer = [job for job in jobs if job.seconds is not None and job.seconds > limit]
+def time_needed(seconds: float) -> float:
+    """What `--start-margin auto` asks to be left of the time limit for a job of that length."""
+    return START_MARGIN_S + FIT_FACTOR * seconds
+
+
+def overrun_warning(jobs: list[report.Job], limit: float, given: str) -> str | None:
+    """A line naming the jobs whose length (or bound) would not fit in the time limit (`given`
+    as the user wrote it) by `auto`'s rule, or None: with a fixed --start-margin the queue starts
+    them anyway and stops them short at the limit."""
+    longer = [job for job in jobs if job.seconds is not None and time_needed(job.seconds) > limit]
     if not longer:
         return None
     named = ", ".join(
@@ -352,8 +358,8 @@ def overrun_warning(jobs: list[report.Job], limit: float) -> str | None:
         for job in longer
     )
     return (
-        f"warning: {len(longer)} of the runs may outlast the {limit / 60:.0f} min time limit and "
-        f"be stopped short: {named}; with --start-margin auto only the runs that fit start"
+        f"warning: {len(longer)} of the runs may not finish within the time limit of {given} "
+        f"and be stopped short: {named}; with --start-margin auto only the runs that fit start"
     )
 
 
@@ -433,7 +439,7 @@ def main(argv=None) -> list[dict] | None:
             f"runs named on their own devices{shared}"
         )
     if limit is not None and not fit:
-        warning = overrun_warning(jobs, limit)
+        warning = overrun_warning(jobs, limit, args.time_limit)
         if warning:
             print(warning)
     if args.dry_run or not jobs:

@@ -473,11 +473,20 @@ def test_jobs_side_by_side_on_a_gpu_take_at_most_as_many_times_as_long(tmp_path,
     base = ["--root", str(root), "--tasks", "walker", "--methods", "dear", "--gpus", "0"]
     base += ["--per-gpu", "2", "--seeds", "3", "--dry-run", "--time-limit", "30m"]
     grid.main([*base, "--start-margin", "60"])
-    assert capsys.readouterr().out.splitlines()[3] == (
-        "warning: 1 of the runs may outlast the 30 min time limit and be stopped short: "
-        "walker_dear_s2 (at most ~40 min); with --start-margin auto only the runs that fit start"
+    assert capsys.readouterr().out.splitlines()[-1] == (
+        "warning: 1 of the runs may not finish within the time limit of 30m and be stopped "
+        "short: walker_dear_s2 (at most ~40 min); with --start-margin auto only the runs that "
+        "fit start"
     )
     grid.main([*base, "--start-margin", "auto"])
     assert "warning" not in capsys.readouterr().out
-    grid.main([*base[:-1], "45m", "--start-margin", "60"])
+    grid.main([*base[:-1], "45m", "--start-margin", "60"])  # 60 s + 1.1 x 40 min fit
     assert "warning" not in capsys.readouterr().out
+    # By `auto`'s rule (a minute plus 1.1x the length): 600 s needs 720 s; a job of unknown
+    # length (a resumed one) is not named.
+    jobs = [report.Job("a", (), 600.0), report.Job("b", ()), report.Job("c", (), 60.0)]
+    assert grid.overrun_warning(jobs, 720.0, "12m") is None
+    assert grid.overrun_warning(jobs, 719.0, "719").startswith(
+        "warning: 1 of the runs may not finish within the time limit of 719 and be stopped "
+        "short: a (~10 min);"
+    )

@@ -455,8 +455,8 @@ def test_supported_shapes():
 def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypatch):
     """Compiled (not interpreted) on any machine: forward, input gradient and filter gradient
     of each layer are one Triton kernel each, for all vmapped seeds; the uint8 input of the
-    encoder's stack, read through the random shift, gets no input gradient, and no padded,
-    shifted or float copy of its pixels is made outside the kernels."""
+    encoder's stack, read through the random shift, gets no input gradient, and neither an
+    edge-padded nor a float copy of its pixels is made outside the kernels."""
     monkeypatch.setattr(wideconv, "INTERPRET", False)
     encoder = (84, (3, 3, 3, 3), 0, (9, 32, 32, 32, 32), True, jnp.uint8, 2, 4 + 4 + 3)
     decoder = (35, (3, 3, 3, 2), (2, 2, 2, 1), (16, 32, 32, 32, 16), False, jnp.bfloat16, 1, 12)
@@ -487,7 +487,8 @@ def test_stacks_lower_for_cuda_as_one_triton_kernel_per_layer_and_pass(monkeypat
         assert text.count("xla.gpu.triton") == kernel_count
         if stride > 1:  # the frames as given: not edge-padded by the shift, nor converted
             assert "x84x84x9xui8>" in text
-            assert "x92x92x9x" not in text and "x84x84x9xbf16>" not in text
+            assert "x92x92x9x" not in text
+            assert "x84x84x9xbf16>" not in text and "x84x84x9xf32>" not in text
     # the decoder's stack fused with the mask loss: the same kernels, and no XLA op but free
     # reshapes touches the fused kernel's output (the logits' gradient, as its rows)
     labels = jax.ShapeDtypeStruct((2, 8, 84, 84, 3), jnp.uint8)

@@ -77,12 +77,6 @@ WGRAD_G_FIRST = False
 # (`_Anchors`): a step loads k blocks of the input and k of the output gradient rather than
 # k * k and one. On an H200 every method's update took 6-19% less time (benchmarks/RESULTS.md).
 WGRAD_ANCHORS = True
-# Over anchors, a step's k input blocks x_j (the rows at j = 0..k-1 pixels to the right) as one
-# load of the k * C consecutive values of each anchor's first input pixel (`_Anchors.load`, `wide`;
-# lanes up to a power of two reading zeros past them), so that each g_i meets them in one
-# [k * C, F] product rather than k of [C, F]: k products of M = 128 rather than k * k of M = 32
-# (with C = 32), whose operands are read once each.
-WGRAD_WIDE = False
 STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of looped taps)
 # A convolution's taps as a loop (which Triton software-pipelines) rather than unrolled, and
 # its pipeline's stages.
@@ -104,7 +98,6 @@ TUNABLE = (
     "WGRAD_WARPS",
     "WGRAD_G_FIRST",
     "WGRAD_ANCHORS",
-    "WGRAD_WIDE",
     "STAGES",
     "TAP_LOOP",
     "CONV_STAGES",
@@ -113,7 +106,7 @@ TUNABLE = (
 
 # Constants that must be powers of two (Triton's block shapes, warps) or at least 1; switches 0/1.
 _POWERS_OF_TWO = ("BLOCK", "NUM_WARPS", "WGRAD_BLOCK", "WGRAD_STEPS", "WGRAD_WARPS")
-_SWITCHES = ("WGRAD_G_FIRST", "WGRAD_ANCHORS", "WGRAD_WIDE", "TAP_LOOP")
+_SWITCHES = ("WGRAD_G_FIRST", "WGRAD_ANCHORS", "TAP_LOOP")
 
 
 def parse_constants(setting: str | dict) -> dict[str, int]:
@@ -543,35 +536,22 @@ class _Anchors:
     def rows(self) -> int:
         return self.layer.images * (self.layer.size + self.layer.kernel - 1) * self.layer.size
 
-    def load(self, x_ref, g_ref, rows, c: int, f: int, dtype, wide: bool = False):
+    def load(self, x_ref, g_ref, rows, c: int, f: int, dtype):
         """([x_j for each j], [g_i for each i]) at the anchors `rows` (past the anchors: zeros);
-        x_ref and g_ref flat, the input's and the output gradient's rows (`_Grid`). With `wide`,
-        [x_j for each j] is one [len(rows), channels_for(k * c)] block instead: x_j in lanes
-        [j * c, (j + 1) * c), each anchor's k input pixels being consecutive rows of x, so
-        k * c consecutive values; zeros in the lanes past them."""
+        x_ref and g_ref flat, the input's and the output gradient's rows (`_Grid`)."""
         k, p, s, side = self.layer.kernel, self.layer.pad, self.layer.size, self.layer.size_in
         keep = rows < self.rows
         tall = s + k - 1
         image, rest = jax.lax.div(rows, tall * s), jax.lax.rem(rows, tall * s)
         y, x = jax.lax.div(rest, s), jax.lax.rem(rest, s)
-        first = (image * side + y - p) * side + x - p  # the input pixel of tap j = 0
 
-        def inside(keep, y, x, j):  # a VALID layer's anchors read inside its input
-            if not p:
-                return keep
-            return keep & (y >= p) & (y - p < side) & (x + j >= p) & (x + j - p < side)
-
-        if wide:
-            lanes = jnp.arange(channels_for(k * c), dtype=jnp.int32)[None, :]
-            j = lanes // c
-            ok = (j < k) & inside(keep[:, None], y[:, None], x[:, None], j)
-            idx = jnp.where(ok, first[:, None] * c + lanes, 0)
-            xs = plt.load(x_ref.at[idx], mask=ok, other=0).astype(dtype)
-        else:
-            xs = [
-                _gather_rows(x_ref, inside(keep, y, x, j), first + j, c).astype(dtype)
-                for j in range(k)
-            ]
+        xs = []
+        for j in range(k):
+            ok = keep  # a VALID layer's anchors read inside its input
+            if p:
+                ok = ok & (y >= p) & (y - p < side) & (x + j >= p) & (x + j - p < side)
+            row = (image * side + y - p) * side + x + j - p
+            xs.append(_gather_rows(x_ref, ok, row, c).astype(dtype))
         gs = [
             _gather_rows(g_ref, keep & (y >= i) & (y - i < s), (image * s + y - i) * s + x, f)
             for i in range(k)
@@ -585,18 +565,17 @@ def _anchors(layer) -> _Anchors | None:
     return _Anchors(layer) if use else None
 
 
-def _wgrad_kernel(*refs, layer, c, steps, anchors, wide):
+def _wgrad_kernel(*refs, layer, steps, anchors):
     x_ref, *refs, w_ref, b_ref = refs
     crop_ref = refs.pop(0) if isinstance(layer, _Pixels) and layer.shift else None
     g_ref = refs.pop(0)
-    # taps, then [c, f] ([f, c] with WGRAD_G_FIRST); if wide, kernel rows, then [lanes, f]
-    n, *acc_shape = w_ref.shape[1:]
+    n, *acc_shape = w_ref.shape[1:]  # taps, then [c, f] ([f, c] with WGRAD_G_FIRST)
     f = b_ref.shape[-1]
-    g_first = WGRAD_G_FIRST and not wide
+    c = acc_shape[1] if WGRAD_G_FIRST else acc_shape[0]
     p = pl.program_id(0)
 
     def product(x, g):
-        if g_first:
+        if WGRAD_G_FIRST:
             return plt.dot(g, x, trans_a=True, precision=PRECISION)
         return plt.dot(x, g, trans_a=True, precision=PRECISION)
 
@@ -605,12 +584,9 @@ def _wgrad_kernel(*refs, layer, c, steps, anchors, wide):
         start = (p * steps + s) * WGRAD_BLOCK
         rows = start + jnp.arange(WGRAD_BLOCK, dtype=jnp.int32)
         if anchors is not None:
-            xs, gs = anchors.load(x_ref, g_ref, rows, c, f, g_ref.dtype, wide)
-            k = len(gs)
-            if wide:  # accumulator i: [x_0 ... x_{k-1}]^T g_i
-                out = tuple(acc + product(xs, gs[i]) for i, acc in enumerate(accs))
-            else:
-                out = tuple(acc + product(xs[t % k], gs[t // k]) for t, acc in enumerate(accs))
+            xs, gs = anchors.load(x_ref, g_ref, rows, c, f, g_ref.dtype)
+            k = len(xs)
+            out = tuple(acc + product(xs[t % k], gs[t // k]) for t, acc in enumerate(accs))
             return out, bacc + jnp.sum(gs[0].astype(jnp.float32), axis=0)
         # The last program's steps past the rows read zeros (whole blocks: see _Grid).
         inside = jnp.broadcast_to((rows < layer.out.rows)[:, None], (WGRAD_BLOCK, f))
@@ -682,19 +658,14 @@ def _wgrad_call(layer, c: int, steps: int, *args):
     f = args[-1].shape[-1]
     taps = layer.kernel if isinstance(layer, _Pixels) else layer.kernel**2
     anchors = _anchors(layer)
-    wide = anchors is not None and WGRAD_WIDE
     if anchors is not None:  # the output gradient gathered too
         args = (*args[:-1], args[-1].reshape(*args[-1].shape[:-2], -1))
     programs = -(-_wgrad_rows(layer) // (WGRAD_BLOCK * steps))
-    if wide:  # per kernel row i, taps (i, j) in lanes [j * c, (j + 1) * c)
-        k = layer.kernel
-        shape = (k, channels_for(k * c), f)
-    else:
-        shape = (taps, f, c) if WGRAD_G_FIRST else (taps, c, f)
+    acc_shape = (f, c) if WGRAD_G_FIRST else (c, f)
     w, b = pl.pallas_call(
-        functools.partial(_wgrad_kernel, layer=layer, c=c, steps=steps, anchors=anchors, wide=wide),
+        functools.partial(_wgrad_kernel, layer=layer, steps=steps, anchors=anchors),
         out_shape=(
-            jax.ShapeDtypeStruct((programs, *shape), jnp.float32),
+            jax.ShapeDtypeStruct((programs, taps, *acc_shape), jnp.float32),
             jax.ShapeDtypeStruct((programs, f), jnp.float32),
         ),
         grid=(programs,),
@@ -702,8 +673,6 @@ def _wgrad_call(layer, c: int, steps: int, *args):
         compiler_params=plt.CompilerParams(num_warps=WGRAD_WARPS, num_stages=STAGES),
     )(*args)
     w = w.sum(0)
-    if wide:
-        return w[:, : k * c].reshape(taps, c, f), b.sum(0)
     return (jnp.swapaxes(w, 1, 2) if WGRAD_G_FIRST else w), b.sum(0)
 
 

@@ -127,17 +127,13 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     [
         ("decoder", {"TAP_LOOP": False, "WGRAD_ANCHORS": False}),
         ("encoder_shifted", {"TAP_LOOP": False, "WGRAD_G_FIRST": True}),
-        ("decoder", {"WGRAD_WIDE": True}),
-        ("encoder", {"WGRAD_WIDE": True}),
     ],
 )
 def test_kernel_settings_compute_the_same(monkeypatch, name, settings):
     """The kernels' settings change how, not what: a convolution's taps as a loop (traced tap
     indices, every padding check at run time) or unrolled (the checks a tap needs, fixed);
     filter gradients as x^T g or g^T x, over output rows or over anchors (padded and VALID
-    layers; steps of 16 rows, 2 per program, so that steps and programs begin inside images),
-    over anchors with a kernel row's inputs as one wide load (k * C lanes, 48 of them padded to
-    64, 96 to 128).
+    layers; steps of 16 rows, 2 per program, so that steps and programs begin inside images).
     The same values and gradients as the defaults."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
     monkeypatch.setattr(wideconv, "WGRAD_BLOCK", 16)

@@ -77,12 +77,6 @@ WGRAD_G_FIRST = False
 # (`_Anchors`): a step loads k blocks of the input and k of the output gradient rather than
 # k * k and one. On an H200 every method's update took 6-19% less time (benchmarks/RESULTS.md).
 WGRAD_ANCHORS = True
-# Over anchors, a 3 x 3 layer's 9 products a step as 4: the input's taps j = 0, 1 read as one
-# block of 2C lanes (adjacent pixels: one contiguous load) and the output gradient's i = 0, 1 as
-# one of 2F, so that [x_0 x_1]^T [g_0 g_1] holds taps (0, 0), (0, 1), (1, 0), (1, 1) at once,
-# then x_2^T [g_0 g_1], [x_0 x_1]^T g_2 and x_2^T g_2: the same sums, each operand fragment
-# read from shared memory fewer times (the filter gradients were L1-bound: RESULTS).
-WGRAD_PAIRS = False
 STAGES = 3  # Triton's software pipelining of a filter gradient's steps (and of looped taps)
 # A convolution's taps as a loop (which Triton software-pipelines) rather than unrolled, and
 # its pipeline's stages.
@@ -104,7 +98,6 @@ TUNABLE = (
     "WGRAD_WARPS",
     "WGRAD_G_FIRST",
     "WGRAD_ANCHORS",
-    "WGRAD_PAIRS",
     "STAGES",
     "TAP_LOOP",
     "CONV_STAGES",
@@ -113,7 +106,7 @@ TUNABLE = (
 
 # Constants that must be powers of two (Triton's block shapes, warps) or at least 1; switches 0/1.
 _POWERS_OF_TWO = ("BLOCK", "NUM_WARPS", "WGRAD_BLOCK", "WGRAD_STEPS", "WGRAD_WARPS")
-_SWITCHES = ("WGRAD_G_FIRST", "WGRAD_ANCHORS", "WGRAD_PAIRS", "TAP_LOOP")
+_SWITCHES = ("WGRAD_G_FIRST", "WGRAD_ANCHORS", "TAP_LOOP")
 
 
 def parse_constants(setting: str | dict) -> dict[str, int]:
@@ -543,17 +536,14 @@ class _Anchors:
     def rows(self) -> int:
         return self.layer.images * (self.layer.size + self.layer.kernel - 1) * self.layer.size
 
-    def _position(self, rows):
-        """(before the anchors' end, image, Y, X) of each anchor row."""
-        tall, s = self.layer.size + self.layer.kernel - 1, self.layer.size
-        image, rest = jax.lax.div(rows, tall * s), jax.lax.rem(rows, tall * s)
-        return rows < self.rows, image, jax.lax.div(rest, s), jax.lax.rem(rest, s)
-
     def load(self, x_ref, g_ref, rows, c: int, f: int, dtype):
         """([x_j for each j], [g_i for each i]) at the anchors `rows` (past the anchors: zeros);
         x_ref and g_ref flat, the input's and the output gradient's rows (`_Grid`)."""
         k, p, s, side = self.layer.kernel, self.layer.pad, self.layer.size, self.layer.size_in
-        keep, image, y, x = self._position(rows)
+        keep = rows < self.rows
+        tall = s + k - 1
+        image, rest = jax.lax.div(rows, tall * s), jax.lax.rem(rows, tall * s)
+        y, x = jax.lax.div(rest, s), jax.lax.rem(rest, s)
 
         xs = []
         for j in range(k):
@@ -567,39 +557,6 @@ class _Anchors:
             for i in range(k)
         ]
         return xs, gs
-
-    def load_pairs(self, x_ref, g_ref, rows, c: int, f: int, dtype):
-        """A 3 x 3 layer's operands for `WGRAD_PAIRS`: ([x_0 x_1], x_2, [g_0 g_1], g_2) at the
-        anchors `rows`, x_j and g_i as `load` reads them, a pair side by side ([len(rows), 2c]
-        and [len(rows), 2f]). x_0 and x_1 are adjacent pixels: one contiguous read of 2c lanes
-        (its halves masked apart where a padded layer's tap j reads padding)."""
-        p, s, side = self.layer.pad, self.layer.size, self.layer.size_in
-        keep, image, y, x = self._position(rows)
-
-        def x_ok(j):
-            if not p:  # a VALID layer's anchors read inside its input
-                return keep
-            return keep & (y >= p) & (y - p < side) & (x + j >= p) & (x + j - p < side)
-
-        def g_ok(i):
-            return keep & (y >= i) & (y - i < s)
-
-        x_row = (image * side + y - p) * side + x - p  # tap j = 0's pixel; j's is x_row + j
-        g_row = (image * s + y) * s + x  # i = 0's; i's is g_row - i * s
-        # A pair's lanes: [0, n) the first of its two, [n, 2n) the second. The indices are kept
-        # in forms whose contiguity Triton sees (vector loads).
-        col = jnp.arange(2 * c, dtype=jnp.int32)[None, :]
-        ok = keep[:, None] if not p else jnp.where(col < c, x_ok(0)[:, None], x_ok(1)[:, None])
-        idx = jnp.where(keep, x_row, 0)[:, None] * c + col  # x_1's pixel follows x_0's
-        pair = plt.load(x_ref.at[idx], mask=ok, other=0).astype(dtype)
-        col = jnp.arange(2 * f, dtype=jnp.int32)[None, :]
-        ok = jnp.where(col < f, g_ok(0)[:, None], g_ok(1)[:, None])
-        # lane l >= f of row g_row: lane l - f of row g_row - s
-        idx = jnp.where(keep, g_row, 0)[:, None] * f + col - jnp.where(col < f, 0, (s + 1) * f)
-        g_pair = plt.load(g_ref.at[idx], mask=ok, other=0)
-        x_2 = _gather_rows(x_ref, x_ok(2), x_row + 2, c).astype(dtype)
-        g_2 = _gather_rows(g_ref, g_ok(2), g_row - 2 * s, f)
-        return pair, x_2, g_pair, g_2
 
 
 def _anchors(layer) -> _Anchors | None:
@@ -643,51 +600,6 @@ def _wgrad_kernel(*refs, layer, steps, anchors):
     for t in range(n):
         w_ref[p, t] = accs[t]
     b_ref[p] = bacc
-
-
-def _wgrad_pairs_kernel(x_ref, g_ref, *refs, steps, anchors):
-    """`_wgrad_kernel` over the anchors of a 3 x 3 layer as `WGRAD_PAIRS` computes it: each
-    program's sums of [x_0 x_1]^T [g_0 g_1], x_2^T [g_0 g_1], [x_0 x_1]^T g_2, x_2^T g_2 and
-    [g_0 g_1] (the bias's gradient its first half)."""
-    *w_refs, b_ref = refs
-    c, f = w_refs[-1].shape[1:]
-    p = pl.program_id(0)
-
-    def product(x, g):
-        return plt.dot(x, g, trans_a=True, precision=PRECISION)
-
-    def step(s, carry):
-        *accs, bacc = carry
-        rows = (p * steps + s) * WGRAD_BLOCK + jnp.arange(WGRAD_BLOCK, dtype=jnp.int32)
-        x_pair, x_2, g_pair, g_2 = anchors.load_pairs(x_ref, g_ref, rows, c, f, g_ref.dtype)
-        products = (
-            product(x_pair, g_pair),
-            product(x_2, g_pair),
-            product(x_pair, g_2),
-            product(x_2, g_2),
-        )
-        sums = tuple(acc + d for acc, d in zip(accs, products))
-        return (*sums, bacc + jnp.sum(g_pair.astype(jnp.float32), axis=0))
-
-    zeros = tuple(jnp.zeros(ref.shape[1:], jnp.float32) for ref in (*w_refs, b_ref))
-    *accs, bacc = jax.lax.fori_loop(0, steps, step, zeros)
-    for ref, acc in zip(w_refs, accs):
-        ref[p] = acc
-    b_ref[p] = bacc
-
-
-def _pair_taps(a, b, c, d) -> jax.Array:
-    """`_wgrad_pairs_kernel`'s four sums -> the 9 taps' [C, F] in the order i * 3 + j (tap (i, j)
-    is x_j^T g_i)."""
-    n, f = d.shape
-    taps = {}
-    for i in range(2):
-        for j in range(2):
-            taps[i, j] = a[j * n : (j + 1) * n, i * f : (i + 1) * f]
-        taps[i, 2] = b[:, i * f : (i + 1) * f]
-        taps[2, i] = c[i * n : (i + 1) * n]
-    taps[2, 2] = d
-    return jnp.stack([taps[i, j] for i in range(3) for j in range(3)])
 
 
 def _pixel_args(x, layer) -> list:
@@ -749,16 +661,6 @@ def _wgrad_call(layer, c: int, steps: int, *args):
     if anchors is not None:  # the output gradient gathered too
         args = (*args[:-1], args[-1].reshape(*args[-1].shape[:-2], -1))
     programs = -(-_wgrad_rows(layer) // (WGRAD_BLOCK * steps))
-    if anchors is not None and WGRAD_PAIRS and layer.kernel == 3:
-        shapes = ((2 * c, 2 * f), (c, 2 * f), (2 * c, f), (c, f), (2 * f,))
-        *sums, b = pl.pallas_call(
-            functools.partial(_wgrad_pairs_kernel, steps=steps, anchors=anchors),
-            out_shape=[jax.ShapeDtypeStruct((programs, *s), jnp.float32) for s in shapes],
-            grid=(programs,),
-            interpret=_interpret(),
-            compiler_params=plt.CompilerParams(num_warps=WGRAD_WARPS, num_stages=STAGES),
-        )(*args)
-        return _pair_taps(*(w.sum(0) for w in sums)), b.sum(0)[:f]
     acc_shape = (f, c) if WGRAD_G_FIRST else (c, f)
     w, b = pl.pallas_call(
         functools.partial(_wgrad_kernel, layer=layer, steps=steps, anchors=anchors),

@@ -127,16 +127,13 @@ def test_conv_stack_is_convolutions_in_values_and_gradients(monkeypatch, name):
     [
         ("decoder", {"TAP_LOOP": False, "WGRAD_ANCHORS": False}),
         ("encoder_shifted", {"TAP_LOOP": False, "WGRAD_G_FIRST": True}),
-        ("decoder", {"WGRAD_PAIRS": True}),
-        ("encoder_shifted", {"WGRAD_PAIRS": True}),
     ],
 )
 def test_kernel_settings_compute_the_same(monkeypatch, name, settings):
     """The kernels' settings change how, not what: a convolution's taps as a loop (traced tap
     indices, every padding check at run time) or unrolled (the checks a tap needs, fixed);
     filter gradients as x^T g or g^T x, over output rows or over anchors (padded and VALID
-    layers; steps of 16 rows, 2 per program, so that steps and programs begin inside images),
-    a 3 x 3 layer's taps over anchors as 9 products or as 4 of pairs of taps.
+    layers; steps of 16 rows, 2 per program, so that steps and programs begin inside images).
     The same values and gradients as the defaults."""
     monkeypatch.setattr(wideconv, "BLOCK", 16)
     monkeypatch.setattr(wideconv, "WGRAD_BLOCK", 16)

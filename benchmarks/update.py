@@ -2,11 +2,13 @@
 
 python -m benchmarks.update [--methods dear drqv2] [--seeds 1 5] [--batch 256] [--iters 20]
     [--dtypes float32 bfloat16] [--seed-axis vmap loop]
-    [--conv-stacks pallas --kernels default TAP_LOOP=1,CONV_STAGES=2]
+    [--conv-stacks pallas --kernels default TAP_LOOP=1,CONV_STAGES=2] [--keys fresh fixed]
 Prints a table and writes JSON to benchmarks/results/update_<platform>.json (or --out).
 --kernels (with --conv-stacks pallas) times each listed setting of the Pallas conv stacks'
 constants (`dear_jax.wideconv`, comma-separated NAME=INT; "default": as they are), in turn, for
-every other combination.
+every other combination. --keys: each call's key a new array (fresh, as in training) or one array
+for every call (fixed: no argument moves between calls). Each row records a digest of the states
+its calls leave (`state_digest`): flags that change no arithmetic leave it as it was.
 The same update in PyTorch, timed on the same GPU: `python -m benchmarks.torch_reference update`.
 """
 
@@ -27,6 +29,7 @@ from dear_jax.replay import Batch
 
 # docs/design.md: the PyTorch reference architecture's DEAR update, batch 256, TF32, on an H100.
 PYTORCH_ANCHOR_MS = 12.1
+KEYS = ("fresh", "fixed")  # time_update's keys
 
 
 def random_batch(key, batch, action_dim, far):
@@ -95,8 +98,12 @@ def time_update(
     filter_gradient: str = "cudnn",
     conv_stack: str = "xla",
     kernels: str = "",
+    keys: str = "fresh",
 ) -> dict:
-    """Milliseconds per call, and the host's dispatch per call (`common.timed_calls`)."""
+    """Milliseconds per call, and the host's dispatch per call (`common.timed_calls`). `keys`:
+    "fresh", a new key array each call, as the training loop gives; "fixed", the same array every
+    call, so that no argument of a call lies elsewhere than the last call's (the donated states
+    come back in place), and a command buffer need not be updated for new addresses."""
     step, states, batches, hp = update_setup(
         method,
         seeds,
@@ -110,7 +117,11 @@ def time_update(
         conv_stack,
         kernels,
     )
-    keys = jax.random.split(jax.random.key(2), (iters + 1, seeds))
+    if keys not in KEYS:
+        raise ValueError(f"keys {keys!r}: one of {KEYS}")
+    # One array per call, cut before the timing: the calls dispatch nothing else.
+    split = jax.random.split(jax.random.key(2), (iters + 1, seeds))
+    mode, keys = keys, [split[0]] * (iters + 1) if keys == "fixed" else list(split)
     t0 = time.perf_counter()
     states, metrics = step(states, batches, keys[0], hp)
     jax.block_until_ready(metrics)
@@ -140,6 +151,7 @@ def time_update(
         shift_impl=shift_impl,
         seeds=seeds,
         batch=batch,
+        keys=mode,
         ms_per_call=ms,
         ms_per_seed_update=ms / seeds,
         dispatch_ms_per_call=dispatch,
@@ -197,6 +209,13 @@ def main():
         help="jax_default_matmul_precision for float32 matmuls and convolutions",
     )
     parser.add_argument("--kernels", nargs="+", default=[{}], type=kernel_setting)
+    parser.add_argument(
+        "--keys",
+        nargs="+",
+        default=["fresh"],
+        choices=KEYS,
+        help="each call's key: a new array (fresh) or the same one (fixed: no argument moves)",
+    )
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     if any(args.kernels) and "pallas" not in args.conv_stacks:
@@ -208,35 +227,48 @@ def main():
     for d in args.dtypes:
         for m in args.methods:
             for s in args.seeds:
-                for how, impl, fg, cs, kernels in itertools.product(
+                for how, impl, fg, cs, kernels, keys in itertools.product(
                     args.seed_axis,  # one seed too: "loop" is then the update without vmap
                     args.shift_impls,
                     args.filter_gradients,
                     args.conv_stacks,
                     args.kernels,
+                    args.keys,
                 ):
                     encoder = args.drqv2_encoder if m == "drqv2" else "pool"
                     setting = ",".join(f"{n}={v}" for n, v in kernels.items())
                     r = time_update(
-                        m, s, args.batch, args.iters, d, 6, how, impl, encoder, fg, cs, setting
+                        m,
+                        s,
+                        args.batch,
+                        args.iters,
+                        d,
+                        6,
+                        how,
+                        impl,
+                        encoder,
+                        fg,
+                        cs,
+                        setting,
+                        keys,
                     )
                     rows.append(dict(r, kernels=kernels))
                     print(
-                        f"{m} {d} {how} {impl} {fg} {cs} {kernels or ''} seeds={s}: "
+                        f"{m} {d} {how} {impl} {fg} {cs} {kernels or ''} {keys} keys, seeds={s}: "
                         f"{r['ms_per_seed_update']:.2f} ms/seed"
                     )
     print(f"device: {device.device_kind} ({device.platform}), jax {jax.__version__}")
     print(
-        "| method | encoder | dtype | precision | seed axis | shift | filter gradient | conv stack | kernels | seeds | batch | ms per call "
+        "| method | encoder | dtype | precision | seed axis | shift | filter gradient | conv stack | kernels | keys | seeds | batch | ms per call "
         "| host dispatch ms per call | ms per seed-update | vs PyTorch 12.1 ms | compile s | digest |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
             f"| {r['method']} | {r['encoder']} | {r['dtype']} | {r['precision']} | {r['seed_axis']} "
             f"| {r['shift_impl']} | {r['filter_gradient']} | {r['conv_stack']} "
             f"| {','.join(f'{n}={v}' for n, v in r['kernels'].items()) or 'default'} "
-            f"| {r['seeds']} | {r['batch']} | "
+            f"| {r['keys']} | {r['seeds']} | {r['batch']} | "
             f"{r['ms_per_call']:.2f} | {r['dispatch_ms_per_call']:.2f} | "
             f"{r['ms_per_seed_update']:.2f} | {PYTORCH_ANCHOR_MS / r['ms_per_seed_update']:.2f}x "
             f"| {r['compile_s']:.1f} | {r['digest']:.10g} |"

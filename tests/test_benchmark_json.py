@@ -32,3 +32,17 @@ def test_the_command_reruns_as_typed_with_its_xla_flags_and_egl_device(tmp_path,
     result = json.loads(save_json({}, str(tmp_path / "plain.json")).read_text())
     assert result["command"] == f"python -m benchmarks.update {args}"
     assert "xla_flags" not in result
+
+
+def test_the_update_benchmarks_digest_sums_float_leaves_and_tells_states_apart():
+    import jax.numpy as jnp
+    import numpy as np
+
+    from benchmarks.update import state_digest
+
+    # Integer leaves (step counters) are not values of the arithmetic and are left out.
+    tree = {"w": jnp.array([1.5, -0.25], jnp.bfloat16), "b": np.float32(2.0), "n": jnp.arange(7)}
+    assert state_digest(tree) == 3.25
+    # A change in one weight's last place changes the digest.
+    nudged = {**tree, "b": np.nextafter(np.float32(2.0), np.float32(3.0))}
+    assert state_digest(nudged) != state_digest(tree)

@@ -103,7 +103,7 @@ def time_update(
     """Milliseconds per call, and the host's dispatch per call (`common.timed_calls`). `keys`:
     "fresh", a new key array each call, as the training loop gives; "fixed", the same array every
     call, so that no argument of a call lies elsewhere than the last call's (the donated states
-    come back in place), and a command buffer need not be updated for new addresses."""
+    come back in place): XLA updates a recorded command buffer only for allocations that moved."""
     step, states, batches, hp = update_setup(
         method,
         seeds,
@@ -121,7 +121,8 @@ def time_update(
         raise ValueError(f"keys {keys!r}: one of {KEYS}")
     # One array per call, cut before the timing: the calls dispatch nothing else.
     split = jax.random.split(jax.random.key(2), (iters + 1, seeds))
-    mode, keys = keys, [split[0]] * (iters + 1) if keys == "fixed" else list(split)
+    mode = keys
+    keys = [split[0]] * (iters + 1) if mode == "fixed" else list(split)
     t0 = time.perf_counter()
     states, metrics = step(states, batches, keys[0], hp)
     jax.block_until_ready(metrics)

@@ -59,7 +59,7 @@ def get_config() -> ConfigDict:
     c.eval_nice = 0
     c.log_every_frames = 5_000  # per seed: train metrics to CSV / TensorBoard
     c.checkpoint_every_frames = 100_000  # per seed; 0 disables periodic checkpoints
-    c.keep_checkpoints = 3
+    c.keep_checkpoints = 3  # the latest checkpoints kept (orbax deletes older ones)
     c.save_video = True  # eval video of env 0 per seed: RGB | true mask | predicted mask
     c.progress = True  # tqdm progress bar on a terminal (else a log line per log interval)
     # A jax.profiler trace of `profile.iterations` loop iterations from frame `profile.at_frame`
@@ -100,7 +100,7 @@ def get_config() -> ConfigDict:
     c.env.background_dir = ""  # DAVIS-2017 root; "" = built-in procedural videos (logged)
     c.env.mask = "true"  # training mask: "true" | "noisy" | "approximate" (ablations)
     c.env.mask_drop_prob = 0.8  # for mask="noisy"
-    c.env.action_repeat = 2
+    c.env.action_repeat = 2  # env frames per agent step (the same action repeated)
     c.env.episode_frames = 0  # 0 = the task's own length (1000 frames for DMC)
     c.env.render = ConfigDict()
     # "dm_control": the frames dm_control's physics.render draws (skybox, shadows, reflections,
@@ -133,11 +133,11 @@ def get_config() -> ConfigDict:
     c.agent = ConfigDict()
     c.agent.method = "dear"  # "drqv2" | "dear" | "sear" | "ted"
     c.agent.encoder = "pool"  # "pool" | "plain" (DrQ-v2's flattened encoder; drqv2 only)
-    c.agent.latent_dim = 4096
-    c.agent.feature_dim = 50
-    c.agent.hidden_dim = 1024
-    c.agent.lr = 1e-4
-    c.agent.ted_lr = 1e-3
+    c.agent.latent_dim = 4096  # the encoder's z = [z_E, z_A], half each (pool encoder)
+    c.agent.feature_dim = 50  # the actor's and critic's input layer: Linear, LayerNorm, Tanh
+    c.agent.hidden_dim = 1024  # the actor's and each critic head's hidden layers
+    c.agent.lr = 1e-4  # Adam: encoder, decoders, critic, actor
+    c.agent.ted_lr = 1e-3  # Adam: TED's classifier
     # "bfloat16": encoder/decoder convolutions in bf16 (parameters stay float32); the DEAR update
     # at batch 512 took 6.1 instead of 10.3 ms on an H100 (benchmarks/results/update_h100_512.json).
     c.agent.compute_dtype = "float32"
@@ -176,17 +176,17 @@ def get_config() -> ConfigDict:
     c.agent.beta = 100.0  # orthogonality loss weight (DEAR)
     c.agent.recon_weight = 1.0  # SEAR
     c.agent.ted_weight = 100.0  # TED
-    c.agent.tau = 0.01
-    c.agent.stddev_clip = 0.3
-    c.agent.std_init = 1.0
+    c.agent.tau = 0.01  # the target critic's EMA rate per update
+    c.agent.stddev_clip = 0.3  # the clip of the policy noise in the critic target and actor loss
+    c.agent.std_init = 1.0  # exploration noise std, decayed linearly to std_final
     c.agent.std_final = 0.1
     c.agent.std_steps = 500_000  # agent steps of the linear std decay
     c.agent.explore_steps = 2000  # agent steps of uniform random actions per seed
     # agent steps each env keeps one exploration draw; 1 (DrQ-v2, the paper): a new one each step
     c.agent.noise_hold = 1
-    c.agent.batch_size = 256
-    c.agent.nstep = 3
-    c.agent.discount = 0.99
+    c.agent.batch_size = 256  # transitions per seed per update
+    c.agent.nstep = 3  # n-step returns
+    c.agent.discount = 0.99  # per agent step
     c.agent.update_every_steps = 2  # one update per this many agent steps per seed
 
     # Settings trained side by side as lanes of one program, crossed with the seeds: comma-

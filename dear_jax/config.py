@@ -31,7 +31,7 @@ def check_override_keys(config: ConfigDict, argv: list[str]) -> None:
         if not arg.startswith("--config."):
             continue
         dotted, eq, value = arg[len("--config.") :].partition("=")
-        node, path = config, []
+        node, path, parent = config, [], None
         for part in dotted.split("."):
             if not isinstance(node, ConfigDict) or part not in node:
                 valid = sorted(node.keys()) if isinstance(node, ConfigDict) else []
@@ -42,8 +42,10 @@ def check_override_keys(config: ConfigDict, argv: list[str]) -> None:
                     f"unknown config key {dotted!r}: {where} has no field {part!r}.{hint} "
                     f"Valid fields of {where}: {', '.join(valid) or '(none: it is a value)'}"
                 )
-            node, path = node[part], [*path, part]
-        parser, takes = _SCALAR_PARSERS.get(type(node), (None, ""))
+            parent, node, path = node, node[part], [*path, part]
+        # The field's declared type, not its value's: a FieldReference of type object (devices:
+        # an int or "all") takes what ml_collections makes of the text.
+        parser, takes = _SCALAR_PARSERS.get(parent.get_type(path[-1]), (None, ""))
         if eq and parser is not None:
             try:
                 parser.parse(value)

@@ -1101,7 +1101,8 @@ def test_benchmarks_set_any_config_field_typed_and_by_known_name():
 def test_override_values_a_field_cannot_take_are_refused_naming_its_type():
     """`--config.KEY=VALUE` checked as ml_collections will parse it (absl's parsers), before
     absl's own two-line error: a bool, int or float field refuses what it cannot take, naming
-    what it takes; a string field takes anything; an unknown key stays a KeyError."""
+    what it takes; a string field takes anything, and so does a field declared of type object
+    whatever its value (devices: 1 or "all"); an unknown key stays a KeyError."""
     from dear_jax.config import check_override_keys
 
     config = tiny_config()
@@ -1113,6 +1114,8 @@ def test_override_values_a_field_cannot_take_are_refused_naming_its_type():
         "--config.agent.lr=1e-4",
         "--config.agent.lr=3",
         "--config.agent.method=anything",
+        "--config.devices=all",
+        "--config.devices=2",
         "--config.seeds",  # a value in the next word: absl's to parse
     ]
     check_override_keys(config, fine)

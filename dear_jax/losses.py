@@ -30,7 +30,7 @@ def mask_loss(logits: jax.Array, mask: jax.Array) -> jax.Array:
 
     L = mean_b sum_{h,w,k} BCE(sigmoid(logits[b,h,w,k]), mask[b,h,w,k])
     logits: float [B, H, W, K], the decoder's output before any sigmoid; mask: {0, 1} (any
-    dtype) [B, H, W, K]. Rank 4 is checked: give one image a batch axis of 1, and map extra
+    dtype; values in [0, 1] for a soft mask: a 0/255 image must be divided by 255) [B, H, W, K]. Rank 4 is checked: give one image a batch axis of 1, and map extra
     leading axes (seeds) with jax.vmap. Computed in float32 whatever the logits' dtype.
     Returns a scalar.
     """
@@ -66,8 +66,12 @@ sigmoid_cross_entropy.defvjp(_sigmoid_cross_entropy_fwd, _sigmoid_cross_entropy_
 def cosine_similarity(a: jax.Array, b: jax.Array) -> jax.Array:
     """Cosine similarity along the last axis: [..., F] x [..., F] -> [...].
 
-    Each norm is at least _COS_EPS, clamped before its square root, so that a zero vector
-    (a ReLU latent, a padded row) gives a cosine of 0 and a finite gradient."""
+    Computed in float32 whatever the inputs' dtype (in bf16 or float16, |cos| of a vector with
+    itself may pass 1). Each norm is at least _COS_EPS, clamped before its square root as
+    PyTorch's `F.cosine_similarity` clamps them (the reference code's), so a zero vector gives
+    a cosine of 0 and a finite gradient, though a large one: b / (eps |b|) for a zero row a.
+    """
+    a, b = a.astype(jnp.float32), b.astype(jnp.float32)
 
     def norm(x):
         return jnp.sqrt(jnp.maximum(jnp.sum(x * x, axis=-1), _COS_EPS**2))
@@ -109,6 +113,8 @@ def reconstruction_loss(recon: jax.Array, obs: jax.Array) -> jax.Array:
     """
     chex.assert_equal_shape([recon, obs])
     chex.assert_rank(recon, 4)
+    if not jnp.issubdtype(obs.dtype, jnp.integer):
+        raise ValueError(f"obs must be integer pixels in 0-255 (uint8), got {obs.dtype}")
     recon = recon.astype(jnp.float32)
     target = obs.astype(jnp.float32) / 255.0 - 0.5
     err = jnp.square(jnp.clip(recon, -0.5, 0.5) - target)
@@ -118,13 +124,16 @@ def reconstruction_loss(recon: jax.Array, obs: jax.Array) -> jax.Array:
 def ted_loss(logits: jax.Array, labels: jax.Array, weights: jax.Array | None = None) -> jax.Array:
     """TED's temporal classification loss: binary cross-entropy from logits, averaged over the
     pairs, [N] x [N] -> scalar. `weights` [N] (e.g. 0 for a pair that does not exist, such as a
-    same-episode negative in an episode too short for one) make it sum(w * BCE) / sum(w)."""
+    same-episode negative in an episode too short for one) make it sum(w * BCE) / sum(w), 0
+    where every weight is 0. Computed in float32 whatever the logits' dtype."""
     chex.assert_equal_shape([logits, labels])
-    bce = optax.sigmoid_binary_cross_entropy(logits, labels.astype(logits.dtype))
+    logits = logits.astype(jnp.float32)
+    bce = optax.sigmoid_binary_cross_entropy(logits, labels.astype(jnp.float32))
     if weights is None:
         return jnp.mean(bce)
     chex.assert_equal_shape([logits, weights])
-    return jnp.sum(weights * bce) / jnp.sum(weights)
+    total = jnp.sum(weights)
+    return jnp.sum(weights * bce) / jnp.where(total > 0, total, 1.0)
 
 
 def td_target(

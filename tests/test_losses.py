@@ -142,6 +142,9 @@ def test_reconstruction_loss_clips_prediction_and_scales_target():
     np.testing.assert_allclose(losses.reconstruction_loss(recon, dark), 1.25, rtol=1e-6)
     g = jax.grad(losses.reconstruction_loss)(recon, dark)
     np.testing.assert_array_equal(np.asarray(g).ravel(), [1.0, 0.0])
+    # Pixels given as floats in [0, 1] would be scaled as if 0-255: refused, naming the dtype.
+    with pytest.raises(ValueError, match="integer pixels in 0-255.*float32"):
+        losses.reconstruction_loss(recon, dark.astype(jnp.float32) / 255.0)
 
 
 def test_ted_loss_is_mean_bce_and_weights_drop_pairs():
@@ -156,6 +159,29 @@ def test_ted_loss_is_mean_bce_and_weights_drop_pairs():
     np.testing.assert_allclose(
         losses.ted_loss(logits, labels, weights), (math.log(2) + math.log(4)) / 2, rtol=1e-6
     )
+    # No pair at all: 0 and a zero gradient, not 0 / 0.
+    loss, g = jax.value_and_grad(losses.ted_loss)(logits, labels, jnp.zeros(3))
+    assert float(loss) == 0.0 and np.all(np.asarray(g) == 0.0)
+    # bf16 logits are taken in float32: the float32 loss of the same (bf16-representable) values.
+    half = losses.ted_loss(logits.astype(jnp.bfloat16), labels)
+    assert half.dtype == jnp.float32
+    np.testing.assert_allclose(
+        half, losses.ted_loss(logits.astype(jnp.bfloat16).astype(float), labels), rtol=1e-6
+    )
+
+
+def test_cosine_is_taken_in_float32_whatever_the_inputs_dtype():
+    """bf16 and float16 latents: the cosine of their values in float32, so |cos(x, x)| is 1
+    within float32 rounding (in bf16 it came out 1.0078) and a float16 zero row is 0, not NaN
+    (its squared eps underflows in float16)."""
+    x = jax.random.normal(jax.random.key(3), (4, 64))
+    for dtype in (jnp.bfloat16, jnp.float16):
+        h = x.astype(dtype)
+        cos = losses.cosine_similarity(h, h)
+        assert cos.dtype == jnp.float32
+        np.testing.assert_allclose(cos, 1.0, rtol=1e-6)
+        zero = losses.cosine_similarity(jnp.zeros((1, 64), dtype), h[:1])
+        assert float(zero[0]) == 0.0
 
 
 def test_td_target_and_critic_loss():

@@ -182,7 +182,9 @@ def validate(config: ConfigDict) -> None:
         "agent.batch_size",
         "agent.nstep",
         "agent.update_every_steps",
-        "agent.noise_hold",
+        "agent.latent_dim",
+        "agent.feature_dim",
+        "agent.hidden_dim",
         "replay.capacity",
         "env.action_repeat",
         "log_every_frames",
@@ -196,15 +198,17 @@ def validate(config: ConfigDict) -> None:
         ("agent.lr", 0.0, math.inf),
         ("agent.ted_lr", 0.0, math.inf),
         ("agent.discount", 0.0, 1.0),
-        ("agent.tau", 0.0, 1.0),
     ]:
         if not low < _get(config, key) <= high:
             raise ValueError(f"{key} must be in ({low:g}, {high:g}], got {_get(config, key)}")
     e = config.env
     if not 0.0 <= e.mask_drop_prob <= 1.0:
         raise ValueError(f"env.mask_drop_prob must be in [0, 1], got {e.mask_drop_prob}")
-    if config.agent.stddev_clip < 0:
-        raise ValueError(f"agent.stddev_clip must be >= 0, got {config.agent.stddev_clip}")
+    for key in lanes.SWEEPABLE:  # the update's per-lane numbers, as a sweep's are checked
+        try:
+            lanes.check_value(key, _get(config, f"agent.{key}"))
+        except ValueError as e:
+            raise ValueError(f"agent.{e}") from None
     if e.episode_frames < 0:
         raise ValueError(
             f"env.episode_frames must be >= 0 (0: the task's own), got {e.episode_frames}"

@@ -377,8 +377,10 @@ def main(argv=None) -> list[dict] | None:
         "--tasks", nargs="+", default=["walker", "cup", "finger"], help=report.TASKS_HELP
     )
     parser.add_argument("--methods", nargs="+", default=["dear", "sear", "ted", "drqv2"])
-    parser.add_argument("--seeds", type=int, default=3, help="seeds per cell")
-    parser.add_argument("--frames", type=int, default=1_000_000, help="frames per seed")
+    parser.add_argument("--seeds", type=report.positive_int, default=3, help="seeds per cell")
+    parser.add_argument(
+        "--frames", type=report.positive_int, default=1_000_000, help="frames per seed"
+    )
     parser.add_argument("--seeds-per-run", type=int, default=1, help=report.SEEDS_PER_RUN_HELP)
     parser.add_argument("--set", action="append", default=[], help="FIELD=VALUE for new runs")
     parser.add_argument("--time-limit", default=None, help="e.g. 90m, 3h: then SIGTERM the runs")
@@ -459,7 +461,7 @@ def main(argv=None) -> list[dict] | None:
     done = _workdirs(args.runs, root)
     print(
         report.grid_table(
-            done, args.tasks, args.methods, args.seeds, args.frames, args.seeds_per_run
+            done, args.tasks, args.methods, args.seeds, args.frames, args.seeds_per_run, args.root
         )
     )
     code = exit_code(rows, queue.stopping)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
+import math
 import pathlib
 
 from ml_collections import ConfigDict
@@ -39,8 +40,36 @@ SWEEPABLE = (
     "explore_steps",
     "noise_hold",
 )
-# Sweepable keys with a least valid value (the config's own field is checked alike).
-MINIMUM = {"noise_hold": 1.0}
+# The values each sweepable number takes, a swept one and the config's own field alike:
+# (least, whether the least is excluded, greatest, whether whole); every one finite.
+BOUNDS = {
+    **dict.fromkeys(
+        ("alpha", "beta", "recon_weight", "ted_weight"), (-math.inf, True, math.inf, False)
+    ),
+    "tau": (0.0, True, 1.0, False),
+    **dict.fromkeys(("stddev_clip", "std_init", "std_final"), (0.0, False, math.inf, False)),
+    "std_steps": (1.0, False, math.inf, True),
+    "explore_steps": (0.0, False, math.inf, True),
+    "noise_hold": (1.0, False, math.inf, True),
+}
+
+
+def check_value(key: str, value: float) -> None:
+    """Refuse a value of agent.`key` (a sweepable number) outside `BOUNDS`, naming the valid ones."""
+    low, open_low, high, whole = BOUNDS[key]
+    above = low < value if open_low else low <= value
+    if math.isfinite(value) and above and value <= high and (not whole or value == int(value)):
+        return
+    kind = "a whole number" if whole else "a finite number"
+    if math.isfinite(high):
+        where = f" in {'(' if open_low else '['}{low:g}, {high:g}]"
+    elif math.isfinite(low):
+        where = f" {'>' if open_low else '>='} {low:g}"
+    else:
+        where = ""
+    raise ValueError(f"{key} must be {kind}{where}, got {value:g}")
+
+
 # The methods whose losses read a weight; sweeping it for another method changes nothing.
 USED_BY = {
     "alpha": ("dear", "sear"),
@@ -87,8 +116,11 @@ def _values(key: str, text) -> tuple[float, ...]:
         ) from None
     if len(set(values)) != len(values):
         raise ValueError(f"sweep.{key}={text!r} repeats a value")
-    if key in MINIMUM and min(values, default=MINIMUM[key]) < MINIMUM[key]:
-        raise ValueError(f"sweep.{key}={text!r}: every value must be >= {MINIMUM[key]:g}")
+    for value in values:
+        try:
+            check_value(key, value)
+        except ValueError as e:
+            raise ValueError(f"sweep.{key}={text!r}: {e}") from None
     return values
 
 

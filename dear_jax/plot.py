@@ -176,6 +176,8 @@ def plot(
     if out is None:
         out = pathlib.Path(workdirs[0]) / "curves.png" if len(workdirs) == 1 else "curves.png"
     out = pathlib.Path(out)
+    if not out.suffix:  # what matplotlib writes for a name without one: the path returned
+        out = out.with_suffix(".png")
     tasks = list(dict.fromkeys(c.task for c in curves))
     # One colour per method (or per workdir label without its task), the same in every subplot.
     keys = list(dict.fromkeys(c.label.removeprefix(f"{c.task} ") for c in curves))

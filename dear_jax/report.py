@@ -620,6 +620,19 @@ GRID_MAY_DIFFER = (
 
 
 SEEDS_PER_RUN_HELP = "missing seeds a new seed-run trains side by side, as lanes of one process"
+
+
+def positive_int(text: str) -> int:
+    """argparse's type for a count of seeds or frames: an int >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"give a whole number >= 1, not {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
 TASKS_HELP = (
     "TASK or TASK,DIFFICULTY[,MASK][,WEIGHT=VALUE...] (configs/paper.py's parts), e.g. "
     "walker,medium-full or walker,beta=10 (cells of the methods that read the weight)"
@@ -939,7 +952,13 @@ def grid_jobs(
 
 
 def grid_table(
-    workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000, seeds_per_run: int = 1
+    workdirs,
+    tasks,
+    methods,
+    seeds: int = 3,
+    frames: int = 1_000_000,
+    seeds_per_run: int = 1,
+    root: str = "runs",
 ) -> str:
     grid = grid_rows(workdirs, tasks, methods, seeds, frames)
     rows = grid["cells"]
@@ -958,7 +977,7 @@ def grid_table(
         ],
     )
     lines = [f"The paper's grid at {frames:,} frames per seed, {seeds} seeds per cell", "", table]
-    jobs = grid_jobs(grid, frames, seeds_per_run=seeds_per_run)
+    jobs = grid_jobs(grid, frames, root, seeds_per_run=seeds_per_run)
     commands = [f"python run.py {shlex.join(job.args)}" for job in jobs]
     if commands:
         lines += [
@@ -1033,8 +1052,8 @@ def main(argv=None):
     g.add_argument("runs", nargs="+", help="run workdirs")
     g.add_argument("--tasks", nargs="+", default=["walker", "cup", "finger"], help=TASKS_HELP)
     g.add_argument("--methods", nargs="+", default=["dear", "sear", "ted", "drqv2"])
-    g.add_argument("--seeds", type=int, default=3, help="seeds per cell")
-    g.add_argument("--frames", type=int, default=1_000_000, help="frames per seed")
+    g.add_argument("--seeds", type=positive_int, default=3, help="seeds per cell")
+    g.add_argument("--frames", type=positive_int, default=1_000_000, help="frames per seed")
     g.add_argument("--seeds-per-run", type=int, default=1, help=SEEDS_PER_RUN_HELP)
     args = parser.parse_args(argv)
     if args.command == "grid":

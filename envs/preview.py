@@ -108,6 +108,12 @@ def main(argv=None) -> None:
     from configs.paper import DIFFICULTIES  # the levels a run's config string takes
     from envs import distractions
 
+    if not cv2.haveImageWriter(args.out):
+        parser.error(f"--out {args.out}: OpenCV writes no image of that extension; give a .png")
+    for name in ("envs", "frames", "every"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+
     distraction, types = args.distraction, args.distraction_types
     if distraction not in DIFFICULTIES:
         parser.error(f"unknown distraction {distraction!r}; valid: {', '.join(DIFFICULTIES)}")

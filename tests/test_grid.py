@@ -108,6 +108,9 @@ def test_the_jobs_resume_stopped_runs_then_start_missing_seeds_task_by_task(tmp_
     assert [line for line in printed if line.startswith("python run.py")] == [
         "python run.py " + " ".join(job.args) for job in plain
     ]
+    # The queue's closing table names the new runs' workdirs under its --root.
+    elsewhere = report.grid_table(done, ["walker"], ["sear"], seeds=2, root="mine").splitlines()
+    assert any(line.endswith("--workdir mine/walker_sear_s0") for line in elsewhere)
     # A cell with its seeds resumes none of its stopped runs.
     full = report.grid_rows(done, ["walker"], ["dear"], seeds=1)
     assert full["cells"][0]["short"] and report.grid_jobs(full, 1_000_000) == []
@@ -397,6 +400,12 @@ def test_bad_settings_are_refused_by_name(tmp_path, capsys):
     with pytest.raises(SystemExit):
         grid.main(["--root", str(tmp_path), "--set", "agent.alpha=0"])
     assert "--set 'agent.alpha=0'" in capsys.readouterr().err
+    # No seeds or frames to reach would call any grid complete: refused, by the queue and the report.
+    for main, flag in [(grid.main, "--seeds"), (grid.main, "--frames"), (report.main, "--seeds")]:
+        args = ["grid", str(tmp_path)] if main is report.main else ["--root", str(tmp_path)]
+        with pytest.raises(SystemExit):
+            main([*args, flag, "0", *(["--dry-run"] if main is grid.main else [])])
+        assert f"argument {flag}: must be >= 1, got 0" in capsys.readouterr().err
 
 
 def test_a_complete_grid_says_so_and_starts_nothing(tmp_path, capsys):

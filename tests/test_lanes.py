@@ -2,6 +2,7 @@
 
 import dataclasses
 import functools
+import re
 
 import jax
 import numpy as np
@@ -63,11 +64,20 @@ def test_bad_sweeps_are_refused_naming_the_key():
         lanes.lanes(sweep_config(beta="1,x"))
     with pytest.raises(ValueError, match="repeats a value"):
         lanes.lanes(sweep_config(beta="1,1.0"))
-    with pytest.raises(ValueError, match=r"sweep.noise_hold='1,0.5': every value must be >= 1"):
-        lanes.lanes(sweep_config(noise_hold="1,0.5"))
+    # A swept value is checked as the config's own field is: range, finiteness, whole numbers.
+    for key, text, match in [
+        ("noise_hold", "1,0.5", "noise_hold must be a whole number >= 1, got 0.5"),
+        ("tau", "0.01,5", r"tau must be a finite number in \(0, 1\], got 5"),
+        ("beta", "nan,1", "beta must be a finite number, got nan"),
+        ("stddev_clip", "-1,1", "stddev_clip must be a finite number >= 0, got -1"),
+        ("std_steps", "1.5,2", "std_steps must be a whole number >= 1, got 1.5"),
+        ("explore_steps", "-100,0", "explore_steps must be a whole number >= 0, got -100"),
+    ]:
+        with pytest.raises(ValueError, match=rf"sweep.{key}='{re.escape(text)}': {match}"):
+            lanes.lanes(sweep_config(**{key: text}))
     c = base.get_config()
     c.agent.noise_hold = 0
-    with pytest.raises(ValueError, match="agent.noise_hold must be >= 1, got 0"):
+    with pytest.raises(ValueError, match="agent.noise_hold must be a whole number >= 1, got 0"):
         experiment.validate(c)
     np.testing.assert_array_equal(
         experiment.hparams(sweep_config(noise_hold="1,10")).noise_hold, [1, 1, 10, 10]

@@ -581,6 +581,9 @@ def test_plot_two_workdirs(tmp_path):
     # One workdir: the PNG goes into it by default.
     assert plot.plot([dear], band="std") == dear / "curves.png"
     assert (dear / "curves.png").stat().st_size > 1000
+    # A name without an extension: the PNG matplotlib writes, and the path said, end in .png.
+    assert plot.plot([dear], tmp_path / "folder_like") == tmp_path / "folder_like.png"
+    assert (tmp_path / "folder_like.png").is_file()
 
 
 def test_plot_draws_each_experiments_mean_and_band(tmp_path, monkeypatch):

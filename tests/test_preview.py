@@ -55,6 +55,8 @@ def test_preview_refuses_an_unknown_distraction_type(tmp_path, capsys):
             "unknown distraction 'extreme'; valid: none, easy, medium, hard, easy-full, "
             "medium-full, hard-full",
         ),
+        # Checked before anything is drawn, where OpenCV would fail once the frames are ready.
+        (["walker-walk", "--envs", "0"], "--envs must be >= 1, got 0"),
     ],
 )
 def test_preview_says_what_is_wrong_in_one_line(tmp_path, capsys, args, message):
@@ -63,6 +65,13 @@ def test_preview_says_what_is_wrong_in_one_line(tmp_path, capsys, args, message)
     assert exit_.value.code == 2
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert last.startswith(f"python -m envs.preview: error: {message}")
+
+
+def test_preview_refuses_an_image_name_opencv_cannot_write(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        preview.main(["walker-walk", "--out", str(tmp_path / "x.txt")])
+    assert "OpenCV writes no image of that extension; give a .png" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
 
 
 def test_preview_draws_and_steps_as_a_run_of_the_task_does(tmp_path, monkeypatch):

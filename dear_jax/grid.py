@@ -400,6 +400,8 @@ def main(argv=None) -> list[dict] | None:
     root = pathlib.Path(args.root).resolve()
     try:
         limit = None if args.time_limit is None else parse_duration(args.time_limit)
+        if limit is not None and limit <= 0:
+            raise ValueError(f"time limit {args.time_limit!r}: give a time > 0, e.g. 90m")
         head, _, fallback = args.start_margin.partition(":")
         fit = head == "auto"
         margin = parse_duration(

@@ -185,6 +185,8 @@ def not_a_run(workdir: pathlib.Path, missing: str = "config.json") -> FileNotFou
             "run.py writes it at a run's end, or when it is stopped (a run killed outright: "
             "rerun its command, which resumes it from its last checkpoint)"
         )
+    elif not workdir.is_dir():
+        return FileNotFoundError(f"{workdir} does not exist: give the workdir of a run")
     else:
         hint = "give the workdir of a run"
     return FileNotFoundError(f"{workdir / missing} not found: {hint}")

@@ -400,6 +400,9 @@ def test_bad_settings_are_refused_by_name(tmp_path, capsys):
     with pytest.raises(SystemExit):
         grid.main(["--root", str(tmp_path), "--set", "agent.alpha=0"])
     assert "--set 'agent.alpha=0'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        grid.main(["--root", str(tmp_path), "--time-limit", "0"])
+    assert "time limit '0': give a time > 0" in capsys.readouterr().err
     # No seeds or frames to reach would call any grid complete: refused, by the queue and the report.
     for main, flag in [(grid.main, "--seeds"), (grid.main, "--frames"), (report.main, "--seeds")]:
         args = ["grid", str(tmp_path)] if main is report.main else ["--root", str(tmp_path)]

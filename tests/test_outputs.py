@@ -1318,8 +1318,13 @@ def test_plot_errors(tmp_path, capsys):
     (empty / "config.json").write_text('{"seeds": 1}')
     with pytest.raises(FileNotFoundError, match=r"no eval log .*seed_0.eval\.csv"):
         plot.plot([empty])
-    with pytest.raises(FileNotFoundError, match="config.json not found: give the workdir of a run"):
+    with pytest.raises(
+        FileNotFoundError, match="nowhere does not exist: give the workdir of a run"
+    ):
         plot.plot([tmp_path / "nowhere"])
+    (tmp_path / "not_a_run").mkdir()
+    with pytest.raises(FileNotFoundError, match="config.json not found: give the workdir of a run"):
+        plot.plot([tmp_path / "not_a_run"])
     # A folder of runs given as one: the error names them and how to give them.
     with pytest.raises(
         FileNotFoundError, match=r"holds 1 runs \(empty\): give them, e\.g\. .*/\*/"

@@ -268,7 +268,8 @@ def claims_table(workdirs, threshold=None, at=None, last=11, out=None) -> tuple[
     text = (
         f"The paper's claims: returns are each seed's mean over its last {last} evaluations"
         f"{upto}, mean ± population std over seeds; frames to a return of {_target(threshold)}, "
-        "the median over seeds (a range, or 'not by', where seeds never reached it)\n\n"
+        "the median over seeds (a range, or 'not by', where seeds never reached it); |cos|, "
+        "each seed's at its last evaluation, the mean over seeds\n\n"
         + format_table(COLUMNS, [[r[c].replace("|", "\\|") for c in COLUMNS] for r in rows])
         + "\n"
     )

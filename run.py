@@ -167,7 +167,7 @@ def main(argv):
         lock.release()
         raise
     console.setup(workdir, verbose=_VERBOSE.value, process=process)
-    from dear_jax.checkpoint import IncompatibleCheckpointError
+    from dear_jax.checkpoint import IncompatibleCheckpointError, UnreadableCheckpointError
     from dear_jax.experiment import ConfigError
     from dear_jax.replay_disk import DiskSpaceError, MissingReplayError
     from dear_jax.signals import Stopped, StoppedAtOnce
@@ -186,6 +186,13 @@ def main(argv):
             pathlib.Path(workdir) / "checkpoints",
         )
         sys.exit(128 + e.signum)
+    except UnreadableCheckpointError as e:
+        logging.getLogger("dear_jax").error("error: %s", e)
+        lock.release()
+        logging.shutdown()
+        # orbax's reads of the damaged files are left pending: at the interpreter's shutdown each
+        # would print its own traceback, hundreds of lines below the error. Nothing is left to save.
+        os._exit(2)
     except (
         IncompatibleCheckpointError,
         MissingReplayError,

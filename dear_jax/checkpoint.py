@@ -45,6 +45,21 @@ log = logging.getLogger(__name__)
 _STATE, _META = "state", "meta"
 
 
+def _read_failure(e: BaseException) -> str | None:
+    """Where orbax's restore failed reading stored bytes, the reason (the first line of the
+    ValueError it was raised from, such as TensorStore's OUT_OF_RANGE; else its own); else None."""
+    chain = []
+    while e is not None:
+        chain.append(e)
+        e = e.__cause__
+    for x in chain:
+        if isinstance(x, ValueError):
+            return str(x).splitlines()[0][:400]
+    if any("error while reading" in str(x) for x in chain):
+        return str(chain[-1]).splitlines()[0][:400]
+    return None
+
+
 def _skip_unrequested_item(record: logging.LogRecord) -> bool:
     # Reading only the json item makes orbax warn that the array item was not restored.
     return "could not be restored" not in record.getMessage()
@@ -52,6 +67,11 @@ def _skip_unrequested_item(record: logging.LogRecord) -> bool:
 
 class IncompatibleCheckpointError(ValueError):
     """The checkpoint was written by a run whose fingerprint (config) differs from this one."""
+
+
+class UnreadableCheckpointError(ValueError):
+    """A checkpoint whose metadata matches the run but whose arrays cannot be read: its files
+    were damaged after it was written (orbax writes them atomically)."""
 
 
 _NDARRAY = "__ndarray__"
@@ -310,11 +330,8 @@ class Checkpointer:
                 step,
                 args=ocp.args.Composite(**{_STATE: ocp.args.StandardRestore(abstract)}),
             )[_STATE]
-        except ValueError as e:
-            raise ValueError(
-                f"checkpoint {step} in {self.directory} does not match the state template "
-                f"(a code change of the agent or replay layout?): {e}"
-            ) from e
+        except Exception as e:  # names, shapes and dtypes matched: the bytes are what failed
+            raise self._unreadable(step, e) from e
         restored = _with_empty_leaves(template, restored)
         restored = jax.tree.map(
             lambda t, r: (
@@ -343,6 +360,24 @@ class Checkpointer:
         )[_STATE]
         return jax.tree.map(np.asarray, restored)
 
+    def _unreadable(self, step: int, e: Exception) -> Exception:
+        """UnreadableCheckpointError for checkpoint `step` where `e` is orbax failing to read its
+        bytes (the way on: the checkpoint before it), else `e` itself."""
+        reason = _read_failure(e)
+        if reason is None:
+            return e
+        earlier = [s for s in self.all_steps() if s < step]
+        way_on = (
+            f"to resume from checkpoint {earlier[-1]} before it"
+            if earlier
+            else "to start over (it is the only one)"
+        )
+        return UnreadableCheckpointError(
+            f"checkpoint {step} in {self.directory} cannot be read, its files damaged? "
+            f"({reason}). Move {os.path.join(self.directory, str(step))} out of "
+            f"{self.directory} {way_on}, or start over in a new --workdir"
+        )
+
     def _resolve(self, step: int | None) -> int:
         steps = self.all_steps()
         if not steps:
@@ -361,7 +396,10 @@ class Checkpointer:
         orbax would cast a different dtype silently (a changed dtype means a changed program), and
         its own shape and structure errors leave half-started reads behind.
         """
-        stored_tree = self._manager.item_metadata(step)[_STATE]
+        try:
+            stored_tree = self._manager.item_metadata(step)[_STATE]
+        except Exception as e:
+            raise self._unreadable(step, e) from e
         stored = {
             m.name: m
             for m in jax.tree.leaves(getattr(stored_tree, "tree", stored_tree))

@@ -34,6 +34,8 @@ import os
 import pathlib
 import re
 import shutil
+import zipfile
+import zlib
 from collections.abc import Callable
 
 import jax
@@ -91,7 +93,7 @@ class DiskSpaceError(OSError):
 
 
 class MissingReplayError(FileNotFoundError):
-    """A checkpoint's replay rows are not on disk (deleted, or never written there)."""
+    """A checkpoint's replay rows are not on disk (deleted, damaged, or never written there)."""
 
 
 def check_disk(directory: pathlib.Path, need: int, *, headroom: float = 0.9) -> tuple[int, int]:
@@ -240,8 +242,16 @@ class ChunkStore:
                         "replay.disk=False to refill the replay"
                     )
                 start, end, path = max(covering, key=lambda f: f[1])
-                with np.load(path) as z:
-                    data = {f: z[f][cursor - start :] for f in FIELDS}
+                try:
+                    with np.load(path) as z:
+                        data = {f: z[f][cursor - start :] for f in FIELDS}
+                except (OSError, ValueError, KeyError, zipfile.BadZipFile, zlib.error) as e:
+                    raise MissingReplayError(
+                        f"replay file {path} cannot be read ({type(e).__name__}: {e}); it holds "
+                        f"rows {start}..{end - 1} of seed {s}, which the checkpoint needs; "
+                        "delete the checkpoints to start over, or resume with replay.disk=False "
+                        "to refill the replay"
+                    ) from None
                 buffer = self._put(buffer, s, cursor, data)
                 cursor = end
         return buffer

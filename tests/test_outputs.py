@@ -337,6 +337,31 @@ def test_checkpoint_keeps_host_arrays_and_zero_size_leaves(tmp_path):
     np.testing.assert_array_equal(restored["host"], np.float32([0.1, 2.5]))
 
 
+@pytest.mark.parametrize("kept", [16, -256])  # its metadata lost, or only its arrays' last bytes
+def test_a_damaged_checkpoint_is_named_with_the_one_before(tmp_path, kept):
+    """The latest checkpoint's files cut short after it was written: restoring it says which
+    checkpoint cannot be read and which one comes before it, and that one restores."""
+    from dear_jax.checkpoint import UnreadableCheckpointError
+
+    state = {"w": jnp.arange(4096.0)}
+    with Checkpointer(tmp_path / "ck", fingerprint=FINGERPRINT) as ckpt:
+        ckpt.save(10, state)
+        ckpt.save(20, {"w": state["w"] + 1})
+    data = [p for p in (tmp_path / "ck" / "20").rglob("*") if p.is_file() and p.parent.name == "d"]
+    assert data  # ocdbt's data files
+    for path in data:
+        path.write_bytes(path.read_bytes()[:kept])
+    with Checkpointer(tmp_path / "ck", fingerprint=FINGERPRINT) as ckpt:
+        with pytest.raises(UnreadableCheckpointError) as error:
+            ckpt.restore({"w": jnp.zeros(4096)})
+        step, restored, _ = ckpt.restore({"w": jnp.zeros(4096)}, step=10)
+    message = str(error.value)
+    assert f"checkpoint 20 in {tmp_path / 'ck'} cannot be read" in message
+    assert f"Move {tmp_path / 'ck' / '20'} out of" in message and "from checkpoint 10" in message
+    assert step == 10
+    np.testing.assert_array_equal(restored["w"], state["w"])
+
+
 def test_keep_last_k_and_same_step(tmp_path, agent_state):
     with Checkpointer(tmp_path, fingerprint=FINGERPRINT, keep=2) as ckpt:
         for step in (10, 20, 30):

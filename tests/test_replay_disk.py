@@ -78,6 +78,30 @@ def test_missing_rows_are_a_clear_error(tmp_path):
     store.close()
 
 
+@pytest.mark.parametrize("damage", ["truncate", "flip"])
+def test_a_damaged_replay_file_is_named_and_kept(tmp_path, damage):
+    """A chunk cut short or with bytes changed: the resume's error names the file, its rows and
+    the two ways on; the file itself is left as it was."""
+    store = replay_disk.ChunkStore(tmp_path, SEEDS, ROWS, CHUNK)
+    _fill(_empty(), store, np.random.default_rng(0), 0, CHUNK)
+    store.close()
+    (_, _, path), *_ = replay_disk.list_files(tmp_path / "seed_0")
+    data = bytearray(path.read_bytes())
+    if damage == "truncate":
+        data = data[: len(data) // 2]
+    else:
+        data[len(data) // 3 : len(data) // 3 + 64] = bytes(64)
+    path.write_bytes(bytes(data))
+    store = replay_disk.ChunkStore(tmp_path, SEEDS, ROWS, CHUNK)
+    with pytest.raises(replay_disk.MissingReplayError) as error:
+        store.restore(_empty(), CHUNK)
+    store.close()
+    message = str(error.value)
+    assert f"replay file {path} cannot be read" in message
+    assert f"rows 0..{CHUNK - 1} of seed 0" in message and "replay.disk=False" in message
+    assert path.read_bytes() == bytes(data)
+
+
 def test_disk_check_names_the_numbers_and_the_field(tmp_path):
     with pytest.raises(OSError, match=r"GiB more .* GiB is free .*set replay\.disk=False"):
         replay_disk.check_disk(tmp_path, 10**18)

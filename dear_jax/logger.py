@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import csv
 import io
+import logging
 import math
 import os
 import pathlib
@@ -25,6 +26,8 @@ import time
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 KINDS = ("train", "eval")
 FRAME = "frame"
@@ -145,6 +148,15 @@ class RunLogger:
                 if not path.exists():
                     continue
                 if resume_frame is None:
+                    _, rows = _read_rows(path)
+                    if rows and kind == "train" and seed == 0:  # said once
+                        log.warning(
+                            "%s has no checkpoint to resume from: training starts at frame 0, "
+                            "and its logs (%s, to frame %s) are replaced",
+                            self.workdir,
+                            path,
+                            rows[-1].get(FRAME, "?"),
+                        )
                     path.unlink()
                     continue
                 columns, rows = _read_rows(path)

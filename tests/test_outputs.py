@@ -138,7 +138,7 @@ def test_write_rejects_bad_kind_and_shape(tmp_path):
             log.write("train", 0, {"a": np.zeros(3)})
 
 
-def test_resume_drops_rows_after_the_checkpoint_frame(tmp_path):
+def test_resume_drops_rows_after_the_checkpoint_frame(tmp_path, caplog):
     with RunLogger(tmp_path, 2, tensorboard=False) as log:
         for frame in (10, 20, 30, 40):
             log.write("train", frame, {"r": np.array([frame, -frame])})
@@ -152,9 +152,14 @@ def test_resume_drops_rows_after_the_checkpoint_frame(tmp_path):
     np.testing.assert_array_equal(cols["frame"], [10, 20, 30])
     np.testing.assert_array_equal(cols["r"], [10, 20, 300])
     assert (tmp_path / "seed_0" / "train.csv").read_text().count("frame") == 1
-    # A fresh run in the same workdir starts new files.
-    with RunLogger(tmp_path, 2, tensorboard=False) as log:
-        log.write("train", 5, {"r": 1.0})
+    # A fresh run in the same workdir starts new files, and says once which logs it replaces.
+    with caplog.at_level("WARNING", logger="dear_jax.logger"):
+        with RunLogger(tmp_path, 2, tensorboard=False) as log:
+            log.write("train", 5, {"r": 1.0})
+    (said,) = [
+        r.getMessage() for r in caplog.records if "no checkpoint to resume" in r.getMessage()
+    ]
+    assert "training starts at frame 0" in said and "train.csv, to frame 30) are replaced" in said
     np.testing.assert_array_equal(read_csv(tmp_path / "seed_0/train.csv")["frame"], [5])
     assert not (tmp_path / "seed_0" / "eval.csv").exists()
 

@@ -91,7 +91,9 @@ def main(argv=None) -> None:
     parser.add_argument("--mask", default="true", help="true | noisy | approximate")
     parser.add_argument("--mask-drop-prob", type=float, default=0.8)
     parser.add_argument("--background-dir", default=None, help="DAVIS-2017 root")
-    parser.add_argument("--split", default="train", help="train | val background videos")
+    parser.add_argument(
+        "--split", default="train", choices=("train", "val"), help="background videos"
+    )
     parser.add_argument("--envs", type=int, default=2, help="envs shown (rows)")
     parser.add_argument("--frames", type=int, default=6, help="frames per env (columns)")
     parser.add_argument("--every", type=int, default=5, help="agent steps between columns")

@@ -373,7 +373,8 @@ class Checkpointer:
             else "to start over (it is the only one)"
         )
         return UnreadableCheckpointError(
-            f"checkpoint {step} in {self.directory} cannot be read, its files damaged? "
+            f"checkpoint {step} in {self.directory} cannot be read (its files damaged since it "
+            "was written, or a layout this code does not read) "
             f"({reason}). Move {os.path.join(self.directory, str(step))} out of "
             f"{self.directory} {way_on}, or start over in a new --workdir"
         )

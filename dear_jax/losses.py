@@ -30,7 +30,8 @@ def mask_loss(logits: jax.Array, mask: jax.Array) -> jax.Array:
 
     L = mean_b sum_{h,w,k} BCE(sigmoid(logits[b,h,w,k]), mask[b,h,w,k])
     logits: float [B, H, W, K], the decoder's output before any sigmoid; mask: {0, 1} (any
-    dtype; values in [0, 1] for a soft mask: a 0/255 image must be divided by 255) [B, H, W, K]. Rank 4 is checked: give one image a batch axis of 1, and map extra
+    dtype; values in [0, 1] for a soft mask: a 0/255 image must be divided by 255)
+    [B, H, W, K]. Rank 4 is checked: give one image a batch axis of 1, and map extra
     leading axes (seeds) with jax.vmap. Computed in float32 whatever the logits' dtype.
     Returns a scalar.
     """

@@ -78,8 +78,8 @@ class Visuals:
 
 # "dm_control": the picture of dm_control's `physics.render(84, 84, camera_id)`, which is
 # mujoco.Renderer's default picture: every effect on, the model's 4x multisampling. Only the shadow
-# map is smaller: 256 instead of the XMLs' 2048 texels per side moves 84x84 frames by at most 0.02-0.08
-# levels of 255 on average (walker, cup, finger; tests/test_render.py) and took an H100 pool
+# map is smaller: 256 instead of the XMLs' 2048 texels per side moves 84x84 frames by at most
+# 0.02-0.08 levels of 255 on average (walker, cup, finger; tests/test_render.py) and took an H100 pool
 # (16 workers, pictures drawn in place) from 1.5k to 4.1k obs/s. "fast": no effect at all, so the
 # sky is black: a different picture (32-45 levels from dm_control's), for quick runs on CPU-only
 # machines (Mesa llvmpipe draws it ~7x faster; benchmarks/results/render_quality_cpu.json).

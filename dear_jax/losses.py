@@ -18,7 +18,8 @@ _COS_EPS = 1e-8
 
 
 def split_latent(z: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """z [..., F] -> (z_env [..., F/2], z_agent [..., F/2]): the first half is the environment's."""
+    """z [..., F] -> (z_env [..., F/2], z_agent [..., F/2]): the first half is the environment's.
+    Mind the order: `orthogonality_loss` and `latent_cosines` take (z_agent, z_env)."""
     f = z.shape[-1]
     if f % 2:
         raise ValueError(f"latent width must be even to split into halves, got {f}")
@@ -83,8 +84,9 @@ def cosine_similarity(a: jax.Array, b: jax.Array) -> jax.Array:
 def latent_cosines(z_agent: jax.Array, z_env: jax.Array) -> dict[str, jax.Array]:
     """Diagnostics of how far apart the latent halves are ([B, F/2] x 2), batch means of the
     cosine and of its magnitude: signed values of both signs cancel in the first, not the second
-    (the metric of the paper's Table II)."""
-    cos = cosine_similarity(z_agent, z_env)
+    (the metric of the paper's Table II). Values only: no gradient flows from them (the loss is
+    `orthogonality_loss`)."""
+    cos = cosine_similarity(jax.lax.stop_gradient(z_agent), jax.lax.stop_gradient(z_env))
     return {"cos_agent_env": jnp.mean(cos), "abs_cos_agent_env": jnp.mean(jnp.abs(cos))}
 
 

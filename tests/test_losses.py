@@ -84,6 +84,11 @@ def test_latent_cosines_signed_mean_cancels_magnitude_does_not():
     cosines = losses.latent_cosines(z_agent, z_env)
     assert float(cosines["cos_agent_env"]) == pytest.approx(0.0, abs=1e-7)
     assert float(cosines["abs_cos_agent_env"]) == pytest.approx(1 / math.sqrt(2), rel=1e-6)
+    # Diagnostics only: added to a loss by mistake, they train neither half.
+    grads = jax.grad(lambda a, e: losses.latent_cosines(a, e)["abs_cos_agent_env"], (0, 1))(
+        z_agent, z_env
+    )
+    assert all(np.all(np.asarray(g) == 0.0) for g in grads)
 
 
 def test_orthogonality_loss_is_zero_for_orthogonal_halves():

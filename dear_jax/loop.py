@@ -198,11 +198,17 @@ class Loop:
                 time.perf_counter() - t0,
             )
         else:
+            why = (
+                "this run reads none: replay.disk=False"
+                if extra["replay_on_disk"]
+                else "the run that saved it kept none on disk: replay.disk=False"
+            )
             log.warning(
-                "resumed from checkpoint %d (frame %d per seed) without its replay (it was not "
-                "kept on disk: replay.disk=False); collecting %d seed frames again before updating",
+                "resumed from checkpoint %d (frame %d per seed) without its replay (%s); "
+                "collecting %d seed frames again before updating",
                 step,
                 frame,
+                why,
                 self.config.replay.seed_frames,
             )
             c.lv["seed_frames"] = frame + self.config.replay.seed_frames

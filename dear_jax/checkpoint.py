@@ -49,7 +49,7 @@ def _read_failure(e: BaseException) -> str | None:
     """Where orbax's restore failed reading stored bytes, the reason (the first line of the
     ValueError it was raised from, such as TensorStore's OUT_OF_RANGE; else its own); else None."""
     chain = []
-    while e is not None:
+    while e is not None and e not in chain:
         chain.append(e)
         e = e.__cause__
     for x in chain:
@@ -331,7 +331,8 @@ class Checkpointer:
                 args=ocp.args.Composite(**{_STATE: ocp.args.StandardRestore(abstract)}),
             )[_STATE]
         except Exception as e:  # names, shapes and dtypes matched: the bytes are what failed
-            raise self._unreadable(step, e) from e
+            self._raise_if_unreadable(step, e)
+            raise
         restored = _with_empty_leaves(template, restored)
         restored = jax.tree.map(
             lambda t, r: (
@@ -360,24 +361,24 @@ class Checkpointer:
         )[_STATE]
         return jax.tree.map(np.asarray, restored)
 
-    def _unreadable(self, step: int, e: Exception) -> Exception:
+    def _raise_if_unreadable(self, step: int, e: Exception) -> None:
         """UnreadableCheckpointError for checkpoint `step` where `e` is orbax failing to read its
-        bytes (the way on: the checkpoint before it), else `e` itself."""
+        bytes (the way on: the checkpoint before it); otherwise nothing (the caller re-raises)."""
         reason = _read_failure(e)
         if reason is None:
-            return e
+            return
         earlier = [s for s in self.all_steps() if s < step]
         way_on = (
             f"to resume from checkpoint {earlier[-1]} before it"
             if earlier
             else "to start over (it is the only one)"
         )
-        return UnreadableCheckpointError(
+        raise UnreadableCheckpointError(
             f"checkpoint {step} in {self.directory} cannot be read (its files damaged since it "
             "was written, or a layout this code does not read) "
             f"({reason}). Move {os.path.join(self.directory, str(step))} out of "
             f"{self.directory} {way_on}, or start over in a new --workdir"
-        )
+        ) from e
 
     def _resolve(self, step: int | None) -> int:
         steps = self.all_steps()
@@ -400,7 +401,8 @@ class Checkpointer:
         try:
             stored_tree = self._manager.item_metadata(step)[_STATE]
         except Exception as e:
-            raise self._unreadable(step, e) from e
+            self._raise_if_unreadable(step, e)
+            raise
         stored = {
             m.name: m
             for m in jax.tree.leaves(getattr(stored_tree, "tree", stored_tree))

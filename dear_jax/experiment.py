@@ -73,6 +73,7 @@ ADDED_FIELDS = {
     "env.render.num_stacks": 0,
     "replay.sampling": "uniform",
     "agent.noise_hold": 1,
+    "agent.ted_form": "strict",
     "sweep.noise_hold": "",
 }
 
@@ -115,6 +116,7 @@ def validate(config: ConfigDict) -> None:
         "agent.method": update.METHODS,
         "agent.encoder": ("pool", "plain"),
         "agent.ortho_form": losses.ORTHOGONALITY_FORMS,
+        "agent.ted_form": losses.TED_FORMS,
         "agent.seed_axis": update.SEED_AXES,
         "agent.shift_impl": augment.SHIFT_IMPLS,
         "agent.filter_gradient": networks.FILTER_GRADIENTS,
@@ -282,6 +284,7 @@ def agent_config(config: ConfigDict, action_dim: int) -> update.AgentConfig:
         lr=a.lr,
         ted_lr=a.ted_lr,
         ortho_form=a.ortho_form,
+        ted_form=a.ted_form,
         compute_dtype=a.compute_dtype,
         shift_impl=a.shift_impl,
         filter_gradient=a.filter_gradient,

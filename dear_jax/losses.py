@@ -14,6 +14,9 @@ import jax.numpy as jnp
 import optax
 
 ORTHOGONALITY_FORMS = ("abs_cos", "reference_code")
+# TED as dear_jax runs it ("strict") or as TED's code does ("reference_code"): docs/method.md,
+# decision 8; `replay.same_episode_offsets`, `update.ted_classifier_loss`, `networks.TEDClassifier`.
+TED_FORMS = ("strict", "reference_code")
 _COS_EPS = 1e-8
 
 

@@ -672,13 +672,19 @@ class TEDClassifier(nn.Module):
     """TED's temporal classifier on a pair of latents (z1, z2) -> logit.
 
     logit = sum_F(|W0*z1 + W1*z2 + b| - (Wb*z1 + bb)^2) + c, all products elementwise, with
-    orthogonally initialised [1, F] rows.
+    orthogonally initialised [1, F] rows; form "strict" draws each row apart and starts c at 0,
+    "reference_code" draws W0 and W1 as one orthogonal [2, F] matrix and c as an orthogonal
+    1 x 1 (+-1), as TED's code (`losses.TED_FORMS`).
     """
+
+    form: str = "strict"
 
     @nn.compact
     def __call__(self, z1: jax.Array, z2: jax.Array) -> jax.Array:
         f = z1.shape[-1]
         row = lambda name: self.param(name, LINEAR_INIT, (1, f))[0]  # noqa: E731
-        w0, w1, b, wb, bb = (row(n) for n in ("w0", "w1", "b", "wb", "bb"))
-        c = self.param("c", ZEROS, ())
+        reference = self.form == "reference_code"
+        w0, w1 = self.param("w01", LINEAR_INIT, (2, f)) if reference else (row("w0"), row("w1"))
+        b, wb, bb = (row(n) for n in ("b", "wb", "bb"))
+        c = self.param("c", LINEAR_INIT, (1, 1))[0, 0] if reference else self.param("c", ZEROS, ())
         return jnp.sum(jnp.abs(w0 * z1 + w1 * z2 + b) - (wb * z1 + bb) ** 2, axis=-1) + c

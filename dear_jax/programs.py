@@ -132,6 +132,7 @@ def build_programs(
             gamma=a.discount,
             frame_stack=acfg.frame_stack,
             same_episode=acfg.method == "ted",
+            skip_positives=acfg.ted_form == "strict",
             by_episode=config.replay.sampling == "episode",
         )
 

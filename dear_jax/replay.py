@@ -216,10 +216,12 @@ def sample_at(
     gamma: float,
     frame_stack: int,
     far_key: jax.Array | None = None,
+    skip_positives: bool = True,
 ) -> Batch:
     """The transitions that start at entries (row[b], env[b]); see the module docstring.
 
-    `far_key`, when given, also draws TED's same-episode frame (see `same_episode_offsets`).
+    `far_key`, when given, also draws TED's same-episode frame (see `same_episode_offsets`,
+    which takes `skip_positives`).
     """
     reward = jnp.zeros(row.shape, jnp.float32)
     discount = jnp.ones(row.shape, jnp.float32)
@@ -234,7 +236,7 @@ def sample_at(
     stacks = {"obs": _stack_rows(state, row, env, frame_stack)}
     stacks["next_obs"] = _stack_rows(state, next_row, env, frame_stack)
     if far_key is not None:
-        offset, valid = same_episode_offsets(state, row, env, far_key, nstep)
+        offset, valid = same_episode_offsets(state, row, env, far_key, nstep, skip_positives)
         stacks["far_obs"] = _stack_rows(state, (row + offset) % state.rows, env, frame_stack)
     # The rows are computed once, before the image gathers: fused into them, the index
     # arithmetic (and its gathers of episode ids) would be redone for every pixel gathered.
@@ -278,15 +280,16 @@ def _episode_span(state, row, env):
     return start, end
 
 
-def same_episode_offsets(state, row, env, key, nstep: int = 1):
+def same_episode_offsets(state, row, env, key, nstep: int = 1, skip_positives: bool = True):
     """TED's same-episode negatives: an offset to a uniformly drawn stored step of the same
     episode other than t and t+-1 (as TED's reference samples them), and whether one exists.
-    With n-step transitions the positive pair is (t, t+n') for some n' <= nstep, so steps
-    t+1..t+nstep are excluded too: a frame is never both the positive and a negative.
+    With n-step transitions the positive pair is (t, t+n') for some n' <= nstep, so
+    `skip_positives` excludes steps t+1..t+nstep too: a frame is never both the positive and a
+    negative (False: t+-1 only, as TED's code, whatever nstep).
 
     row, env [B] -> (offset int32 [B], valid bool [B]); offset is 0 where none exists.
     """
-    ahead = max(2, nstep + 1)  # the first step after t that may be a negative
+    ahead = max(2, nstep + 1) if skip_positives else 2  # the first step after t that may be one
     start, end = _episode_span(state, row, env)
     age = _age(state, row)
     lo, hi = start - age, end - age  # lo <= 0 <= hi
@@ -356,12 +359,13 @@ def sample(
     frame_stack: int,
     same_episode: bool = False,
     by_episode: bool = False,
+    skip_positives: bool = True,
 ) -> Batch:
     """Uniform sample (with replacement) of `batch_size` transitions among the valid starts;
     by_episode=True: an episode uniformly, then a start in it (`_draw_by_episode`).
 
-    same_episode=True also returns TED's same-episode frames (`same_episode_offsets`).
-    Raises ValueError when called on a replay holding no transition (outside `jit`; inside,
+    same_episode=True also returns TED's same-episode frames (`same_episode_offsets`, which
+    takes `skip_positives`). Raises ValueError when called on a replay holding no transition (outside `jit`; inside,
     the trainer checks once before its first update, see `check_can_sample`).
     """
     k_idx, k_far = jax.random.split(key)
@@ -381,6 +385,7 @@ def sample(
         gamma=gamma,
         frame_stack=frame_stack,
         far_key=k_far if same_episode else None,
+        skip_positives=skip_positives,
     )
 
 

@@ -42,6 +42,7 @@ class AgentConfig:
     lr: float = 1e-4  # encoder, critic, actor and decoders
     ted_lr: float = 1e-3
     ortho_form: str = "abs_cos"  # or "reference_code" (see losses.orthogonality_loss)
+    ted_form: str = "strict"  # or "reference_code" (losses.TED_FORMS; docs/method.md, decision 8)
     obs_shape: tuple[int, int, int] = (84, 84, 9)
     frame_stack: int = 3
     augment_pad: int = 4
@@ -61,6 +62,8 @@ class AgentConfig:
             raise ValueError(
                 f"unknown ortho_form {self.ortho_form!r}; valid: {losses.ORTHOGONALITY_FORMS}"
             )
+        if self.ted_form not in losses.TED_FORMS:
+            raise ValueError(f"unknown ted_form {self.ted_form!r}; valid: {losses.TED_FORMS}")
         if self.compute_dtype not in ("float32", "bfloat16"):
             raise ValueError(
                 f"unknown compute_dtype {self.compute_dtype!r}; valid: 'float32', 'bfloat16'"
@@ -142,7 +145,7 @@ def make_networks(cfg: AgentConfig) -> Networks:
             if cfg.method == "sear"
             else None
         ),
-        ted=networks.TEDClassifier() if cfg.method == "ted" else None,
+        ted=networks.TEDClassifier(cfg.ted_form) if cfg.method == "ted" else None,
     )
 
 
@@ -383,6 +386,7 @@ def learner_loss(
             k_ted,
             nets=nets,
             mean_over=mean_over,
+            substitute=cfg.ted_form == "reference_code",
         )
         metrics.update(ted_metrics, ted_loss=l_ted)
         total = total + hp.ted_weight * l_ted
@@ -391,15 +395,29 @@ def learner_loss(
 
 
 def ted_classifier_loss(
-    ted_params, z, z_next, z_far, far_valid, key, *, nets: Networks, mean_over=None
+    ted_params,
+    z,
+    z_next,
+    z_far,
+    far_valid,
+    key,
+    *,
+    nets: Networks,
+    mean_over=None,
+    substitute: bool = False,
 ):
     """TED's temporal loss on latents [B, F]: positives (z_t, z_t+n); negatives (z_t, z_t+n of
-    another sample) and (z_t, a frame of the same episode other than t-1..t+nstep, where
-    far_valid [B] is 1: `replay.same_episode_offsets`). Mean BCE over the valid pairs; returns
-    (loss, metrics). mean_over: a mapped axis over which the batch is split in equal parts (its
-    mean over the axis is the whole batch's loss: the valid pairs are counted over it; the
-    other-sample negatives are drawn within each part)."""
+    another sample) and (z_t, a frame of the same episode, where far_valid [B] is 1:
+    `replay.same_episode_offsets`). Mean BCE over the valid pairs; returns (loss, metrics).
+    substitute: where far_valid is 0, the pair takes the same-episode frame drawn for another
+    sample (the one whose z_t+n is the other-sample negative) instead of being dropped, as
+    TED's code falls back to another episode's frame. mean_over: a mapped axis over which the
+    batch is split in equal parts (its mean over the axis is the whole batch's loss: the valid
+    pairs are counted over it; the other-sample negatives are drawn within each part)."""
     perm = jax.random.permutation(key, z.shape[0])
+    if substitute:
+        z_far = jnp.where(far_valid[:, None] > 0, z_far, z_far[perm])
+        far_valid = jnp.ones_like(far_valid)
     classify = lambda a, b: nets.ted.apply({"params": ted_params}, a, b)  # noqa: E731
     logits = jnp.concatenate([classify(z, z_next), classify(z, z_next[perm]), classify(z, z_far)])
     n = z.shape[0]

@@ -75,6 +75,31 @@ def test_shapes():
     assert _out_shape(networks.TEDClassifier(), z, z).shape == (2,)
 
 
+@pytest.mark.parametrize("form", ["strict", "reference_code"])
+def test_ted_classifier_values_and_initialisation(form):
+    """logit = sum_F(|W0 z1 + W1 z2 + b| - (Wb z1 + bb)^2) + c, by hand from its parameters;
+    "strict" draws W0 and W1 apart and starts c at 0, "reference_code" (TED's code) draws them
+    as one orthogonal 2 x F matrix and c as +-1."""
+    f = 16
+    z1, z2 = _normal(0, (3, f)), _normal(1, (3, f))
+    module = networks.TEDClassifier(form)
+    params = module.init(jax.random.key(2), z1, z2)["params"]
+    rows = {k: np.ravel(v) for k, v in params.items() if k not in ("w01", "c")}
+    w0, w1 = params["w01"] if form == "reference_code" else (rows["w0"], rows["w1"])
+    c = float(np.ravel(params["c"])[0])
+    for w in (w0, w1, rows["b"], rows["wb"], rows["bb"]):  # orthogonal [1, F]: unit rows
+        np.testing.assert_allclose(np.linalg.norm(w), 1.0, rtol=1e-5)
+    if form == "reference_code":
+        np.testing.assert_allclose(np.dot(w0, w1), 0.0, atol=1e-6)
+        assert abs(c) == pytest.approx(1.0)
+    else:
+        assert abs(np.dot(w0, w1)) > 1e-3 and c == 0.0  # drawn apart: not orthogonal
+    z1, z2 = np.asarray(z1), np.asarray(z2)
+    want = (np.abs(w0 * z1 + w1 * z2 + rows["b"]) - (rows["wb"] * z1 + rows["bb"]) ** 2).sum(-1)
+    got = module.apply({"params": params}, z1, z2)
+    np.testing.assert_allclose(got, want + c, rtol=1e-5, atol=1e-5)
+
+
 def test_decoder_and_actor_values():
     z = _normal(0, (2, 32))
     actor = networks.Actor(6, hidden_dim=16)

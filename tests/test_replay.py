@@ -217,27 +217,31 @@ def _one_env_replay(episode_lengths, rows):
 
 
 @pytest.mark.parametrize(
-    "lengths, rows, t, nstep, expected",
+    "lengths, rows, t, nstep, skip_positives, expected",
     [
         # t = 6 in an episode of entries 3..14: any of 3..14 but 5, 6, 7.
-        ((3, 12, 4), 32, 6, 1, [*range(3, 5), *range(8, 15)]),
-        # With 3-step positives (6, 6+n'), n' <= 3: 7..9 are excluded as well.
-        ((3, 12, 4), 32, 6, 3, [*range(3, 5), *range(10, 15)]),
+        ((3, 12, 4), 32, 6, 1, True, [*range(3, 5), *range(8, 15)]),
+        # With 3-step positives (6, 6+n'), n' <= 3: 7..9 are excluded as well ...
+        ((3, 12, 4), 32, 6, 3, True, [*range(3, 5), *range(10, 15)]),
+        # ... but not as TED's code draws them (ted_form "reference_code"): t+-1 only.
+        ((3, 12, 4), 32, 6, 3, False, [*range(3, 5), *range(8, 15)]),
         # The ring (12 rows) holds steps 7..18: episode 3..14 keeps 7..14; t = 8 excludes 7..9.
-        ((3, 12, 4), 12, 8, 1, [*range(10, 15)]),
+        ((3, 12, 4), 12, 8, 1, True, [*range(10, 15)]),
         # An episode of two entries has no step at distance >= 2.
-        ((2, 5), 16, 0, 1, []),
+        ((2, 5), 16, 0, 1, True, []),
     ],
 )
 def test_same_episode_negatives_are_uniform_over_the_episode_but_t_and_neighbours(
-    lengths, rows, t, nstep, expected
+    lengths, rows, t, nstep, skip_positives, expected
 ):
     state = _one_env_replay(lengths, rows)
     draws = 4000
     row = jnp.full((draws,), t % rows)
     env = jnp.zeros((draws,), jnp.int32)
     keys = jax.random.split(jax.random.key(0), draws)
-    draw = functools.partial(replay.same_episode_offsets, nstep=nstep)
+    draw = functools.partial(
+        replay.same_episode_offsets, nstep=nstep, skip_positives=skip_positives
+    )
     offset, valid = jax.jit(jax.vmap(draw, in_axes=(None, 0, 0, 0)))(
         state, row[:, None], env[:, None], keys
     )

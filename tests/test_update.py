@@ -400,6 +400,35 @@ def test_ted_loss_over_a_split_batch_is_the_whole_batchs():
     assert not np.isclose(own.mean(), whole_loss, rtol=1e-3)
 
 
+def test_ted_reference_form_substitutes_another_samples_frame_for_a_missing_negative():
+    """ted_form "reference_code": a sample without a same-episode frame pairs z_t with the frame
+    drawn for the sample whose z_t+n is its other-sample negative, and every pair counts; the
+    loss by hand from the classifier's logits (BCE = softplus(x) - x * label)."""
+    cfg = update.AgentConfig(method="ted", ted_form="reference_code", **SMALL)
+    nets = update.make_networks(cfg)
+    params = _init(cfg, jax.random.key(0)).params["ted"]
+    rng = np.random.default_rng(3)
+    z, z_next, z_far = (rng.normal(size=(4, 64)).astype(np.float32) for _ in range(3))
+    valid = np.array([1, 0, 1, 0], np.float32)
+    key = jax.random.key(1)
+    perm = np.asarray(jax.random.permutation(key, 4))
+    assert (perm != np.arange(4))[valid == 0].all()  # the substitutes are other samples' frames
+    far = np.where(valid[:, None] > 0, z_far, z_far[perm])
+
+    def logits(a, b):
+        return np.asarray(nets.ted.apply({"params": params}, a, b), np.float64)
+
+    x = np.concatenate([logits(z, z_next), logits(z, z_next[perm]), logits(z, far)])
+    labels = np.concatenate([np.ones(4), np.zeros(8)])
+    want = np.mean(np.logaddexp(0, x) - x * labels)
+    got, _ = update.ted_classifier_loss(
+        params, z, z_next, z_far, valid, key, nets=nets, substitute=True
+    )
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+    dropped, _ = update.ted_classifier_loss(params, z, z_next, z_far, valid, key, nets=nets)
+    assert not np.isclose(dropped, want, rtol=1e-3)  # "strict" drops the two pairs instead
+
+
 def test_ted_gradient_reaches_the_encoder_through_z_t_only():
     """TED's encoder gradient is J_enc(obs)^T dL/dz_t: the next and same-episode observations
     are encoded without gradient (TED's reference). Checked as the difference of the encoder

@@ -370,8 +370,8 @@ def test_seed_looped_convs_are_vmap_without_grouped_convolutions():
         with networks.conv_settings(loop_seeds=True):
             return grads(p, z, obs)
 
-    assert networks._CONV.get() == networks.ConvSettings()  # the context was left
     want, got = jax.jit(grads)(params, z, obs), jax.jit(looped)(params, z, obs)
+    assert networks._CONV.get() == networks.ConvSettings()  # the context was left
     for a, b in zip(jax.tree.leaves(want), jax.tree.leaves(got)):
         np.testing.assert_allclose(a, b, rtol=2e-4, atol=2e-4)
 

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dear_jax import lanes, update
+from dear_jax import augment, lanes, losses, update
 from dear_jax.replay import Batch
 
 # Narrow widths keep CPU compile and init cheap; the structure is the reference's.
@@ -103,6 +103,72 @@ _init = jax.jit(update.init, static_argnums=0)
 def dear():
     cfg = update.AgentConfig(method="dear", **SMALL)
     return cfg, _init(cfg, jax.random.key(0))
+
+
+def test_critic_loss_against_the_target_critics_clipped_double_q_by_hand():
+    """L_critic = MSE(Q1, y) + MSE(Q2, y) with y = r + discount * min(Q1', Q2'): Q' the target
+    critic (moved away from the critic, which it equals at init) at the next latent and the
+    policy's next action, its noise clipped at stddev_clip (std 1 against a clip of 0.3: the
+    clip binds), clamped to (-1, 1). By hand with NumPy from the networks' outputs and the
+    update's own draws (`learner_loss`'s key split: obs, next, far, target, TED)."""
+    cfg = update.AgentConfig(method="drqv2", **SMALL)
+    nets = update.make_networks(cfg)
+    state = _init(cfg, jax.random.key(0))
+    rng = np.random.default_rng(1)
+    target_critic = jax.tree.map(
+        lambda x: x + 0.1 * rng.standard_normal(x.shape).astype(np.float32), state.target_critic
+    )
+    reward, discount = np.float32([0.0, 0.5, 1.0, 2.0]), np.float32([0.99, 0.5, 0.0, 0.9801])
+    batch = _batch(2).replace(reward=jnp.asarray(reward), discount=jnp.asarray(discount))
+    learner = {k: v for k, v in state.params.items() if k != "actor"}
+    actor, key, std = state.params["actor"], jax.random.key(3), 1.0
+    loss = jax.jit(functools.partial(update.learner_loss, cfg=cfg))
+    _, (metrics, _) = loss(learner, actor, target_critic, batch, key, update.HParams(), std)
+
+    k_obs, k_next, _, k_target, _ = jax.random.split(key, 5)
+
+    def latent(obs, k):
+        crops = augment.Crops.sample(k, B, cfg.augment_pad, cfg.shift_impl)
+        return nets.encoder.apply({"params": learner["encoder"]}, obs, crops)
+
+    z, z_next = latent(batch.obs, k_obs), latent(batch.next_obs, k_next)
+    mean = np.asarray(nets.actor.apply({"params": actor}, z_next))
+    noise = np.clip(std * np.asarray(jax.random.normal(k_target, mean.shape)), -0.3, 0.3)
+    assert np.abs(std * np.asarray(jax.random.normal(k_target, mean.shape))).max() > 0.3
+    next_action = np.clip(mean + noise, -1 + 1e-6, 1 - 1e-6)
+    tq1, tq2 = map(np.asarray, nets.critic.apply({"params": target_critic}, z_next, next_action))
+    y = reward + discount * np.minimum(tq1, tq2)
+    q1, q2 = map(np.asarray, nets.critic.apply({"params": learner["critic"]}, z, batch.action))
+    np.testing.assert_allclose(metrics["target_q"], y.mean(), rtol=1e-5)
+    want = np.mean((q1 - y) ** 2) + np.mean((q2 - y) ** 2)
+    np.testing.assert_allclose(metrics["critic_loss"], want, rtol=1e-5)
+
+
+def test_the_mask_target_is_cropped_as_the_observation(dear):
+    """The mask decoder's target is the agent mask shifted as the observation was (the same
+    crop), not as the next observation or unshifted: `mask_loss` of `learner_loss` against
+    losses.mask_loss of the decoder's logits at z_A and the mask under the obs's crop. The
+    decoder's weights (6 layers, ReLU, zero biases) are scaled by 5, its logits by 5^6, from
+    ~1e-4 at init to ~1: the loss then depends on where the mask lies."""
+    cfg, state = dear
+    nets = update.make_networks(cfg)
+    learner = {k: v for k, v in state.params.items() if k != "actor"}
+    learner["mask_decoder"] = jax.tree.map(lambda x: 5.0 * x, learner["mask_decoder"])
+    batch, key = _batch(5), jax.random.key(6)
+    loss = jax.jit(functools.partial(update.learner_loss, cfg=cfg))
+    _, (metrics, _) = loss(
+        learner, state.params["actor"], state.target_critic, batch, key, update.HParams(), 0.5
+    )
+    k_obs, k_next = jax.random.split(key, 5)[:2]
+    crops, next_crops = (
+        augment.Crops.sample(k, B, cfg.augment_pad, cfg.shift_impl) for k in (k_obs, k_next)
+    )
+    z = nets.encoder.apply({"params": learner["encoder"]}, batch.obs, crops)
+    logits = nets.mask_decoder.apply({"params": learner["mask_decoder"]}, losses.split_latent(z)[1])
+    want = losses.mask_loss(logits, crops.apply(batch.mask))
+    np.testing.assert_allclose(metrics["mask_loss"], want, rtol=1e-5)
+    for other in (next_crops.apply(batch.mask), batch.mask):
+        assert not np.isclose(losses.mask_loss(logits, other), want, rtol=1e-3)
 
 
 def test_actor_loss_reaches_no_encoder_parameter(dear):

@@ -4,7 +4,8 @@
 string after a colon (`--config paper.py:cup,sear,hard`). Any config field can be
 overridden: `--config.seeds=5 --config.agent.beta=10`. Rerunning the same command on the same
 workdir resumes from its latest checkpoint. SIGTERM, Ctrl-C or SIGHUP checkpoints, then exits
-(with 128 + the signal's number; before training begins, SIGTERM or Ctrl-C exits at once);
+(with 128 + the signal's number; before training begins, it exits without saving anything, a new
+workdir removed);
 `--verbose` shows libraries' INFO logs, which otherwise go only to <workdir>/log.txt.
 
 Several hosts: start the same command on each with `--multihost` (README, "Several hosts").
@@ -16,6 +17,7 @@ import logging
 import os
 import pathlib
 import runpy
+import shutil
 import signal
 import sys
 
@@ -170,22 +172,31 @@ def main(argv):
     from dear_jax.checkpoint import IncompatibleCheckpointError, UnreadableCheckpointError
     from dear_jax.experiment import ConfigError
     from dear_jax.replay_disk import DiskSpaceError, MissingReplayError
-    from dear_jax.signals import Stopped, StoppedAtOnce
+    from dear_jax.signals import Stopped, StoppedAtOnce, StoppedBeforeTraining
     from dear_jax.train import train
 
-    refused = False
+    refused = unstarted = False
     try:
         train(_CONFIG.value, workdir)
     except Stopped as e:
         logging.getLogger("dear_jax").warning("%s", e)
+        unstarted = isinstance(e, StoppedBeforeTraining)
         sys.exit(e.exit_code)
     except StoppedAtOnce as e:  # saves are atomic: the last checkpoint stays whole
+        steps = (pathlib.Path(workdir) / "checkpoints").glob("*")
+        saved = [int(p.name) for p in steps if p.name.isdigit()]  # not a save's temporary folder
         logging.getLogger("dear_jax").warning(
-            "%s, without a checkpoint; rerun the same command to resume from the last one in %s",
+            "%s, without a checkpoint; %s",
             e,
-            pathlib.Path(workdir) / "checkpoints",
+            f"the one at frame {max(saved):,} per seed stays: rerun the same command to resume"
+            if saved
+            else "none was saved before: rerun the same command to start over",
         )
-        sys.exit(128 + e.signum)
+        lock.release()
+        logging.shutdown()
+        # Cut short inside a compile or a render, the interpreter's shutdown may crash (a
+        # segmentation fault, seen); the run's resources were closed as the stop unwound.
+        os._exit(128 + e.signum)
     except UnreadableCheckpointError as e:
         logging.getLogger("dear_jax").error("error: %s", e)
         lock.release()
@@ -212,6 +223,9 @@ def main(argv):
         lock.release()
         if refused and new:
             _remove_if_unused(pathlib.Path(workdir))  # refused before it wrote anything else
+        if unstarted and new:  # stopped before training: nothing in it is worth keeping
+            logging.shutdown()
+            shutil.rmtree(workdir, ignore_errors=True)
 
 
 if __name__ == "__main__":

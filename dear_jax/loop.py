@@ -36,6 +36,7 @@ from dear_jax.experiment import agent_config
 from dear_jax.logger import RunLogger
 from dear_jax.programs import cached_programs, hold_keys
 from dear_jax.progress import Progress, TrainLog
+from dear_jax.signals import before_training
 from dear_jax.trace import Trace
 
 log = logging.getLogger("dear_jax")
@@ -335,6 +336,7 @@ class Loop:
         c = self.carry
         sync = lambda: jax.block_until_ready((c.agent, c.buffer, c.ts))  # noqa: E731
         try:
+            before_training(stop, self.ckpt.latest_step())
             # An evaluation a stop cut short runs first (the resumed run continues from there).
             self.evals.start_if_due(wall(), stop)
             # A checkpoint at an evaluation's frame is saved before that evaluation starts
@@ -351,7 +353,7 @@ class Loop:
                     self.evals.start_if_due(wall(), stop)
             if stop:
                 log.warning(
-                    "%s received: saving a checkpoint at frame %d per seed, then stopping",
+                    "%s: saving a checkpoint at frame %d per seed, then stopping",
                     stop.name,
                     counters["frame"],
                 )

@@ -3,13 +3,16 @@ end of its current step and exits.
 
 `StopRequest` replaces their handlers while a run lasts (main thread only; elsewhere it does
 nothing) and restores the previous ones after; a SIGHUP the process started ignoring (`nohup`)
-stays ignored. The first signal only sets a flag that the loop
-reads once per step (and every step of an evaluation); a second one stops at once with
-StoppedAtOnce (a KeyboardInterrupt), without a checkpoint (the previous checkpoint stays intact: saves are atomic).
+stays ignored. The first signal says so on stderr at once and sets a flag that the run reads
+between the stages of its start (`before_training`: nothing trained, nothing saved) and the loop
+once per step (and every step of an evaluation); a second one stops at once with StoppedAtOnce
+(a KeyboardInterrupt), without a checkpoint (the previous checkpoint stays intact: saves are
+atomic).
 """
 
 from __future__ import annotations
 
+import os
 import signal
 import threading
 
@@ -26,6 +29,21 @@ class Stopped(Exception):
     @property
     def exit_code(self) -> int:
         return 128 + self.signum  # what a shell reports for a process ended by that signal
+
+
+class StoppedBeforeTraining(Stopped):
+    """The run stopped on a signal before its first step: nothing was trained or saved."""
+
+
+def before_training(stop, saved_frame: int | None) -> None:
+    """Raises StoppedBeforeTraining once `stop` (a StopRequest) holds a signal: called between the
+    stages of a run's start. saved_frame: the frame of the checkpoint a resumed run started from,
+    which stays (None: a new run)."""
+    if stop:
+        kept = "" if saved_frame is None else f" (the checkpoint at frame {saved_frame:,} stays)"
+        raise StoppedBeforeTraining(
+            f"stopped by {stop.name} before training began; nothing was saved{kept}", stop.signum
+        )
 
 
 class StoppedAtOnce(KeyboardInterrupt):
@@ -54,6 +72,10 @@ class StopRequest:
         if self.signum is not None:
             raise StoppedAtOnce(signum)
         self.signum = signum
+        name = signal.Signals(signum).name
+        # At once (a start or a step may take a while), and not through `logging`, whose lock
+        # the interrupted code may hold.
+        os.write(2, f"{name} received: stopping (a second {name} stops at once)\n".encode())
 
     def __enter__(self) -> StopRequest:
         if threading.current_thread() is threading.main_thread():

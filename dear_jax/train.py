@@ -44,7 +44,7 @@ from dear_jax.lock import WorkdirLock
 from dear_jax.logger import RunLogger, write_text_atomic
 from dear_jax.loop import Loop
 from dear_jax.programs import cached_programs
-from dear_jax.signals import AgreedStop, Stopped, StopRequest
+from dear_jax.signals import AgreedStop, Stopped, StopRequest, before_training
 from dear_jax.summary import runs_per_gpu, write_summary
 
 log = logging.getLogger("dear_jax")
@@ -68,6 +68,11 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
         stop = stack.enter_context(StopRequest())
         open_checkpoints = lambda: _checkpointer(config, workdir, stack)  # noqa: E731
         ckpt = None
+
+        def starting():  # a stop while the run starts: nothing is trained, so nothing is saved
+            if not hosts.multi:  # (with several processes, they stop together in the loop)
+                before_training(stop, ckpt.latest_step() if ckpt else None)
+
         if (workdir / "checkpoints").is_dir():  # a changed config is refused before anything
             ckpt = open_checkpoints()
             _check_resumable(ckpt, hosts)
@@ -92,6 +97,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
                 hosts=hosts,
             )
         )
+        starting()
         spec = env.spec
         _check_fits(config, spec, mesh)
         ckpt = ckpt or open_checkpoints()  # a new run's folder: only once the config works
@@ -109,8 +115,10 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
         )
         evaluator = _evaluator(config, where, processes, spec, mesh, hosts)
         stack.callback(evaluator.close)
+        starting()
         _log_split(mesh, hosts, lanes.num_lanes(config))
         loop = Loop(config, spec, ckpt, store, env, evaluator, mesh, hosts)
+        starting()
         logger = _logger(config, workdir, hosts, loop)
         stack.callback(logger.close)
         if hosts.multi:  # true once any process got a signal, on every process at the same step

@@ -864,6 +864,8 @@ def test_a_ctrl_c_while_the_run_starts_stops_it(tmp_path):
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,  # its own SIGINT disposition, as a terminal's foreground job
+        # ... and a terminal's: a shell's background job (these tests run as one) ignores SIGINT
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     deadline = time.time() + 120
     while not (workdir / "run.lock").exists() and proc.poll() is None and time.time() < deadline:
@@ -876,6 +878,37 @@ def test_a_ctrl_c_while_the_run_starts_stops_it(tmp_path):
         assert not workdir.exists()
     else:
         assert "checkpoint saved" in last
+
+
+def test_a_stop_while_the_run_starts_saves_nothing(tmp_path, monkeypatch, capfd):
+    """A signal while the run starts (here as its envs start) is acknowledged at once, and the
+    run stops before its first step: no checkpoint, no summary; a resumed run's checkpoint
+    stays the latest, named in the message."""
+    from dear_jax import signals
+
+    real = train.make_env
+
+    def signalled(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.05)  # a handler runs between bytecodes
+        return real(*args, **kwargs)
+
+    workdir = tmp_path / "run"
+    monkeypatch.setattr(train, "make_env", signalled)
+    with pytest.raises(signals.StoppedBeforeTraining) as stopped:
+        train.train(tiny_config(), workdir)
+    assert str(stopped.value) == "stopped by SIGTERM before training began; nothing was saved"
+    assert stopped.value.exit_code == 128 + signal.SIGTERM
+    assert "SIGTERM received: stopping" in capfd.readouterr().err
+    assert not list((workdir / "checkpoints").glob("*")) and not (workdir / "summary.json").exists()
+    monkeypatch.setattr(train, "make_env", real)
+    train.train(tiny_config(total_frames=120), workdir)
+    saved = sorted(p.name for p in (workdir / "checkpoints").iterdir())
+    monkeypatch.setattr(train, "make_env", signalled)
+    with pytest.raises(signals.StoppedBeforeTraining) as stopped:
+        train.train(tiny_config(), workdir)
+    assert str(stopped.value).endswith("nothing was saved (the checkpoint at frame 120 stays)")
+    assert sorted(p.name for p in (workdir / "checkpoints").iterdir()) == saved
 
 
 def test_a_second_signal_stops_at_once_and_sighup_asks_for_a_stop():
@@ -892,13 +925,15 @@ def test_a_second_signal_stops_at_once_and_sighup_asks_for_a_stop():
             time.sleep(1)
     assert raised.value.signum == signal.SIGTERM and isinstance(raised.value, KeyboardInterrupt)
     assert str(raised.value) == "a second SIGTERM: stopped at once"
-    # A closed terminal's SIGHUP asks for a stop too, unless the process ignores it (nohup).
-    with signals.StopRequest() as stop:
-        os.kill(os.getpid(), signal.SIGHUP)
-        time.sleep(0.05)
-        assert stop.signum == signal.SIGHUP and stop.name == "SIGHUP"
-    before = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    # A closed terminal's SIGHUP asks for a stop too, unless the process ignores it (nohup: as
+    # these tests may run themselves, whose SIGHUP is set here both ways).
+    before = signal.signal(signal.SIGHUP, signal.SIG_DFL)
     try:
+        with signals.StopRequest() as stop:
+            os.kill(os.getpid(), signal.SIGHUP)
+            time.sleep(0.05)
+            assert stop.signum == signal.SIGHUP and stop.name == "SIGHUP"
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)
         with signals.StopRequest() as stop:
             os.kill(os.getpid(), signal.SIGHUP)
             time.sleep(0.05)

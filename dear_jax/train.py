@@ -148,6 +148,7 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
             if not stop:
                 raise
             log.warning("the stopped run's summary was not written: %s", e)
+        _draw_curves(workdir)
     if stop:
         raise Stopped(
             f"stopped by {stop.name} at frame {loop.carry.counters['frame']:,} per seed; "
@@ -155,6 +156,17 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
             stop.signum,
         )
     return summary
+
+
+def _draw_curves(workdir: pathlib.Path) -> None:
+    """The run's learning curves so far, <workdir>/curves.png (`python -m dear_jax.report
+    curves` draws several runs'); one that cannot be drawn is a warning, not the run's failure."""
+    from dear_jax import plot
+
+    try:
+        plot.plot([workdir], workdir / "curves.png")
+    except Exception as e:
+        log.warning("curves.png was not drawn: %s", e)
 
 
 @contextlib.contextmanager

@@ -195,6 +195,8 @@ def test_outputs_exist_and_parse(run):
     cap = cv2.VideoCapture(str(video))
     ok, frame = cap.read()
     assert ok and frame.shape[1] >= 3 * frame.shape[0]  # RGB | true mask | predicted mask
+    curves = cv2.imread(str(workdir / "curves.png"))  # drawn at the run's end
+    assert curves is not None and curves.shape[0] > 100 and curves.std() > 0
     text = (workdir / "summary.md").read_text()
     assert text.startswith("# dear on walker-walk") and "; no distraction;" in text
     summary = json.loads((workdir / "summary.json").read_text())  # rewritten by the resume

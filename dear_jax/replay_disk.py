@@ -238,8 +238,8 @@ class ChunkStore:
                     raise MissingReplayError(
                         f"replay rows from {cursor} of seed {s} are missing in "
                         f"{self.seed_dir(s)} (need rows {lo}..{rows_added - 1} for the "
-                        "checkpoint); delete the checkpoints to start over, or resume with "
-                        "replay.disk=False to refill the replay"
+                        "checkpoint); resume with replay.disk=False to refill the replay (the "
+                        "agent's state kept), or delete the checkpoints to start over"
                     )
                 start, end, path = max(covering, key=lambda f: f[1])
                 try:
@@ -249,8 +249,8 @@ class ChunkStore:
                     raise MissingReplayError(
                         f"replay file {path} cannot be read ({type(e).__name__}: {e}); it holds "
                         f"rows {start}..{end - 1} of seed {s}, which the checkpoint needs; "
-                        "delete the checkpoints to start over, or resume with replay.disk=False "
-                        "to refill the replay"
+                        "resume with replay.disk=False to refill the replay (the agent's state "
+                        "kept), or delete the checkpoints to start over"
                     ) from None
                 buffer = self._put(buffer, s, cursor, data)
                 cursor = end

@@ -3,15 +3,12 @@
 python -m benchmarks.update [--methods dear drqv2] [--seeds 1 5] [--batch 256] [--iters 20]
     [--dtypes float32 bfloat16] [--seed-axis vmap loop]
     [--conv-stacks pallas --kernels default TAP_LOOP=1,CONV_STAGES=2] [--keys fresh fixed]
-    [--copies 1 2]
 Prints a table and writes JSON to benchmarks/results/update_<platform>.json (or --out).
 --kernels (with --conv-stacks pallas) times each listed setting of the Pallas conv stacks'
 constants (`dear_jax.wideconv`, comma-separated NAME=INT; "default": as they are), in turn, for
 every other combination. --keys: each call's key a new array (fresh, as in training) or one array
 for every call (fixed: no argument moves between calls). Each row records a digest of the states
-its calls leave (`state_digest`): flags that change no arithmetic leave it as it was. --copies:
-calls go in turn to that many copies of the update, each compiled on its own (an executable and
-its recorded command buffer each), as `agent.learn_copies` has the training loop do.
+its calls leave (`state_digest`): flags that change no arithmetic leave it as it was.
 The same update in PyTorch, timed on the same GPU: `python -m benchmarks.torch_reference update`.
 """
 
@@ -102,14 +99,11 @@ def time_update(
     conv_stack: str = "xla",
     kernels: str = "",
     keys: str = "fresh",
-    copies: int = 1,
 ) -> dict:
     """Milliseconds per call, and the host's dispatch per call (`common.timed_calls`). `keys`:
     "fresh", a new key array each call, as the training loop gives; "fixed", the same array every
     call, so that no argument of a call lies elsewhere than the last call's (the donated states
-    come back in place): XLA updates a recorded command buffer only for allocations that moved.
-    `copies`: call i runs copy i % copies of the update (compile_s: all of them), from the same
-    states and keys whatever their number."""
+    come back in place): XLA updates a recorded command buffer only for allocations that moved."""
     step, states, batches, hp = update_setup(
         method,
         seeds,
@@ -126,22 +120,17 @@ def time_update(
     if keys not in KEYS:
         raise ValueError(f"keys {keys!r}: one of {KEYS}")
     # One array per call, cut before the timing: the calls dispatch nothing else.
-    # a function object of its own per copy: jax.jit compiles each apart
-    steps = [step, *(jax.jit(functools.partial(step.__wrapped__), donate_argnums=0)
-                     for _ in range(copies - 1))]  # fmt: skip
     split = jax.random.split(jax.random.key(2), (iters + 1, seeds))
     mode = keys
     keys = [split[0]] * (iters + 1) if mode == "fixed" else list(split)
     t0 = time.perf_counter()
-    for copy in steps[1:]:  # compiled on a copy of the states: the calls below are the same
-        jax.block_until_ready(copy(jax.tree.map(jnp.copy, states), batches, keys[0], hp))
     states, metrics = step(states, batches, keys[0], hp)
     jax.block_until_ready(metrics)
     compile_s = time.perf_counter() - t0
 
     def call(i):
         nonlocal states
-        states, metrics = steps[(i + 1) % copies](states, batches, keys[i + 1], hp)
+        states, metrics = step(states, batches, keys[i + 1], hp)
         return metrics
 
     ms, dispatch = timed_calls(call, iters)
@@ -164,7 +153,6 @@ def time_update(
         seeds=seeds,
         batch=batch,
         keys=mode,
-        copies=copies,
         ms_per_call=ms,
         ms_per_seed_update=ms / seeds,
         dispatch_ms_per_call=dispatch,
@@ -229,13 +217,6 @@ def main():
         choices=KEYS,
         help="each call's key: a new array (fresh) or the same one (fixed: no argument moves)",
     )
-    parser.add_argument(
-        "--copies",
-        nargs="+",
-        type=int,
-        default=[1],
-        help="copies of the update, compiled apart, that the calls go to in turn",
-    )
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     if any(args.kernels) and "pallas" not in args.conv_stacks:
@@ -247,14 +228,13 @@ def main():
     for d in args.dtypes:
         for m in args.methods:
             for s in args.seeds:
-                for how, impl, fg, cs, kernels, keys, copies in itertools.product(
+                for how, impl, fg, cs, kernels, keys in itertools.product(
                     args.seed_axis,  # one seed too: "loop" is then the update without vmap
                     args.shift_impls,
                     args.filter_gradients,
                     args.conv_stacks,
                     args.kernels,
                     args.keys,
-                    args.copies,
                 ):
                     encoder = args.drqv2_encoder if m == "drqv2" else "pool"
                     setting = ",".join(f"{n}={v}" for n, v in kernels.items())
@@ -272,26 +252,24 @@ def main():
                         cs,
                         setting,
                         keys,
-                        copies,
                     )
                     rows.append(dict(r, kernels=kernels))
                     print(
-                        f"{m} {d} {how} {impl} {fg} {cs} {kernels or ''} {keys} keys, "
-                        f"{copies} copies, seeds={s}: "
+                        f"{m} {d} {how} {impl} {fg} {cs} {kernels or ''} {keys} keys, seeds={s}: "
                         f"{r['ms_per_seed_update']:.2f} ms/seed"
                     )
     print(f"device: {device.device_kind} ({device.platform}), jax {jax.__version__}")
     print(
-        "| method | encoder | dtype | precision | seed axis | shift | filter gradient | conv stack | kernels | keys | copies | seeds | batch | ms per call "
+        "| method | encoder | dtype | precision | seed axis | shift | filter gradient | conv stack | kernels | keys | seeds | batch | ms per call "
         "| host dispatch ms per call | ms per seed-update | vs PyTorch 12.1 ms | compile s | digest |"
     )
-    print("|---" * 19 + "|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
             f"| {r['method']} | {r['encoder']} | {r['dtype']} | {r['precision']} | {r['seed_axis']} "
             f"| {r['shift_impl']} | {r['filter_gradient']} | {r['conv_stack']} "
             f"| {','.join(f'{n}={v}' for n, v in r['kernels'].items()) or 'default'} "
-            f"| {r['keys']} | {r['copies']} | {r['seeds']} | {r['batch']} | "
+            f"| {r['keys']} | {r['seeds']} | {r['batch']} | "
             f"{r['ms_per_call']:.2f} | {r['dispatch_ms_per_call']:.2f} | "
             f"{r['ms_per_seed_update']:.2f} | {PYTORCH_ANCHOR_MS / r['ms_per_seed_update']:.2f}x "
             f"| {r['compile_s']:.1f} | {r['digest']:.10g} |"

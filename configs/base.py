@@ -171,11 +171,6 @@ def get_config() -> ConfigDict:
     # XLA stack it changes nothing. `benchmarks/update.py --conv-stacks pallas --kernels ...`
     # times settings.
     c.agent.kernels = ""
-    # Copies of the update program, each compiled apart, that the loop's updates go to in turn:
-    # the same arithmetic; with XLA_FLAGS=--xla_gpu_command_buffer_scheduling_mode=CONCURRENT a
-    # call's launch may wait for its executable's previous run (benchmarks/RESULTS.md, "End to
-    # end"). Each copy compiles (and holds its buffers) on its own.
-    c.agent.learn_copies = 1
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
     c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)
     c.agent.beta = 100.0  # orthogonality loss weight (DEAR)

@@ -57,7 +57,6 @@ RESUMABLE_CHANGES = (
     "agent.filter_gradient",
     "agent.conv_stack",
     "agent.kernels",
-    "agent.learn_copies",
     "replay.disk",
     "devices",
     "devices_per_seed",
@@ -193,7 +192,6 @@ def validate(config: ConfigDict) -> None:
         "log_every_frames",
         "keep_checkpoints",
         "replay.chunk_entries",
-        "agent.learn_copies",
     )
     for key in positive:
         if _get(config, key) < 1:

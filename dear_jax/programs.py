@@ -7,7 +7,6 @@ lane's devices where its batch is split, `config.devices_per_seed`).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 
 import jax
@@ -48,21 +47,6 @@ def accumulate(returns, ts):
     those of the episodes `ts` ends [S]."""
     returns = jnp.where(ts.first, 0.0, returns) + ts.reward
     return returns, jnp.where(ts.last, returns, 0.0).sum(-1)
-
-
-class Alternating:
-    """`copies` copies of a jitted function, each compiled on its own (an executable and its
-    recorded command buffer each), called in turn: the same arithmetic, so that a call's launch
-    need not wait on the previous call of its own executable (`agent.learn_copies`)."""
-
-    def __init__(self, fn, copies: int, **jit_kwargs):
-        self.copies = [jax.jit(functools.partial(fn), **jit_kwargs) for _ in range(copies)]
-        self._next = 0
-
-    def __call__(self, *args):
-        fn = self.copies[self._next]
-        self._next = (self._next + 1) % len(self.copies)
-        return fn(*args)
 
 
 def cached_programs(
@@ -201,9 +185,7 @@ def build_programs(
 
     return Programs(
         act=jax.jit(act, donate_argnums=0),
-        learn=jax.jit(learn, donate_argnums=0)
-        if a.learn_copies == 1
-        else Alternating(learn, a.learn_copies, donate_argnums=0),
+        learn=jax.jit(learn, donate_argnums=0),
         add=jax.jit(add, donate_argnums=0),
         evaluate_step=jax.jit(over_seeds(evaluate_step(nets))),
         evaluate_step_host=jax.jit(update.over_seeds(evaluate_step(nets_f32), a.seed_axis)),

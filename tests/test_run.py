@@ -39,7 +39,7 @@ from dear_jax.checkpoint import Checkpointer, IncompatibleCheckpointError
 from dear_jax.config import load_config, resolve_config_path
 from dear_jax.devices import Hosts
 from dear_jax.logger import read_csv
-from dear_jax.programs import Alternating, build_programs, hold_keys
+from dear_jax.programs import build_programs, hold_keys
 from dear_jax.summary import RUNS_PER_GPU_ENV, runs_per_gpu
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -694,27 +694,6 @@ def test_the_updates_sample_the_replay_as_replay_sampling_says(monkeypatch):
         programs = build_programs(acfg, experiment.hparams(config), config)
         jax.make_jaxpr(programs.learn)(agent, buffer, jax.random.key(1))
     assert told == [False, True]
-
-
-def test_learn_copies_compile_apart_and_compute_alike():
-    """agent.learn_copies: calls go in turn to copies of the program, each traced and compiled
-    on its own, whose results are the one program's; the loop builds them from the config."""
-    traced = []
-
-    def fn(x, key):
-        traced.append(1)  # once per trace: a copy's own compilation
-        return 2 * x + jax.random.normal(key, x.shape)
-
-    copies = Alternating(fn, 3)
-    x, keys = jnp.arange(4.0), jax.random.split(jax.random.key(0), 5)
-    got = [copies(x, k) for k in keys]
-    assert len(traced) == 3 and len(copies.copies) == 3
-    for g, k in zip(got, keys):
-        np.testing.assert_array_equal(g, jax.jit(fn)(x, k))
-    config = tiny_config(seeds=1, **{"agent.learn_copies": 2})
-    acfg = experiment.agent_config(config, action_dim=6)
-    learn = build_programs(acfg, experiment.hparams(config), config).learn
-    assert isinstance(learn, Alternating) and len(learn.copies) == 2
 
 
 def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):

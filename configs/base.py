@@ -171,6 +171,9 @@ def get_config() -> ConfigDict:
     # XLA stack it changes nothing. `benchmarks/update.py --conv-stacks pallas --kernels ...`
     # times settings.
     c.agent.kernels = ""
+    # Updates per call of the update program (a scan of them; the same updates, their keys
+    # alike): fewer launches where dispatching them sets the loop's pace.
+    c.agent.updates_per_call = 1
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
     c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)
     c.agent.beta = 100.0  # orthogonality loss weight (DEAR)

@@ -57,6 +57,7 @@ RESUMABLE_CHANGES = (
     "agent.filter_gradient",
     "agent.conv_stack",
     "agent.kernels",
+    "agent.updates_per_call",
     "replay.disk",
     "devices",
     "devices_per_seed",
@@ -192,6 +193,7 @@ def validate(config: ConfigDict) -> None:
         "log_every_frames",
         "keep_checkpoints",
         "replay.chunk_entries",
+        "agent.updates_per_call",
     )
     for key in positive:
         if _get(config, key) < 1:

@@ -250,7 +250,8 @@ class Loop:
         # Updates are dispatched while the env thread renders the next observations.
         if counters["frame"] >= lv["seed_frames"] and steps_per_seed:
             lv["steps_owed"] += steps_per_seed / config.agent.update_every_steps
-            n = int(lv["steps_owed"])
+            per_call = config.agent.updates_per_call
+            n = int(lv["steps_owed"]) // per_call * per_call  # whole calls: the rest owed
             lv["steps_owed"] -= n
             if n and not counters["updates"]:  # once: the replay must hold a batch
                 replay.check_can_sample(
@@ -262,14 +263,15 @@ class Loop:
             # dispatched only once the one before it has finished, so they wait for one update,
             # not for all. (An evaluation in a process of its own queues nothing here.)
             short_queue = self.evals.beside_training
-            for k in jax.random.split(k_learn, n) if n else ():
+            keys = jax.random.split(k_learn, n) if n else ()
+            for k in keys.reshape(n // per_call, per_call) if n and per_call > 1 else keys:
                 if short_queue and c.metric_sum is not None:
                     jax.block_until_ready(c.metric_sum)
                 c.agent, metrics = programs.learn(c.agent, c.buffer, k)
                 c.metric_sum = (
                     metrics if c.metric_sum is None else programs.add_metrics(c.metric_sum, metrics)
                 )
-                lv["metric_count"] += 1
+                lv["metric_count"] += per_call
             counters["updates"] += n
         t_wait = time.perf_counter()
         c.state, ts = future.result()

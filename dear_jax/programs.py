@@ -26,7 +26,9 @@ class Programs:
     # (agent, obs [S,E,...], key, stepping [S,E], hold_keys(config) or None) -> (actions
     # [S,E,A], agent)
     act: callable
-    learn: callable  # (agent, replay, key) -> (agent, metrics [S]): one update per seed
+    # (agent, replay, key) -> (agent, metrics [S]): one update per seed; with
+    # agent.updates_per_call K > 1, keys [K] -> K updates, their metrics summed
+    learn: callable
     add: callable  # (replay, ts, action) -> replay
     # (params, obs) -> (actions, cos(z_A, z_E) of each env [S,E], predicted mask of env 0
     # [S,H,W])
@@ -161,6 +163,12 @@ def build_programs(
         keys = jax.random.split(key, num_seeds)
         return per_device(learn_block)(agent, buffer, keys, hp)
 
+    def learn_calls(agent, buffer, keys):
+        """agent.updates_per_call updates in one program, one per key of keys [K] (a scan of
+        `learn`); their metrics summed."""
+        agent, metrics = jax.lax.scan(lambda ag, k: learn(ag, buffer, k), agent, keys)
+        return agent, jax.tree.map(lambda m: m.sum(0), metrics)
+
     def add(buffer, ts, action):
         return per_device(jax.vmap(replay.add))(
             buffer, ts.frame, ts.mask, action, ts.reward, ts.discount, ts.first
@@ -185,7 +193,7 @@ def build_programs(
 
     return Programs(
         act=jax.jit(act, donate_argnums=0),
-        learn=jax.jit(learn, donate_argnums=0),
+        learn=jax.jit(learn if a.updates_per_call == 1 else learn_calls, donate_argnums=0),
         add=jax.jit(add, donate_argnums=0),
         evaluate_step=jax.jit(over_seeds(evaluate_step(nets))),
         evaluate_step_host=jax.jit(update.over_seeds(evaluate_step(nets_f32), a.seed_axis)),

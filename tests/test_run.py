@@ -2,6 +2,8 @@
 
 import contextlib
 import copy
+import dataclasses
+import functools
 import json
 import logging
 import os
@@ -694,6 +696,53 @@ def test_the_updates_sample_the_replay_as_replay_sampling_says(monkeypatch):
         programs = build_programs(acfg, experiment.hparams(config), config)
         jax.make_jaxpr(programs.learn)(agent, buffer, jax.random.key(1))
     assert told == [False, True]
+
+
+def test_updates_per_call_hands_each_call_its_updates_keys(tmp_path, monkeypatch):
+    """agent.updates_per_call 2: the loop's 2 updates of an iteration (2 envs, an update per
+    agent step) go to one call with their 2 keys, and count as 2. With each call's updates made
+    one by one by the one-update program (so that no scan compiles: its own program is checked
+    to be a scan of 2 `learn`s), the run is the one of one update per call: its evaluations
+    alike, its logged losses to the rounding of their sums."""
+    overrides = {"agent.update_every_steps": 1}
+    config = tiny_config(**overrides, **{"agent.updates_per_call": 2})
+    acfg = experiment.agent_config(config, action_dim=6)
+    scan = jax.make_jaxpr(build_programs(acfg, experiment.hparams(config), config).learn)
+    init = functools.partial(update.init_seeds, acfg)
+    agent = jax.eval_shape(init, jax.random.split(jax.random.key(0), 2))
+    buffer = jax.eval_shape(lambda: replay.init(64, 3, (84, 84, 3), 6, leading=(2,)))
+    keys = jax.random.split(jax.random.key(1), 2)
+    (eqn,) = [e for e in scan(agent, buffer, keys).eqns if e.primitive.name in ("jit", "pjit")]
+    inner = [e for e in eqn.params["jaxpr"].eqns if e.primitive.name == "scan"]
+    assert [e.params["length"] for e in inner] == [2]
+    real = loop.cached_programs
+    calls = []
+
+    def one_by_one(acfg, config, mesh=None):
+        one = real(acfg, tiny_config(**overrides), mesh)
+
+        def learn(agent, buffer, keys):
+            calls.append(keys.shape)
+            metrics = []
+            for key in keys:
+                agent, m = one.learn(agent, buffer, key)
+                metrics.append(m)
+            return agent, jax.tree.map(lambda *m: sum(m), *metrics)
+
+        return dataclasses.replace(one, learn=learn)
+
+    train.train(tiny_config(**overrides), tmp_path / "1")
+    monkeypatch.setattr(loop, "cached_programs", one_by_one)
+    train.train(config, tmp_path / "2")
+    assert calls and set(calls) == {(2,)}
+    logs = [read_csv(tmp_path / n / "seed_0" / "train.csv") for n in ("1", "2")]
+    done = [json.loads((tmp_path / n / "summary.json").read_text()) for n in ("1", "2")]
+    assert done[0]["updates_per_seed"] == done[1]["updates_per_seed"] == 2 * len(calls) > 2
+    np.testing.assert_array_equal(logs[1]["updates"], logs[0]["updates"])
+    for key in ("critic_loss", "mask_loss", "ortho_loss", "q1", "actor_loss"):  # summed anew
+        np.testing.assert_allclose(logs[1][key], logs[0][key], rtol=1e-6, err_msg=key)
+    returns = [read_csv(tmp_path / n / "seed_1" / "eval.csv")["episode_return"] for n in "12"]
+    np.testing.assert_array_equal(*returns)  # the same updates made: the same agent
 
 
 def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):

@@ -164,7 +164,7 @@ def _draw_curves(workdir: pathlib.Path) -> None:
     from dear_jax import plot
 
     try:
-        plot.plot([workdir], workdir / "curves.png")
+        log.info("learning curves: %s", plot.plot([workdir], workdir / "curves.png"))
     except Exception as e:
         log.warning("curves.png was not drawn: %s", e)
 

@@ -365,8 +365,9 @@ def sample(
     by_episode=True: an episode uniformly, then a start in it (`_draw_by_episode`).
 
     same_episode=True also returns TED's same-episode frames (`same_episode_offsets`, which
-    takes `skip_positives`). Raises ValueError when called on a replay holding no transition (outside `jit`; inside,
-    the trainer checks once before its first update, see `check_can_sample`).
+    takes `skip_positives`). Raises ValueError when called on a replay holding no transition
+    (outside `jit`; inside, the trainer checks once before its first update, see
+    `check_can_sample`).
     """
     k_idx, k_far = jax.random.split(key)
     weights = sample_weights(state, frame_stack)

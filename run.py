@@ -175,6 +175,11 @@ def main(argv):
     from dear_jax.signals import Stopped, StoppedAtOnce, StoppedBeforeTraining
     from dear_jax.train import train
 
+    for sig in _STOP_SIGNALS:  # train() takes the stop signals over; after it, their defaults
+        if signal.getsignal(sig) == _stop_before_training:
+            signal.signal(
+                sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL
+            )
     refused = unstarted = False
     try:
         train(_CONFIG.value, workdir)
@@ -215,17 +220,16 @@ def main(argv):
         refused = True
         sys.exit(2)
     finally:
-        for sig in _STOP_SIGNALS:  # the run's own exit from here
-            if signal.getsignal(sig) == _stop_before_training:
-                signal.signal(
-                    sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL
-                )
-        lock.release()
-        if refused and new:
-            _remove_if_unused(pathlib.Path(workdir))  # refused before it wrote anything else
         if unstarted and new:  # stopped before training: nothing in it is worth keeping
             logging.shutdown()
-            shutil.rmtree(workdir, ignore_errors=True)
+            for path in pathlib.Path(workdir).iterdir():  # but the lock, held until it is empty
+                if path.is_dir():
+                    shutil.rmtree(path)
+                elif path != lock.path:
+                    path.unlink()
+        lock.release()
+        if (refused or unstarted) and new:
+            _remove_if_unused(pathlib.Path(workdir))  # refused before it wrote anything else
 
 
 if __name__ == "__main__":

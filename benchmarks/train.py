@@ -206,6 +206,9 @@ def stage_split(config, reps) -> dict:
             state, ts = env.step(state, action)
             buffer = programs.add(buffer, ts, action)
         n_updates = max(1, num_envs // config.agent.update_every_steps)
+        per_call = config.agent.updates_per_call  # as the loop hands them: [per_call] keys a call
+        if n_updates % per_call:
+            raise ValueError(f"agent.updates_per_call={per_call} does not divide {n_updates}")
         key = jax.random.key(2)
         ms = {}
         ms["physics"], (phys, _) = _timed(lambda: env.physics.step(state.physics, action), reps)
@@ -222,7 +225,8 @@ def stage_split(config, reps) -> dict:
         held = {"agent": agent, "buffer": buffer}
 
         def learn():
-            for k in jax.random.split(key, n_updates):
+            keys = jax.random.split(key, n_updates)
+            for k in keys.reshape(-1, per_call) if per_call > 1 else keys:
                 held["agent"], metrics = programs.learn(held["agent"], held["buffer"], k)
             return metrics
 

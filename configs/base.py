@@ -171,11 +171,13 @@ def get_config() -> ConfigDict:
     # XLA stack it changes nothing. `benchmarks/update.py --conv-stacks pallas --kernels ...`
     # times settings.
     c.agent.kernels = ""
-    # Updates per call of the update program (a scan of them; the same updates, their keys
-    # alike): fewer launches where dispatching them sets the loop's pace. A lone seed's walker
+    # Updates per call of the update program (a scan of them): fewer launches where dispatching
+    # them sets the loop's pace. Where it divides an iteration's updates (DMC: envs_per_seed /
+    # update_every_steps) they are the same updates, their keys alike; elsewhere (the kitchen's
+    # envs end apart) the rest waits for the next iteration. A lone seed's walker
     # on an H200 with XLA_FLAGS=--xla_gpu_command_buffer_scheduling_mode=CONCURRENT: 1,200 env
     # frames/s with 8 (all of an iteration's) against 987 with 1; 1,156 by default
-    # (benchmarks/RESULTS.md, "End to end"). Each call's count must add up: the rest is owed.
+    # (benchmarks/RESULTS.md, "End to end").
     c.agent.updates_per_call = 1
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
     c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)

@@ -259,9 +259,10 @@ class Loop:
                     config.agent.batch_size,
                 )
             # While an evaluation runs in the background on the training's devices, its steps'
-            # programs queue behind the updates dispatched before them: each update is
-            # dispatched only once the one before it has finished, so they wait for one update,
-            # not for all. (An evaluation in a process of its own queues nothing here.)
+            # programs queue behind the updates dispatched before them: each call of updates is
+            # dispatched only once the one before it has finished, so they wait for one call
+            # (agent.updates_per_call updates), not for all. (An evaluation in a process of its
+            # own queues nothing here.)
             short_queue = self.evals.beside_training
             keys = jax.random.split(k_learn, n) if n else ()
             for k in keys.reshape(n // per_call, per_call) if n and per_call > 1 else keys:

@@ -75,7 +75,10 @@ class StopRequest:
         name = signal.Signals(signum).name
         # At once (a start or a step may take a while), and not through `logging`, whose lock
         # the interrupted code may hold.
-        os.write(2, f"{name} received: stopping (a second {name} stops at once)\n".encode())
+        try:
+            os.write(2, f"{name} received: stopping (a second {name} stops at once)\n".encode())
+        except OSError:  # stderr gone (a closed terminal, a pipe's reader ended): stop all the same
+            pass
 
     def __enter__(self) -> StopRequest:
         if threading.current_thread() is threading.main_thread():

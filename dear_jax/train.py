@@ -56,6 +56,13 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
     SIGTERM or SIGINT: the run checkpoints at the end of its step, writes its summary so far
     (`"stopped"`: the signal's name) and raises signals.Stopped.
     """
+    # Held until the summary and curves are written: a signal then too asks for a stop (a
+    # second one stops at once), and is not taken for one before training.
+    with StopRequest() as stop:
+        return _train(config, workdir, stop)
+
+
+def _train(config: ConfigDict, workdir: str | pathlib.Path, stop: StopRequest) -> dict:
     validate(config)
     sharing = runs_per_gpu()  # read first: a bad value fails before any work
     mesh = seed_mesh(config.devices, lanes.num_lanes(config), config.devices_per_seed)
@@ -65,7 +72,6 @@ def train(config: ConfigDict, workdir: str | pathlib.Path) -> dict:
     with contextlib.ExitStack() as stack:
         stack.enter_context(WorkdirLock(workdir, hosts.index))
         stack.enter_context(switch_interval(config.env.switch_interval_ms))
-        stop = stack.enter_context(StopRequest())
         open_checkpoints = lambda: _checkpointer(config, workdir, stack)  # noqa: E731
         ckpt = None
 

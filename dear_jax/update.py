@@ -409,14 +409,15 @@ def ted_classifier_loss(
     """TED's temporal loss on latents [B, F]: positives (z_t, z_t+n); negatives (z_t, z_t+n of
     another sample) and (z_t, a frame of the same episode, where far_valid [B] is 1:
     `replay.same_episode_offsets`). Mean BCE over the valid pairs; returns (loss, metrics).
-    substitute: where far_valid is 0, the pair takes the same-episode frame drawn for another
-    sample (the one whose z_t+n is the other-sample negative) instead of being dropped, as
-    TED's code falls back to another episode's frame. mean_over: a mapped axis over which the
+    substitute: where far_valid is 0, the pair takes instead of being dropped the frame drawn for
+    another sample, the next in the shuffle's cycle (its same-episode frame, or where it has
+    none its own at t), as TED's code falls back to another episode's frame. mean_over: a mapped axis over which the
     batch is split in equal parts (its mean over the axis is the whole batch's loss: the valid
     pairs are counted over it; the other-sample negatives are drawn within each part)."""
     perm = jax.random.permutation(key, z.shape[0])
-    if substitute:
-        z_far = jnp.where(far_valid[:, None] > 0, z_far, z_far[perm])
+    if substitute:  # perm[p] takes perm[p + 1]'s: never a sample's own
+        other = jnp.zeros_like(perm).at[perm].set(jnp.roll(perm, -1))
+        z_far = jnp.where(far_valid[:, None] > 0, z_far, z_far[other])
         far_valid = jnp.ones_like(far_valid)
     classify = lambda a, b: nets.ted.apply({"params": ted_params}, a, b)  # noqa: E731
     logits = jnp.concatenate([classify(z, z_next), classify(z, z_next[perm]), classify(z, z_far)])

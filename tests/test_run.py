@@ -698,6 +698,32 @@ def test_the_updates_sample_the_replay_as_replay_sampling_says(monkeypatch):
     assert told == [False, True]
 
 
+def test_ted_form_reaches_the_sampler_and_the_loss(monkeypatch):
+    """agent.ted_form from the config to what it changes: the replay's same-episode draws
+    (skip_positives) and the loss's missing negatives (substitute)."""
+    told = {"sample": [], "loss": []}
+
+    def sample(*args, skip_positives=True, **kwargs):
+        told["sample"].append(skip_positives)
+        return replay_sample(*args, skip_positives=skip_positives, **kwargs)
+
+    def loss(*args, substitute=False, **kwargs):
+        told["loss"].append(substitute)
+        return ted_loss(*args, substitute=substitute, **kwargs)
+
+    replay_sample, ted_loss = replay.sample, update.ted_classifier_loss
+    monkeypatch.setattr(replay, "sample", sample)
+    monkeypatch.setattr(update, "ted_classifier_loss", loss)
+    buffer = jax.eval_shape(lambda: replay.init(64, 3, (84, 84, 3), 6, leading=(1,)))
+    for form in ("strict", "reference_code"):
+        config = tiny_config(seeds=1, **{"agent.method": "ted", "agent.ted_form": form})
+        acfg = experiment.agent_config(config, action_dim=6)
+        agent = jax.eval_shape(functools.partial(update.init_seeds, acfg), jax.random.key(0)[None])
+        programs = build_programs(acfg, experiment.hparams(config), config)
+        jax.make_jaxpr(programs.learn)(agent, buffer, jax.random.key(1))
+    assert told == {"sample": [True, False], "loss": [False, True]}
+
+
 def test_updates_per_call_hands_each_call_its_updates_keys(tmp_path, monkeypatch):
     """agent.updates_per_call 2: the loop's 2 updates of an iteration (2 envs, an update per
     agent step) go to one call with their 2 keys, and count as 2. With each call's updates made
@@ -743,6 +769,12 @@ def test_updates_per_call_hands_each_call_its_updates_keys(tmp_path, monkeypatch
         np.testing.assert_allclose(logs[1][key], logs[0][key], rtol=1e-6, err_msg=key)
     returns = [read_csv(tmp_path / n / "seed_1" / "eval.csv")["episode_return"] for n in "12"]
     np.testing.assert_array_equal(*returns)  # the same updates made: the same agent
+    # 3 a call where an iteration owes 2: whole calls only, the rest owed to the next iteration.
+    calls.clear()
+    train.train(tiny_config(**overrides, **{"agent.updates_per_call": 3}), tmp_path / "3")
+    made = json.loads((tmp_path / "3" / "summary.json").read_text())["updates_per_seed"]
+    assert set(calls) == {(3,)} and made == 3 * len(calls)
+    assert done[0]["updates_per_seed"] - 2 <= made <= done[0]["updates_per_seed"]
 
 
 def test_table_ii_is_computed_from_the_trainers_logs(run, tmp_path):
@@ -960,6 +992,35 @@ def test_a_stop_while_the_run_starts_saves_nothing(tmp_path, monkeypatch, capfd)
         train.train(tiny_config(), workdir)
     assert str(stopped.value).endswith("nothing was saved (the checkpoint at frame 120 stays)")
     assert sorted(p.name for p in (workdir / "checkpoints").iterdir()) == saved
+
+
+def test_a_sigterm_as_the_run_starts_its_envs_removes_its_new_workdir(tmp_path):
+    """run.py sent SIGTERM once its envs have started (its log says where it evaluates), before
+    its first update: 143, the signal acknowledged at once, and, stopped before training, no
+    new workdir left behind (a stop that lands after the first step checkpoints instead)."""
+    workdir = tmp_path / "run"
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / "run.py"), "--config=smoke", f"--workdir={workdir}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    seen = []
+    for line in proc.stderr:  # ends, if the marker never comes, with the run
+        seen.append(line)
+        if line.startswith("evaluations: "):
+            proc.send_signal(signal.SIGTERM)
+            break
+    _, err = proc.communicate(timeout=300)
+    err = "".join(seen) + err
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    assert "SIGTERM received: stopping" in err
+    last = err.strip().splitlines()[-1]
+    if "before training began" in last:
+        assert last == "stopped by SIGTERM before training began; nothing was saved"
+        assert not workdir.exists()
+    else:
+        assert "checkpoint saved" in last
 
 
 def test_a_second_signal_stops_at_once_and_sighup_asks_for_a_stop():

@@ -468,8 +468,8 @@ def test_ted_loss_over_a_split_batch_is_the_whole_batchs():
 
 def test_ted_reference_form_substitutes_another_samples_frame_for_a_missing_negative():
     """ted_form "reference_code": a sample without a same-episode frame pairs z_t with the frame
-    drawn for the sample whose z_t+n is its other-sample negative, and every pair counts; the
-    loss by hand from the classifier's logits (BCE = softplus(x) - x * label)."""
+    drawn for another, the next in the shuffle's cycle, and every pair counts; the loss by hand
+    from the classifier's logits (BCE = softplus(x) - x * label)."""
     cfg = update.AgentConfig(method="ted", ted_form="reference_code", **SMALL)
     nets = update.make_networks(cfg)
     params = _init(cfg, jax.random.key(0)).params["ted"]
@@ -478,8 +478,10 @@ def test_ted_reference_form_substitutes_another_samples_frame_for_a_missing_nega
     valid = np.array([1, 0, 1, 0], np.float32)
     key = jax.random.key(1)
     perm = np.asarray(jax.random.permutation(key, 4))
-    assert (perm != np.arange(4))[valid == 0].all()  # the substitutes are other samples' frames
-    far = np.where(valid[:, None] > 0, z_far, z_far[perm])
+    other = np.empty(4, int)
+    other[perm] = np.roll(perm, -1)  # sample perm[p] takes perm[p + 1]'s frame
+    assert (other != np.arange(4)).all()
+    far = np.where(valid[:, None] > 0, z_far, z_far[other])
 
     def logits(a, b):
         return np.asarray(nets.ted.apply({"params": params}, a, b), np.float64)

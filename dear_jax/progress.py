@@ -23,6 +23,7 @@ class Progress:
 
     def __init__(self, show: bool, total: int, initial: int):
         self.bar = None
+        self.total = total
         self.last_eval_return = None
         if show and sys.stderr.isatty():
             from tqdm import tqdm
@@ -53,6 +54,16 @@ class Progress:
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
+
+
+def _left(frame: int, total: int, fps_per_seed: float) -> str:
+    """How far a run is and, at `fps_per_seed`, how long its training has left: "25% of
+    1,000,000, ~12 min left" (evaluations that hold the loop up not counted)."""
+    done = f"{min(frame / max(total, 1), 1):.0%} of {total:,}"
+    if not fps_per_seed > 0:  # NaN: no rate yet
+        return done
+    minutes = max(total - frame, 0) / fps_per_seed / 60
+    return f"{done}, ~{minutes:.0f} min left" if minutes >= 1 else f"{done}, <1 min left"
 
 
 class TrainLog:
@@ -122,9 +133,10 @@ class TrainLog:
         self.progress.show_rate(row["fps"], refresh=False)
         # Detached runs (no bar) show this line on the console; with a bar only the file has it.
         log.info(
-            "frame %d per seed: %.0f frames/s in all",
+            "frame %d per seed: %.0f frames/s in all; %s",
             frame,
             row["fps"],
+            _left(frame, self.progress.total, row["fps"] / self.num_lanes),
             extra={"console": self.progress.bar is None},
         )
         self.last_t, lv["last_log_frame"] = now, frame

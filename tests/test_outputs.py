@@ -63,6 +63,16 @@ def test_csv_header_is_the_union_of_metrics(tmp_path):
     assert not list(tmp_path.rglob("*.tmp"))
 
 
+def test_a_detached_runs_log_line_says_how_far_it_is_and_how_long_is_left():
+    """The console's line per log row off a terminal: 250k of 1M frames per seed at 1,250 frames/s
+    per seed leaves 750,000 / 1,250 = 600 s; no rate yet, no estimate."""
+    from dear_jax.progress import _left
+
+    assert _left(250_000, 1_000_000, 1250.0) == "25% of 1,000,000, ~10 min left"
+    assert _left(1_170, 1_200, 40.0) == "98% of 1,200, <1 min left"
+    assert _left(0, 1_200, float("nan")) == "0% of 1,200"
+
+
 def test_train_rows_average_the_returns_of_episodes_ended_at_different_steps(tmp_path):
     """Kitchen envs end on success, each at its own step: the loop's device sums (programs.
     accumulate), kept in the carry until a row reads them, give each seed's mean return; pending

@@ -8,6 +8,11 @@ workdir resumes from its latest checkpoint. SIGTERM, Ctrl-C or SIGHUP checkpoint
 workdir removed);
 `--verbose` shows libraries' INFO logs, which otherwise go only to <workdir>/log.txt.
 
+Exit status: 0 trained (or had already); 1 bad input, refused before the run starts (an unknown
+field or choice, a missing background folder); 2 refused once started (a resume with a changed
+config, an unreadable checkpoint or replay, too little memory or disk); 128 + N stopped by
+signal N.
+
 Several hosts: start the same command on each with `--multihost` (README, "Several hosts").
 """
 

@@ -936,16 +936,34 @@ def test_input_the_run_finds_bad_says_one_line(tmp_path, flag, message):
     assert not workdir.exists()
 
 
+def _smoke_run(workdir, **popen) -> subprocess.Popen:
+    """run.py --config=smoke on `workdir`, started: its stdout and stderr piped, as text."""
+    return subprocess.Popen(
+        [sys.executable, str(ROOT / "run.py"), "--config=smoke", f"--workdir={workdir}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **popen,
+    )
+
+
+def _read_until(proc: subprocess.Popen, marker: str) -> list[str]:
+    """The lines of `proc`'s stderr up to the first that holds `marker` (all, if none does)."""
+    seen = []
+    for line in proc.stderr:  # no terminal: a line per log interval instead of the bar
+        seen.append(line)
+        if marker in line:
+            break
+    return seen
+
+
 def test_a_ctrl_c_while_the_run_starts_stops_it(tmp_path):
     """SIGINT as soon as the run holds its workdir (during its imports, before training): it
     stops with 130 and one line, however early, and leaves no new workdir behind when it
     had not begun; a later one checkpoints first. Never does the run go on to train."""
     workdir = tmp_path / "run"
-    proc = subprocess.Popen(
-        [sys.executable, str(ROOT / "run.py"), "--config=smoke", f"--workdir={workdir}"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+    proc = _smoke_run(
+        workdir,
         start_new_session=True,  # its own SIGINT disposition, as a terminal's foreground job
         # ... and a terminal's: a shell's background job (these tests run as one) ignores SIGINT
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
@@ -999,18 +1017,9 @@ def test_a_sigterm_as_the_run_starts_its_envs_removes_its_new_workdir(tmp_path):
     its first update: 143, the signal acknowledged at once, and, stopped before training, no
     new workdir left behind (a stop that lands after the first step checkpoints instead)."""
     workdir = tmp_path / "run"
-    proc = subprocess.Popen(
-        [sys.executable, str(ROOT / "run.py"), "--config=smoke", f"--workdir={workdir}"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    seen = []
-    for line in proc.stderr:  # ends, if the marker never comes, with the run
-        seen.append(line)
-        if line.startswith("evaluations: "):
-            proc.send_signal(signal.SIGTERM)
-            break
+    proc = _smoke_run(workdir)
+    seen = _read_until(proc, "evaluations: ")  # logged once the envs have started
+    proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=300)
     err = "".join(seen) + err
     assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
@@ -1462,11 +1471,7 @@ def test_sigterm_checkpoints_exits_cleanly_and_resumes_exactly(run, tmp_path):
     proc = subprocess.Popen(
         cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
-    seen = []
-    for line in proc.stderr:  # no terminal: a line per log interval instead of the bar
-        seen.append(line)
-        if "eval @ 120 frames" in line:  # one line per evaluation
-            break
+    seen = _read_until(proc, "eval @ 120 frames")  # one line per evaluation
     workers = _descendants(proc.pid)
     second = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
     proc.send_signal(signal.SIGTERM)

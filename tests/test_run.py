@@ -962,12 +962,15 @@ def test_a_ctrl_c_while_the_run_starts_stops_it(tmp_path):
     stops with 130 and one line, however early, and leaves no new workdir behind when it
     had not begun; a later one checkpoints first. Never does the run go on to train."""
     workdir = tmp_path / "run"
-    proc = _smoke_run(
-        workdir,
-        start_new_session=True,  # its own SIGINT disposition, as a terminal's foreground job
-        # ... and a terminal's: a shell's background job (these tests run as one) ignores SIGINT
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
-    )
+    # A terminal's SIGINT disposition, whatever this process's: a shell's background job (these
+    # tests run as one) ignores SIGINT, which its children inherit; a handler becomes the default
+    # in a child at its exec.
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        # its own session: its own SIGINT, as a terminal's foreground job
+        proc = _smoke_run(workdir, start_new_session=True)
+    finally:
+        signal.signal(signal.SIGINT, before)
     deadline = time.time() + 120
     while not (workdir / "run.lock").exists() and proc.poll() is None and time.time() < deadline:
         time.sleep(0.01)

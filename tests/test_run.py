@@ -967,7 +967,7 @@ def test_a_ctrl_c_while_the_run_starts_stops_it(tmp_path):
     # in a child at its exec.
     before = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
-        # its own session: its own SIGINT, as a terminal's foreground job
+        # a process group of its own, as a terminal's foreground job
         proc = _smoke_run(workdir, start_new_session=True)
     finally:
         signal.signal(signal.SIGINT, before)

@@ -3,12 +3,15 @@
 python -m benchmarks.update [--methods dear drqv2] [--seeds 1 5] [--batch 256] [--iters 20]
     [--dtypes float32 bfloat16] [--seed-axis vmap loop]
     [--conv-stacks pallas --kernels default TAP_LOOP=1,CONV_STAGES=2] [--keys fresh fixed]
+    [--xla-options "" xla_gpu_command_buffer_scheduling_mode=CONCURRENT]
 Prints a table and writes JSON to benchmarks/results/update_<platform>.json (or --out).
 --kernels (with --conv-stacks pallas) times each listed setting of the Pallas conv stacks'
 constants (`dear_jax.wideconv`, comma-separated NAME=INT; "default": as they are), in turn, for
 every other combination. --keys: each call's key a new array (fresh, as in training) or one array
 for every call (fixed: no argument moves between calls). Each row records a digest of the states
 its calls leave (`state_digest`): flags that change no arithmetic leave it as it was.
+--xla-options: the update program's XLA options, each setting in turn (default: a run's
+agent.xla_options default; "": XLA's own).
 The same update in PyTorch, timed on the same GPU: `python -m benchmarks.torch_reference update`.
 """
 
@@ -24,7 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.common import save_json, timed_calls
-from dear_jax import augment, networks, update, wgrad, wideconv
+from configs import base
+from dear_jax import augment, experiment, networks, update, wgrad, wideconv
 from dear_jax.replay import Batch
 
 # docs/design.md: the PyTorch reference architecture's DEAR update, batch 256, TF32, on an H100.
@@ -59,9 +63,11 @@ def update_setup(
     filter_gradient="cudnn",
     conv_stack="xla",
     kernels="",
+    xla_options="",
 ):
     """(jitted update over all seeds, fresh agent states, random batches, hparams); `kernels`:
-    the Pallas stacks' constants, as a run's agent.kernels sets them."""
+    the Pallas stacks' constants, as a run's agent.kernels sets them; `xla_options`: XLA's, as
+    agent.xla_options."""
     cfg = update.AgentConfig(
         action_dim=action_dim,
         method=method,
@@ -80,7 +86,9 @@ def update_setup(
     )
     hp = update.HParams().for_seeds(seeds)
     step = jax.jit(
-        update.over_seeds(functools.partial(update.update, cfg=cfg), seed_axis), donate_argnums=0
+        update.over_seeds(functools.partial(update.update, cfg=cfg), seed_axis),
+        donate_argnums=0,
+        compiler_options=experiment.xla_options(xla_options),
     )
     return step, states, batches, hp
 
@@ -99,6 +107,7 @@ def time_update(
     conv_stack: str = "xla",
     kernels: str = "",
     keys: str = "fresh",
+    xla_options: str = "",
 ) -> dict:
     """Milliseconds per call, and the host's dispatch per call (`common.timed_calls`). `keys`:
     "fresh", a new key array each call, as the training loop gives; "fixed", the same array every
@@ -116,6 +125,7 @@ def time_update(
         filter_gradient,
         conv_stack,
         kernels,
+        xla_options,
     )
     if keys not in KEYS:
         raise ValueError(f"keys {keys!r}: one of {KEYS}")
@@ -153,6 +163,7 @@ def time_update(
         seeds=seeds,
         batch=batch,
         keys=mode,
+        xla_options=xla_options,
         ms_per_call=ms,
         ms_per_seed_update=ms / seeds,
         dispatch_ms_per_call=dispatch,
@@ -217,6 +228,13 @@ def main():
         choices=KEYS,
         help="each call's key: a new array (fresh) or the same one (fixed: no argument moves)",
     )
+    parser.add_argument(
+        "--xla-options",
+        nargs="+",
+        default=[base.get_config().agent.xla_options],
+        help='the update program\'s XLA options, as agent.xla_options (default its default; "": '
+        "XLA's own)",
+    )
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     if any(args.kernels) and "pallas" not in args.conv_stacks:
@@ -228,13 +246,14 @@ def main():
     for d in args.dtypes:
         for m in args.methods:
             for s in args.seeds:
-                for how, impl, fg, cs, kernels, keys in itertools.product(
+                for how, impl, fg, cs, kernels, keys, xo in itertools.product(
                     args.seed_axis,  # one seed too: "loop" is then the update without vmap
                     args.shift_impls,
                     args.filter_gradients,
                     args.conv_stacks,
                     args.kernels,
                     args.keys,
+                    args.xla_options,
                 ):
                     encoder = args.drqv2_encoder if m == "drqv2" else "pool"
                     setting = ",".join(f"{n}={v}" for n, v in kernels.items())
@@ -252,10 +271,12 @@ def main():
                         cs,
                         setting,
                         keys,
+                        xo,
                     )
                     rows.append(dict(r, kernels=kernels))
                     print(
-                        f"{m} {d} {how} {impl} {fg} {cs} {kernels or ''} {keys} keys, seeds={s}: "
+                        f"{m} {d} {how} {impl} {fg} {cs} {kernels or ''} {keys} keys {xo!r}, "
+                        f"seeds={s}: "
                         f"{r['ms_per_seed_update']:.2f} ms/seed"
                     )
     print(f"device: {device.device_kind} ({device.platform}), jax {jax.__version__}")

@@ -172,13 +172,18 @@ def get_config() -> ConfigDict:
     # times settings.
     c.agent.kernels = ""
     # Updates per call of the update program (a scan of them): fewer launches where dispatching
-    # them sets the loop's pace. Where it divides an iteration's updates (DMC: envs_per_seed /
-    # update_every_steps) they are the same updates, their keys alike; elsewhere (the kitchen's
-    # envs end apart) the rest waits for the next iteration. A lone seed's walker
-    # on an H200 with XLA_FLAGS=--xla_gpu_command_buffer_scheduling_mode=CONCURRENT: 1,200 env
-    # frames/s with 8 (all of an iteration's) against 987 with 1; 1,156 by default
-    # (benchmarks/RESULTS.md, "End to end").
-    c.agent.updates_per_call = 1
+    # them sets the loop's pace. 0: on a GPU all of an iteration's (envs_per_seed /
+    # update_every_steps), on a CPU 1 (a scan compiles slower there). Where K divides an
+    # iteration's updates (DMC) they are the same updates, their keys alike; elsewhere (the
+    # kitchen's envs end apart) the rest waits for the next iteration. A lone seed's walker on an
+    # H200 with the default xla_options: 1,200 and 1,262 env frames/s with 8 (all of an
+    # iteration's) against 987 and 1,045 with 1; 5 seeds level (benchmarks/RESULTS.md).
+    c.agent.updates_per_call = 0
+    # XLA's options for the update program, "NAME=VALUE,..." (jax.jit's compiler_options; its
+    # flags without the leading --). The default schedules its command buffers' kernels
+    # concurrently: with an iteration's updates a call, a lone seed's loop 4-9% faster and 5
+    # seeds' 2% (benchmarks/RESULTS.md). "": XLA's defaults. Same arithmetic either way.
+    c.agent.xla_options = "xla_gpu_command_buffer_scheduling_mode=CONCURRENT"
     c.agent.ortho_form = "abs_cos"  # "abs_cos" (paper) | "reference_code" (1 - cos)
     c.agent.alpha = 0.25  # mask loss weight (DEAR, SEAR)
     c.agent.beta = 100.0  # orthogonality loss weight (DEAR)

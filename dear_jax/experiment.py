@@ -58,6 +58,7 @@ RESUMABLE_CHANGES = (
     "agent.conv_stack",
     "agent.kernels",
     "agent.updates_per_call",
+    "agent.xla_options",
     "replay.disk",
     "devices",
     "devices_per_seed",
@@ -193,11 +194,19 @@ def validate(config: ConfigDict) -> None:
         "log_every_frames",
         "keep_checkpoints",
         "replay.chunk_entries",
-        "agent.updates_per_call",
     )
     for key in positive:
         if _get(config, key) < 1:
             raise ValueError(f"{key} must be >= 1, got {_get(config, key)}")
+    if not (isinstance(config.agent.updates_per_call, int) and config.agent.updates_per_call >= 0):
+        raise ValueError(
+            "agent.updates_per_call must be an int >= 1, or 0 (on a GPU an iteration's updates, "
+            f"else 1); got {config.agent.updates_per_call!r}"
+        )
+    try:  # XLA names an unknown option or a bad value as the program compiles
+        jax.jit(lambda: 0, compiler_options=xla_options(config.agent.xla_options)).lower().compile()
+    except Exception as e:  # noqa: BLE001 - XLA's own errors, whatever their type
+        raise ValueError(f"agent.xla_options={config.agent.xla_options!r}: {e}") from None
     for key, low, high in [  # (low, high]: an interval open at its left end, or [0, 1]
         ("agent.lr", 0.0, math.inf),
         ("agent.ted_lr", 0.0, math.inf),
@@ -303,6 +312,30 @@ def hparams(config: ConfigDict) -> update.HParams:
     return update.HParams(
         **{n: jnp.array([dict(r.settings).get(n, a[n]) for r in runs], jnp.float32) for n in names}
     )
+
+
+def updates_per_call(config: ConfigDict) -> int:
+    """agent.updates_per_call, its 0 ("auto") resolved: on a GPU an iteration's updates
+    (envs_per_seed / update_every_steps, at least 1), where dispatching them one call each
+    would set the loop's pace; elsewhere 1 (on a CPU a scan of updates compiles ~3x slower)."""
+    k = config.agent.updates_per_call
+    if k:
+        return k
+    if jax.default_backend() != "gpu":
+        return 1
+    return max(1, config.envs_per_seed // config.agent.update_every_steps)
+
+
+def xla_options(text: str) -> dict[str, str]:
+    """agent.xla_options, "NAME=VALUE,...", as jax.jit's compiler_options (XLA's own flags
+    without their leading --, e.g. "xla_gpu_command_buffer_scheduling_mode=CONCURRENT")."""
+    options = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        name, _, value = item.partition("=")
+        if not name.startswith("xla_") or not value:
+            raise ValueError(f"{item!r}: give NAME=VALUE, NAME an XLA option (xla_...)")
+        options[name] = value
+    return options
 
 
 def eval_device(config: ConfigDict, hosts: Hosts) -> str:

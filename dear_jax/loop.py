@@ -32,7 +32,7 @@ from dear_jax.checkpoint import Checkpointer
 from dear_jax.devices import Hosts, seed_sharding, uncommitted
 from dear_jax.evaluations import Evaluations, eval_due
 from dear_jax.evaluator import EvalProcess, EvalProcesses, LocalEvaluator
-from dear_jax.experiment import agent_config
+from dear_jax.experiment import agent_config, updates_per_call
 from dear_jax.logger import RunLogger
 from dear_jax.programs import cached_programs, hold_keys
 from dear_jax.progress import Progress, TrainLog
@@ -250,7 +250,7 @@ class Loop:
         # Updates are dispatched while the env thread renders the next observations.
         if counters["frame"] >= lv["seed_frames"] and steps_per_seed:
             lv["steps_owed"] += steps_per_seed / config.agent.update_every_steps
-            per_call = config.agent.updates_per_call
+            per_call = updates_per_call(config)
             n = int(lv["steps_owed"]) // per_call * per_call  # whole calls: the rest owed
             lv["steps_owed"] -= n
             if n and not counters["updates"]:  # once: the replay must hold a batch
@@ -261,7 +261,7 @@ class Loop:
             # While an evaluation runs in the background on the training's devices, its steps'
             # programs queue behind the updates dispatched before them: each call of updates is
             # dispatched only once the one before it has finished, so they wait for one call
-            # (agent.updates_per_call updates), not for all. (An evaluation in a process of its
+            # (updates_per_call(config) updates), not for all. (An evaluation in a process of its
             # own queues nothing here.)
             short_queue = self.evals.beside_training
             keys = jax.random.split(k_learn, n) if n else ()

@@ -16,7 +16,7 @@ from jax.sharding import PartitionSpec as P
 from ml_collections import ConfigDict
 
 from dear_jax import devices, lanes, losses, replay, update
-from dear_jax.experiment import hparams
+from dear_jax.experiment import hparams, updates_per_call, xla_options
 
 
 @dataclasses.dataclass(frozen=True)
@@ -27,7 +27,7 @@ class Programs:
     # [S,E,A], agent)
     act: callable
     # (agent, replay, key) -> (agent, metrics [S]): one update per seed; with
-    # agent.updates_per_call K > 1, keys [K] -> K updates, their metrics summed
+    # updates_per_call(config) K > 1, keys [K] -> K updates, their metrics summed
     learn: callable
     add: callable  # (replay, ts, action) -> replay
     # (params, obs) -> (actions, cos(z_A, z_E) of each env [S,E], predicted mask of env 0
@@ -57,6 +57,8 @@ def cached_programs(
     """build_programs, reused by later runs of this process with the same agent and seeds (tests,
     resumes in one process): their jitted functions are then compiled once per mesh."""
     settings = {k: config[k].to_dict() for k in ("agent", "sweep")}
+    settings["replay.sampling"] = config.replay.sampling  # the learn program's sampler
+    settings["updates_per_call"] = updates_per_call(config)  # "auto" resolved
     experiment = (acfg, config.seeds, json.dumps(settings, sort_keys=True))
     if (experiment, mesh) not in _PROGRAMS:
         hp = hparams(config)
@@ -164,7 +166,7 @@ def build_programs(
         return per_device(learn_block)(agent, buffer, keys, hp)
 
     def learn_calls(agent, buffer, keys):
-        """agent.updates_per_call updates in one program, one per key of keys [K] (a scan of
+        """updates_per_call(config) updates in one program, one per key of keys [K] (a scan of
         `learn`); their metrics summed."""
         agent, metrics = jax.lax.scan(lambda ag, k: learn(ag, buffer, k), agent, keys)
         return agent, jax.tree.map(lambda m: m.sum(0), metrics)
@@ -193,7 +195,11 @@ def build_programs(
 
     return Programs(
         act=jax.jit(act, donate_argnums=0),
-        learn=jax.jit(learn if a.updates_per_call == 1 else learn_calls, donate_argnums=0),
+        learn=jax.jit(
+            learn if updates_per_call(config) == 1 else learn_calls,
+            donate_argnums=0,
+            compiler_options=xla_options(a.xla_options),
+        ),
         add=jax.jit(add, donate_argnums=0),
         evaluate_step=jax.jit(over_seeds(evaluate_step(nets))),
         evaluate_step_host=jax.jit(update.over_seeds(evaluate_step(nets_f32), a.seed_axis)),

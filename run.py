@@ -117,12 +117,37 @@ def _check(config) -> None:
 
 
 def _remove_if_unused(workdir: pathlib.Path) -> None:
-    """A workdir this run made and left with nothing but its log: removed."""
+    """A workdir this run made and left with nothing but its log and folders without a file (a
+    start refused once it had made checkpoints/ and replay/): removed."""
     from dear_jax import console
 
-    if {p.name for p in workdir.iterdir()} <= {console.LOG_FILE}:
-        (workdir / console.LOG_FILE).unlink(missing_ok=True)
+    entries = list(workdir.iterdir())
+    if all(
+        p.name == console.LOG_FILE or (p.is_dir() and not any(f.is_file() for f in p.rglob("*")))
+        for p in entries
+    ):
+        for p in entries:
+            if p.is_dir():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
         workdir.rmdir()
+
+
+def _leave(workdir: pathlib.Path, lock, new: bool, unstarted: bool, refused: bool) -> None:
+    """The workdir as a run leaves it: a new one stopped before training emptied (nothing in it is
+    worth keeping), a new one emptied or refused removed where nothing else is left; the lock
+    released."""
+    if unstarted and new:
+        logging.shutdown()
+        for path in workdir.iterdir():  # but the lock, held until the folder is empty
+            if path.is_dir():
+                shutil.rmtree(path)
+            elif path != lock.path:
+                path.unlink()
+    lock.release()
+    if (refused or unstarted) and new:
+        _remove_if_unused(workdir)  # refused before it wrote anything else
 
 
 # What a stop signal before training undoes, in order (the workdir's lock, a new workdir).
@@ -202,7 +227,10 @@ def main(argv):
             if saved
             else "none was saved before: rerun the same command to start over",
         )
-        lock.release()
+        # Nothing saved or logged (a second signal while a stop before training unwinds): a new
+        # workdir goes, as after one signal.
+        unstarted = not saved and not any(pathlib.Path(workdir).glob("*/*.csv"))
+        _leave(pathlib.Path(workdir), lock, new, unstarted, refused=False)
         logging.shutdown()
         # Cut short inside a compile or a render, the interpreter's shutdown may crash (a
         # segmentation fault, seen); the run's resources were closed as the stop unwound.
@@ -225,16 +253,7 @@ def main(argv):
         refused = True
         sys.exit(2)
     finally:
-        if unstarted and new:  # stopped before training: nothing in it is worth keeping
-            logging.shutdown()
-            for path in pathlib.Path(workdir).iterdir():  # but the lock, held until it is empty
-                if path.is_dir():
-                    shutil.rmtree(path)
-                elif path != lock.path:
-                    path.unlink()
-        lock.release()
-        if (refused or unstarted) and new:
-            _remove_if_unused(pathlib.Path(workdir))  # refused before it wrote anything else
+        _leave(pathlib.Path(workdir), lock, new, unstarted, refused)
 
 
 if __name__ == "__main__":

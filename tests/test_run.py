@@ -620,6 +620,10 @@ def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
         ("env.episode_frames", -5, r"env.episode_frames must be >= 0 \(0: the task's own\)"),
         # the tiny config's 40-frame episodes, and below walker's own 1,000 (episode_frames 0)
         ("env.action_repeat", 3, "env.action_repeat=3 does not divide env.episode_frames of 40"),
+        ("agent.updates_per_call", -1, r"agent.updates_per_call must be an int >= 1, or 0 \(on"),
+        ("agent.xla_options", "CONCURRENT", "'CONCURRENT': give NAME=VALUE, NAME an XLA option"),
+        # XLA's own error, named
+        ("agent.xla_options", "xla_no_such=1", "agent.xla_options='xla_no_such=1': .*xla_no_such"),
     ]:
         bad_config = copy.deepcopy(config)
         *parents, field = key.split(".")
@@ -678,7 +682,8 @@ def test_the_loops_act_holds_each_lanes_draws_by_its_hold_key():
 
 
 def test_the_updates_sample_the_replay_as_replay_sampling_says(monkeypatch):
-    """programs.learn hands replay.sampling to the sampler: "episode" draws by episode."""
+    """programs.learn hands replay.sampling to the sampler: "episode" draws by episode, in a
+    later run of the same process too (`benchmarks.train --vary replay.sampling ...`)."""
     told = []
 
     def sample(*args, by_episode=False, **kwargs):
@@ -691,10 +696,11 @@ def test_the_updates_sample_the_replay_as_replay_sampling_says(monkeypatch):
     acfg = experiment.agent_config(config, action_dim=6)
     agent = update.init_seeds(acfg, jax.random.split(jax.random.key(0), 1))
     buffer = replay.init(64, 3, (84, 84, 3), 6, leading=(1,))
-    for sampling in ("uniform", "episode"):
+    for sampling in ("uniform", "episode"):  # as two runs of one process get them
         config.replay.sampling = sampling
-        programs = build_programs(acfg, experiment.hparams(config), config)
-        jax.make_jaxpr(programs.learn)(agent, buffer, jax.random.key(1))
+        programs = loop.cached_programs(acfg, config)
+        # traced as a top-level jit: a nested one may not take the program's compiler options
+        programs.learn.trace(agent, buffer, jax.random.key(1))
     assert told == [False, True]
 
 
@@ -720,8 +726,23 @@ def test_ted_form_reaches_the_sampler_and_the_loss(monkeypatch):
         acfg = experiment.agent_config(config, action_dim=6)
         agent = jax.eval_shape(functools.partial(update.init_seeds, acfg), jax.random.key(0)[None])
         programs = build_programs(acfg, experiment.hparams(config), config)
-        jax.make_jaxpr(programs.learn)(agent, buffer, jax.random.key(1))
+        programs.learn.trace(agent, buffer, jax.random.key(1))
     assert told == {"sample": [True, False], "loss": [False, True]}
+
+
+def test_updates_per_call_0_is_an_iterations_updates_on_a_gpu(monkeypatch):
+    """agent.updates_per_call 0 (the default): on a GPU all of an iteration's updates a call
+    (envs_per_seed / update_every_steps, at least 1), on a CPU one; a number is itself."""
+    config = tiny_config(envs_per_seed=16, **{"agent.update_every_steps": 2})
+    assert config.agent.updates_per_call == 0
+    assert experiment.updates_per_call(config) == 1  # this CPU
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert experiment.updates_per_call(config) == 8
+    config.agent.update_every_steps = 32
+    assert experiment.updates_per_call(config) == 1
+    config.agent.updates_per_call = 3
+    assert experiment.updates_per_call(config) == 3
+    assert experiment.xla_options(" xla_a=1, xla_b=X ,") == {"xla_a": "1", "xla_b": "X"}
 
 
 def test_updates_per_call_hands_each_call_its_updates_keys(tmp_path, monkeypatch):
@@ -733,13 +754,12 @@ def test_updates_per_call_hands_each_call_its_updates_keys(tmp_path, monkeypatch
     overrides = {"agent.update_every_steps": 1}
     config = tiny_config(**overrides, **{"agent.updates_per_call": 2})
     acfg = experiment.agent_config(config, action_dim=6)
-    scan = jax.make_jaxpr(build_programs(acfg, experiment.hparams(config), config).learn)
+    learn = build_programs(acfg, experiment.hparams(config), config).learn
     init = functools.partial(update.init_seeds, acfg)
     agent = jax.eval_shape(init, jax.random.split(jax.random.key(0), 2))
     buffer = jax.eval_shape(lambda: replay.init(64, 3, (84, 84, 3), 6, leading=(2,)))
     keys = jax.random.split(jax.random.key(1), 2)
-    (eqn,) = [e for e in scan(agent, buffer, keys).eqns if e.primitive.name in ("jit", "pjit")]
-    inner = [e for e in eqn.params["jaxpr"].eqns if e.primitive.name == "scan"]
+    inner = [e for e in learn.trace(agent, buffer, keys).jaxpr.eqns if e.primitive.name == "scan"]
     assert [e.params["length"] for e in inner] == [2]
     real = loop.cached_programs
     calls = []
@@ -911,22 +931,26 @@ def test_a_file_given_as_workdir_is_refused_and_kept(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "flag, message",
+    "flags, message",
     [
         (
-            "--config.replay.capacity=1000000000",
+            ["--config.replay.capacity=1000000000"],
             r"error: replay for 2 seeds x 1,000,000,000 entries",
         ),
-        ("--config.agent.nstep=150", r"error: agent.nstep=150 is longer than an episode"),
+        (["--config.agent.nstep=150"], r"error: agent.nstep=150 is longer than an episode"),
+        (  # refused once its checkpoints/ and replay/ folders are made
+            ["--config.total_frames=100000000000", "--config.checkpoint_every_frames=0"],
+            r"error: the replay on disk \(.*\) may need [\d.]+ GiB more",
+        ),
     ],
 )
-def test_input_the_run_finds_bad_says_one_line(tmp_path, flag, message):
-    """What only the run can check (the replay against free memory, an n-step return against
-    the episode): one line naming the problem and its fix, exit status 2, no traceback; a new
-    workdir is not left behind."""
+def test_input_the_run_finds_bad_says_one_line(tmp_path, flags, message):
+    """What only the run can check (the replay against free memory or disk, an n-step return
+    against the episode): one line naming the problem and its fix, exit status 2, no traceback;
+    a new workdir is not left behind."""
     workdir = tmp_path / "run"
     out = subprocess.run(
-        [sys.executable, str(ROOT / "run.py"), "--config=smoke", flag, f"--workdir={workdir}"],
+        [sys.executable, str(ROOT / "run.py"), "--config=smoke", *flags, f"--workdir={workdir}"],
         capture_output=True,
         text=True,
         timeout=300,
@@ -1033,6 +1057,24 @@ def test_a_sigterm_as_the_run_starts_its_envs_removes_its_new_workdir(tmp_path):
         assert not workdir.exists()
     else:
         assert "checkpoint saved" in last
+
+
+def test_two_sigterms_as_the_run_starts_leave_no_new_workdir(tmp_path):
+    """Two SIGTERMs 5 ms apart once run.py's envs have started: the second may land while the
+    first's stop before training unwinds (its evaluation process closing). Stopped at once with
+    nothing saved or logged, the new workdir goes as after one signal; one that had logged
+    training keeps it."""
+    workdir = tmp_path / "run"
+    proc = _smoke_run(workdir)
+    seen = _read_until(proc, "evaluations: ")
+    proc.send_signal(signal.SIGTERM)
+    time.sleep(0.005)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=300)
+    err = "".join(seen) + err
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    if "checkpoint saved" not in err:
+        assert workdir.exists() == any(workdir.glob("*/*.csv")), err[-2000:]
 
 
 def test_a_second_signal_stops_at_once_and_sighup_asks_for_a_stop():

@@ -35,7 +35,10 @@ _CONFIG = config_flags.DEFINE_config_file(
     "config", None, "experiment config: a file path, or a bare name of a file in configs/"
 )
 _WORKDIR = flags.DEFINE_string(
-    "workdir", None, "output folder (default: runs/<config file name>); reused to resume"
+    "workdir",
+    None,
+    "output folder (default: runs/<config file's stem>[_<its config string's parts>], e.g. "
+    "runs/paper_walker_dear_medium); reused to resume",
 )
 _VERBOSE = flags.DEFINE_bool("verbose", False, "show libraries' INFO logs on the console too")
 _MULTIHOST = flags.DEFINE_bool(
@@ -152,12 +155,14 @@ def _leave(workdir: pathlib.Path, lock, new: bool, unstarted: bool, refused: boo
 
 # What a stop signal before training undoes, in order (the workdir's lock, a new workdir).
 _UNDO_BEFORE_TRAINING = []
-_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+_STOP_SIGNALS = tuple(
+    getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n)
+)
 
 
 def _stop_before_training(signum, frame):
-    """Until train() takes the stop signals over (dear_jax/signals.py), SIGINT or SIGTERM ends
-    the process at once: nothing is trained or saved yet, and an interrupt raised during the
+    """Until train() takes the stop signals over (dear_jax/signals.py), SIGINT, SIGTERM or SIGHUP
+    (unless ignored, as under nohup) ends the process at once: nothing is trained or saved yet, and an interrupt raised during the
     imports could otherwise be swallowed (a KeyboardInterrupt in a garbage-collection callback
     is only printed, and the run would go on)."""
     for undo in _UNDO_BEFORE_TRAINING:

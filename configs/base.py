@@ -28,7 +28,8 @@ def get_config() -> ConfigDict:
     # evaluations, against 678 on one (benchmarks/RESULTS.md, "Several GPUs").
     c.devices_per_seed = 1
     # Parallel environments per seed; E / update_every_steps updates per step. DEAR walker-walk,
-    # 5 seeds, H100: 704 / 731 / 732 / 736 frames/s at 4 / 8 / 16 / 32 (benchmarks/RESULTS.md).
+    # 5 seeds, H100: 704 / 731 / 732 / 736 frames/s at 4 / 8 / 16 / 32
+    # (benchmarks/results/train_envs_{4,8,16,32}_h100.json).
     c.envs_per_seed = 8
     # Frames count per seed, summed over its envs: frames = agent steps (all E envs) x action repeat.
     c.total_frames = 1_000_000  # environment frames per seed
@@ -110,7 +111,7 @@ def get_config() -> ConfigDict:
     c.env.render.quality = "dm_control"
     c.env.render.num_workers = 0  # 0 = min(cores, 8) per environment batch
     # With num_workers 0: at least this many envs per worker (0: no cap), each worker a GL
-    # context on the GPU the updates run on. One walker seed of 16 envs on 2 workers rather than
+    # context on the GPU it draws on (env.render.gpus). One walker seed of 16 envs on 2 workers rather than
     # 8: 958-968 env frames/s against 886-941 on an H200; 5 seeds of 16 (8 workers against 5)
     # level (benchmarks/RESULTS.md, "End to end").
     c.env.render.envs_per_worker = 8

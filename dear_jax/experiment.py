@@ -140,6 +140,8 @@ def validate(config: ConfigDict) -> None:
             f"eval_processes must be an int >= 1, or 0 (two on a GPU machine, else one); got "
             f"{config.eval_processes!r}"
         )
+    if config.eval_device != "auto":  # "auto" is checked once resolved (eval_device)
+        _check_eval_processes(config, config.eval_device, multi=False)
     if not (isinstance(config.eval_nice, int) and 0 <= config.eval_nice <= 19):
         raise ValueError(
             f"eval_nice must be an int in 0-19 (0: the training's), got {config.eval_nice!r}"
@@ -358,14 +360,19 @@ def eval_device(config: ConfigDict, hosts: Hosts) -> str:
             f"eval_device={choice!r} evaluates in one process, and this run has {hosts.count}; "
             "set eval_device='train' or 'auto'"
         )
+    _check_eval_processes(config, choice, hosts.multi)
+    return choice
+
+
+def _check_eval_processes(config: ConfigDict, choice: str, multi: bool) -> None:
+    """Several evaluation processes need evaluations in processes of their own."""
     if config.eval_processes > 1 and choice not in OWN_PROCESS:
         raise ValueError(
             f"eval_processes={config.eval_processes} evaluates in processes of their own, and "
             f"eval_device={config.eval_device!r} evaluates in the training's (here); set "
             f"eval_processes to 0 or 1, or eval_device to one of {', '.join(OWN_PROCESS)}"
-            + (" (a run of several processes evaluates in them)" if hosts.multi else "")
+            + (" (a run of several processes evaluates in them)" if multi else "")
         )
-    return choice
 
 
 def eval_processes(config: ConfigDict, where: str) -> int:

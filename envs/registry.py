@@ -24,7 +24,12 @@ def frames_per_episode(name: str) -> int:
     """The task's own episode length in frames (what `Env`'s episode_frames=None gives)."""
     if name not in _REGISTRY:
         raise ValueError(f"unknown task {name!r}; valid tasks: {', '.join(names())}")
-    task = {**dmc.TASKS, **kitchen.TASKS}[name]
+    task = {**dmc.TASKS, **kitchen.TASKS}.get(name)
+    if task is None:  # registered by a builder alone: only its Env knows
+        raise ValueError(
+            f"task {name!r} was registered without a DMC or kitchen task, so its episode length "
+            "is unknown before its env is built; give env.episode_frames"
+        )
     return task.frames_per_episode(task.physics_model())
 
 

@@ -42,6 +42,24 @@ def test_registry_has_the_required_tasks():
     assert {"walker-walk", "ball_in_cup-catch", "finger-spin"} <= set(envs.names())
 
 
+def test_a_task_registered_by_a_builder_alone_asks_for_its_episode_length(monkeypatch):
+    """A builder's task has no episode length before its env is built: a run's config check
+    says to give env.episode_frames (a ValueError, which run.py prints as one line), and takes
+    the task once it is given."""
+    from configs import smoke
+    from dear_jax import experiment
+
+    monkeypatch.setitem(envs.registry._REGISTRY, "mine-reach", lambda **kwargs: None)
+    with pytest.raises(ValueError, match="'mine-reach' was registered .* give env.episode_frames"):
+        envs.frames_per_episode("mine-reach")
+    config = smoke.get_config()
+    config.env.task, config.env.episode_frames = "mine-reach", 0
+    with pytest.raises(ValueError, match="give env.episode_frames"):
+        experiment.validate(config)
+    config.env.episode_frames = 200
+    experiment.validate(config)
+
+
 @pytest.mark.parametrize("name", sorted(dmc.TASKS))  # the kitchen: tests/test_kitchen.py
 def test_task_resets_and_steps(name):
     with _make(name) as env:

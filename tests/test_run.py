@@ -584,6 +584,12 @@ def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
         experiment.eval_device(config, two)
     assert experiment.eval_device(config, hosts) == "cpu"
     assert experiment.eval_processes(config, "cpu") == 2
+    told = copy.deepcopy(config)
+    told.eval_device = "train"  # refused before the run starts, not once it has built its envs
+    with pytest.raises(ValueError, match="eval_processes=2 evaluates in processes of their own"):
+        experiment.validate(told)
+    told.eval_device = "auto"
+    experiment.validate(told)
     config.eval_processes = -1
     with pytest.raises(ValueError, match="eval_processes must be an int >= 1, or 0 .*got -1"):
         experiment.validate(config)

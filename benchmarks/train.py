@@ -206,9 +206,8 @@ def stage_split(config, reps) -> dict:
             state, ts = env.step(state, action)
             buffer = programs.add(buffer, ts, action)
         n_updates = max(1, num_envs // config.agent.update_every_steps)
-        per_call = experiment.updates_per_call(
-            config
-        )  # as the loop hands them: [per_call] keys a call
+        # as the loop hands them: [per_call] keys a call
+        per_call = experiment.updates_per_call(config)
         if n_updates % per_call:
             raise ValueError(f"agent.updates_per_call={per_call} does not divide {n_updates}")
         key = jax.random.key(2)

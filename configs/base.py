@@ -111,9 +111,9 @@ def get_config() -> ConfigDict:
     c.env.render.quality = "dm_control"
     c.env.render.num_workers = 0  # 0 = min(cores, 8) per environment batch
     # With num_workers 0: at least this many envs per worker (0: no cap), each worker a GL
-    # context on the GPU it draws on (env.render.gpus). One walker seed of 16 envs on 2 workers rather than
-    # 8: 958-968 env frames/s against 886-941 on an H200; 5 seeds of 16 (8 workers against 5)
-    # level (benchmarks/RESULTS.md, "End to end").
+    # context on the GPU it draws on (env.render.gpus). One walker seed of 16 envs on 2 workers
+    # rather than 8: 958-968 env frames/s against 886-941 on an H200; 5 seeds of 16 (8 workers
+    # against 5) level (benchmarks/RESULTS.md, "End to end").
     c.env.render.envs_per_worker = 8
     # Meshes of more faces drawn simplified to about this many (0: as shipped, or >= 1000): only
     # the kitchen's arm has such meshes (envs/kitchen.py, build_render_model).

@@ -5,7 +5,8 @@ string after a colon (`--config paper.py:cup,sear,hard`). Any config field can b
 overridden: `--config.seeds=5 --config.agent.beta=10`. Rerunning the same command on the same
 workdir resumes from its latest checkpoint. SIGTERM, Ctrl-C or SIGHUP checkpoints, then exits
 (with 128 + the signal's number; before training begins, it exits without saving anything, a new
-workdir removed);
+workdir removed; a second signal a second or more after the first stops at once, the last
+checkpoint kept);
 `--verbose` shows libraries' INFO logs, which otherwise go only to <workdir>/log.txt.
 
 Exit status: 0 trained (or had already); 1 bad input, refused before the run starts (an unknown

@@ -7,7 +7,8 @@ stays ignored. The first signal says so on stderr at once and sets a flag that t
 between the stages of its start (`before_training`: nothing trained, nothing saved) and the loop
 once per step (and every step of an evaluation); a second one stops at once with StoppedAtOnce
 (a KeyboardInterrupt), without a checkpoint (the previous checkpoint stays intact: saves are
-atomic).
+atomic). A signal within REPEAT_WINDOW_S of the first is the same request: `timeout`, for one,
+sends its SIGTERM to the process and then to its process group, which holds the process too.
 """
 
 from __future__ import annotations
@@ -15,8 +16,12 @@ from __future__ import annotations
 import os
 import signal
 import threading
+import time
 
 from envs.forkserver import STOP_SIGNALS as SIGNALS
+
+# Seconds after the first stop signal in which another is taken as its repeat, not as a second.
+REPEAT_WINDOW_S = 1.0
 
 
 class Stopped(Exception):
@@ -59,6 +64,7 @@ class StopRequest:
 
     def __init__(self):
         self.signum: int | None = None
+        self._first_at = 0.0  # time.monotonic() of the first signal
         self._previous: dict[int, object] = {}
 
     def __bool__(self) -> bool:
@@ -70,8 +76,10 @@ class StopRequest:
 
     def _handle(self, signum, frame) -> None:
         if self.signum is not None:
+            if time.monotonic() - self._first_at < REPEAT_WINDOW_S:
+                return  # the first's repeat (a signal to the process and to its group)
             raise StoppedAtOnce(signum)
-        self.signum = signum
+        self.signum, self._first_at = signum, time.monotonic()
         name = signal.Signals(signum).name
         # At once (a start or a step may take a while), and not through `logging`, whose lock
         # the interrupted code may hold.

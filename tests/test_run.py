@@ -1066,7 +1066,7 @@ def test_a_sigterm_as_the_run_starts_its_envs_removes_its_new_workdir(tmp_path):
 
 
 def test_two_sigterms_as_the_run_starts_leave_no_new_workdir(tmp_path):
-    """Two SIGTERMs 5 ms apart once run.py's envs have started: the second may land while the
+    """Two SIGTERMs 1.2 s apart once run.py's envs have started: the second may land while the
     first's stop before training unwinds (its evaluation process closing). Stopped at once with
     nothing saved or logged, the new workdir goes as after one signal; one that had logged
     training keeps it."""
@@ -1074,7 +1074,7 @@ def test_two_sigterms_as_the_run_starts_leave_no_new_workdir(tmp_path):
     proc = _smoke_run(workdir)
     seen = _read_until(proc, "evaluations: ")
     proc.send_signal(signal.SIGTERM)
-    time.sleep(0.005)
+    time.sleep(1.2)  # past the first's repeats (signals.REPEAT_WINDOW_S): a second request
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=300)
     err = "".join(seen) + err
@@ -1084,14 +1084,20 @@ def test_two_sigterms_as_the_run_starts_leave_no_new_workdir(tmp_path):
 
 
 def test_a_second_signal_stops_at_once_and_sighup_asks_for_a_stop():
-    """The first SIGTERM asks for a stop at the end of the step; a second stops at once with
-    StoppedAtOnce, a KeyboardInterrupt that names the signal (run.py: one line, 128 + signal)."""
+    """The first SIGTERM asks for a stop at the end of the step; its repeat at once (`timeout`
+    signals the process, then its process group) is the same request; a second one later stops
+    at once with StoppedAtOnce, a KeyboardInterrupt that names the signal (run.py: one line,
+    128 + signal)."""
     from dear_jax import signals
 
     with signals.StopRequest() as stop:
         os.kill(os.getpid(), signal.SIGTERM)
         time.sleep(0.05)  # a handler runs between bytecodes
         assert stop.signum == signal.SIGTERM
+        os.kill(os.getpid(), signal.SIGTERM)  # as the process group's copy
+        time.sleep(0.05)
+        assert stop.signum == signal.SIGTERM  # no StoppedAtOnce: the first's repeat
+        time.sleep(signals.REPEAT_WINDOW_S)
         with pytest.raises(signals.StoppedAtOnce) as raised:
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(1)

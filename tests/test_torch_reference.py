@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 torch = pytest.importorskip(
-    "torch", reason="PyTorch is not installed (optional: pip install -e '.[torch]')"
+    "torch", reason="PyTorch is not installed (optional: SETUP_EXTRAS=dev,torch ./setup.sh)"
 )
 
 from benchmarks import torch_reference as T  # noqa: E402

@@ -59,14 +59,15 @@ class Seeds:
     # Each seed's evaluations (frames, returns, |cos|), to take the figures at an earlier frame.
     series: tuple = ()
     last: int = 11
+    slack: float = plot.SLACK  # plot.slack of the runs' config, as `experiments` reads them
 
     def upto(self, frame: float) -> Seeds:
-        """Returns and |cos| of the evaluations up to `frame` (within plot.SLACK)."""
+        """Returns and |cos| of the evaluations up to `frame` (within `slack`)."""
         if not self.series:
             raise ValueError("these figures carry no evaluations to take at another frame")
         rows = []
         for frames, returns, cos in self.series:
-            keep = frames <= frame + plot.SLACK
+            keep = frames <= frame + self.slack
             if not keep.any():
                 raise ValueError(f"a seed has no evaluation at or before {frame:,.0f} frames")
             rows.append((returns[keep][-self.last :].mean(), frames[keep][-1], cos[keep][-1]))
@@ -141,12 +142,14 @@ def experiments(workdirs, threshold: float | None, at: int | None, last: int) ->
             )
             series.append((frames, returns, cos))
         returns, frames_to, last_frame, abs_cos = map(np.array, zip(*rows))
-        found[task, method] = Seeds(returns, frames_to, last_frame, abs_cos, tuple(series), last)
+        found[task, method] = Seeds(
+            returns, frames_to, last_frame, abs_cos, tuple(series), last, plot.slack(pool.config)
+        )
     return found
 
 
-def _spread(values: np.ndarray) -> str:
-    return f"{values.mean():.1f} ± {values.std():.1f} (n={values.size})"
+def _spread(values: np.ndarray, digits: int = 1) -> str:
+    return f"{values.mean():.{digits}f} ± {values.std():.{digits}f} (n={values.size})"
 
 
 def _separate(high: np.ndarray, low: np.ndarray) -> str:
@@ -175,7 +178,7 @@ def _at_one_frame(x: Seeds, y: Seeds) -> tuple[Seeds, Seeds, str]:
     """x and y up to the last evaluation of the shortest run among them, and the evidence's
     note of that frame ("" where every run ended there)."""
     ends = np.concatenate([x.last_frame, y.last_frame])
-    if ends.max() <= ends.min() + plot.SLACK:
+    if ends.max() <= ends.min() + min(x.slack, y.slack):
         return x, y, ""
     end = ends.min()
     return x.upto(end), y.upto(end), f", at {_k(end)} (the shortest run's last evaluation)"
@@ -190,7 +193,8 @@ def _greater(claim, task, a, b, seeds, strict) -> dict:
     x, y = sa.returns, sb.returns
     holds = x.mean() > y.mean() if strict else x.mean() >= y.mean()
     order = (x, y) if holds else (y, x)
-    evidence = f"{NAMES[a]} {_spread(x)} against {NAMES[b]} {_spread(y)}{note}"
+    digits = 2 if is_kitchen(task.split(",")[0]) else 1  # the kitchen's: a success rate
+    evidence = f"{NAMES[a]} {_spread(x, digits)} against {NAMES[b]} {_spread(y, digits)}{note}"
     verdict = f"{'holds' if holds else 'does not hold'} ({_separate(*order)})"
     return dict(claim=claim, task=task, evidence=evidence, verdict=verdict)
 

@@ -275,6 +275,8 @@ def pooled_rows(
         evals = [_until(read_csv(d / "eval.csv"), at, d / "eval.csv", near) for d in dirs]
         finals = np.array([e["episode_return"][-1] for e in evals])
         lasts = np.array([e["episode_return"][-last:].mean() for e in evals])
+        # a seed with fewer than `last` evaluations averages all it has (its frame-0 one too)
+        averaged = min(len(e["episode_return"][-last:]) for e in evals)
         frames_to = []  # inf: a seed that never reached the threshold
         for e in evals:
             hit = np.nonzero(e["episode_return"] >= target)[0]
@@ -315,6 +317,7 @@ def pooled_rows(
                 "last_return_mean": float(lasts.mean()),
                 "last_return_std": float(lasts.std()),
                 "last": last,
+                "last_fewest": averaged,  # the fewest evaluations a seed's mean averages
                 # the median seed's (inf: it did not reach it by frames_to_threshold_lower)
                 "frames_to_threshold": median_to,
                 "frames_to_threshold_lower": by,
@@ -349,7 +352,8 @@ def _cells(r: dict) -> list:
         fmt(paper.get("cos"), ".0e"),
         _frames(r["eval_frame_min"], r["eval_frame"]),
         f"{r['final_return_mean']:{ret}} ± {r['final_return_std']:{ret}}",
-        f"{r['last_return_mean']:{ret}} ± {r['last_return_std']:{ret}}",
+        f"{r['last_return_mean']:{ret}} ± {r['last_return_std']:{ret}}"
+        + (f" (a seed's over {r['last_fewest']})" if r["last_fewest"] < r["last"] else ""),
         _frames_to(r["frames_to_threshold"], r["frames_to_threshold_lower"]) + f" ({reached})",
         r["code"],
     ]

@@ -1274,6 +1274,17 @@ def test_claims_compare_both_sides_at_the_shortest_runs_last_evaluation(tmp_path
     assert rows["DEAR's |cos| far below SEAR's"]["evidence"].endswith(
         "2.0x (asked: >= 10x), at 20k (the shortest run's last evaluation)"
     )
+    # Evaluated every 600 frames (the smoke config's), runs 600 apart end at different
+    # evaluations: compared at the shorter's, not within plot.SLACK's 1,000 frames.
+    often = [
+        _fake_workdir(tmp_path, f"{m}_600", m, frames=f, eval_every_frames=600, offset=o)
+        for m, f, o in (("dear", (600, 1200, 1800), 0.0), ("sear", (600, 1200), 50.0))
+    ]
+    ahead = {r["claim"]: r for r in claims.check(often, threshold=200, last=1)}
+    assert ahead["DEAR's return >= SEAR's"]["evidence"] == (
+        "DEAR 32.0 ± 21.6 (n=3) against SEAR 82.0 ± 21.6 (n=3), at 1k (the shortest run's last "
+        "evaluation)"
+    )
     # Runs that end at the same evaluation say nothing of frames.
     same = {
         r["claim"]: r

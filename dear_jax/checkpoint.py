@@ -282,9 +282,11 @@ class Checkpointer:
             meta = self._manager.restore(
                 step, args=ocp.args.Composite(**{_META: ocp.args.JsonRestore()})
             )[_META]
+            extra, fingerprint = meta["extra"], meta["fingerprint"]
+        except (ValueError, KeyError, TypeError, OSError) as e:  # json's errors are ValueErrors
+            self._raise_unreadable(step, f"its metadata: {type(e).__name__}: {e}", e)
         finally:
             absl_log.removeFilter(_skip_unrequested_item)
-        extra = meta["extra"]
         if self._own is not None:
             path = os.path.join(self._own, f"{step}.json")
             if not os.path.exists(path):
@@ -295,7 +297,7 @@ class Checkpointer:
                 )
             with open(path) as f:
                 extra = json.load(f)
-        return step, meta["fingerprint"], _decode_arrays(extra)
+        return step, fingerprint, _decode_arrays(extra)
 
     def check_fingerprint(self, saved: Mapping, step: int) -> None:
         """Raise IncompatibleCheckpointError, naming every differing field, unless `saved` matches."""
@@ -367,6 +369,9 @@ class Checkpointer:
         reason = _read_failure(e)
         if reason is None:
             return
+        self._raise_unreadable(step, reason, e)
+
+    def _raise_unreadable(self, step: int, reason: str, e: Exception) -> None:
         earlier = [s for s in self.all_steps() if s < step]
         way_on = (
             f"to resume from checkpoint {earlier[-1]} before it"

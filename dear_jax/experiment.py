@@ -269,6 +269,14 @@ def validate(config: ConfigDict) -> None:
             f"agent.batch_size={a.batch_size} is larger than the replay "
             f"(replay.capacity={r.capacity}); lower the batch or raise the capacity"
         )
+    stack = update.AgentConfig.frame_stack
+    if math.ceil(r.capacity / config.envs_per_seed) <= stack:
+        raise ValueError(
+            f"replay.capacity={r.capacity} holds {math.ceil(r.capacity / config.envs_per_seed)} "
+            f"steps of envs_per_seed={config.envs_per_seed} envs: a transition needs a stack of "
+            f"{stack} frames and the step after it; raise replay.capacity above "
+            f"{stack * config.envs_per_seed}"
+        )
     lanes.sweep_values(config)  # unknown or ineffective sweep keys
     per_host = lanes_per_host(lanes.num_lanes(config), jax.process_count())
     if a.batch_size % config.devices_per_seed:

@@ -236,7 +236,9 @@ def sample_at(
     stacks = {"obs": _stack_rows(state, row, env, frame_stack)}
     stacks["next_obs"] = _stack_rows(state, next_row, env, frame_stack)
     if far_key is not None:
-        offset, valid = same_episode_offsets(state, row, env, far_key, nstep, skip_positives)
+        offset, valid = same_episode_offsets(
+            state, row, env, far_key, nstep, skip_positives, frame_stack
+        )
         stacks["far_obs"] = _stack_rows(state, (row + offset) % state.rows, env, frame_stack)
     # The rows are computed once, before the image gathers: fused into them, the index
     # arithmetic (and its gathers of episode ids) would be redone for every pixel gathered.
@@ -280,7 +282,9 @@ def _episode_span(state, row, env):
     return start, end
 
 
-def same_episode_offsets(state, row, env, key, nstep: int = 1, skip_positives: bool = True):
+def same_episode_offsets(
+    state, row, env, key, nstep: int = 1, skip_positives: bool = True, frame_stack: int = 1
+):
     """TED's same-episode negatives: an offset to a uniformly drawn stored step of the same
     episode other than t and t+-1 (as TED's reference samples them), and whether one exists.
     With n-step transitions the positive pair is (t, t+n') for some n' <= nstep, so
@@ -291,6 +295,8 @@ def same_episode_offsets(state, row, env, key, nstep: int = 1, skip_positives: b
     """
     ahead = max(2, nstep + 1) if skip_positives else 2  # the first step after t that may be one
     start, end = _episode_span(state, row, env)
+    # Once the ring has wrapped, its oldest frame_stack - 1 rows have lost their stacks' frames.
+    start = jnp.maximum(start, jnp.where(state.size == state.rows, frame_stack - 1, 0))
     age = _age(state, row)
     lo, hi = start - age, end - age  # lo <= 0 <= hi
     n_before = jnp.maximum(-1 - lo, 0)  # offsets lo..-2
@@ -339,7 +345,7 @@ def _draw_by_episode(key: jax.Array, state: ReplayState, valid: jax.Array, n: in
     valid = valid > 0
     head = valid & ~(same_before & jnp.roll(valid, 1, axis=0))
     finished = head & (state.episode < state.episodes_started - 1)  # a later episode began
-    head = jnp.where(finished.sum() >= num_envs, finished, head)
+    head = jnp.where(finished.any(axis=0).all(), finished, head)  # once every env finished one
     wrapped = state.size == state.rows
     whole = head & ~(wrapped & (state.episode == state.episode[state.pos]))
     head = jnp.where(whole.any(), whole, head)
@@ -400,7 +406,8 @@ def check_can_sample(transitions, needed: int) -> None:
         raise ValueError(
             f"the replay holds {have.tolist()} sampleable transitions (per seed) but at least "
             f"{needed} are needed to sample; collect more before updating "
-            "(raise replay.seed_frames, or lower agent.batch_size)"
+            "(raise replay.seed_frames, or lower agent.batch_size; replay.capacity must exceed "
+            "envs_per_seed x frame_stack entries, or the ring holds no full stack and its next)"
         )
 
 

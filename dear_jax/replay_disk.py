@@ -15,12 +15,13 @@ the unfinished chunk [floor(G/C) C, G) the same way (a partial file), and only t
 Resume from a checkpoint at row G: files ending after G were written after that checkpoint and
 are deleted; the ring's live rows [max(0, G - T), G) are read back from the files, each row from
 the file that ends last (full chunk or partial one), and put into an empty device replay.
-Files that end at or before G - T of the latest checkpoint are out of its ring and are deleted
-(so only the latest checkpoint is sure to find its whole replay); so are partial files of
+Files that end at or before G - T of the oldest kept checkpoint are out of every kept ring and
+are deleted (so every checkpoint orbax keeps finds its whole replay); so are partial files of
 checkpoints that orbax no longer keeps.
 
-Disk: at most (T + rows between checkpoints + a chunk per checkpoint kept + 2 chunks) rows per
-seed at the uncompressed size (`disk_bound`); the trainer checks this against free space.
+Disk: at most (T + rows between checkpoints per checkpoint kept + a chunk per checkpoint kept + 2
+chunks) rows per seed at the uncompressed size (`disk_bound`); the trainer checks this against
+free space.
 """
 
 from __future__ import annotations
@@ -83,8 +84,9 @@ def disk_bound(
     total_rows: int,
 ) -> int:
     """Upper bound of the bytes the chunk files of a run take (uncompressed sizes)."""
-    per_seed = rows + rows_between_checkpoints + (keep_checkpoints + 2) * chunk_rows
-    per_seed = min(per_seed, total_rows + chunk_rows)
+    per_seed = rows + keep_checkpoints * rows_between_checkpoints
+    per_seed += (keep_checkpoints + 2) * chunk_rows
+    per_seed = min(per_seed, total_rows + (keep_checkpoints + 1) * chunk_rows)
     return num_seeds * per_seed * num_envs * entry_bytes
 
 
@@ -212,15 +214,15 @@ class ChunkStore:
                     path.unlink()
 
     def prune(self, latest_rows: int, kept_rows: set[int]) -> None:
-        """Delete files out of the latest checkpoint's ring and partial files of checkpoints no
-        longer kept (`kept_rows`: the row counts of kept checkpoints). Only the latest
-        checkpoint is sure to find its whole replay: an older kept one may have lost rows that
-        fell out of the latest ring (resuming it then says which rows are missing)."""
+        """Delete files out of the ring of every kept checkpoint and partial files of checkpoints
+        no longer kept (`kept_rows`: the row counts of kept checkpoints): each kept checkpoint
+        finds its whole replay."""
         self._raise_failed()
+        oldest = min(kept_rows, default=latest_rows)
         for s in range(self.num_seeds):
             for start, end, path in list_files(self.seed_dir(s)):
                 partial = end - start < self.chunk_rows or end % self.chunk_rows
-                if end <= latest_rows - self.rows:
+                if end <= oldest - self.rows:
                     path.unlink()
                 elif partial and end <= latest_rows and end not in kept_rows:
                     path.unlink()

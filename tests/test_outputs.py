@@ -377,6 +377,29 @@ def test_a_damaged_checkpoint_is_named_with_the_one_before(tmp_path, kept):
     np.testing.assert_array_equal(restored["w"], state["w"])
 
 
+@pytest.mark.parametrize("damage", ["cut", "emptied"])
+def test_a_checkpoint_with_damaged_metadata_is_named_with_the_one_before(tmp_path, damage):
+    """The latest checkpoint's metadata (its JSON) cut short or emptied: reading it says which
+    checkpoint cannot be read, why, and which one comes before it, and that one reads."""
+    from dear_jax.checkpoint import UnreadableCheckpointError
+
+    with Checkpointer(tmp_path / "ck", fingerprint=FINGERPRINT) as ckpt:
+        ckpt.save(10, {"w": jnp.arange(4.0)}, extra={"frame": 10})
+        ckpt.save(20, {"w": jnp.arange(4.0) + 1}, extra={"frame": 20})
+    meta = [p for p in (tmp_path / "ck" / "20" / "meta").rglob("*") if p.is_file()]
+    assert meta
+    for path in meta:
+        path.write_text(path.read_text()[:20] if damage == "cut" else "")
+    with Checkpointer(tmp_path / "ck", fingerprint=FINGERPRINT) as ckpt:
+        with pytest.raises(UnreadableCheckpointError) as error:
+            ckpt.read_meta()
+        step, _, extra = ckpt.read_meta(10)
+    message = str(error.value)
+    assert f"checkpoint 20 in {tmp_path / 'ck'} cannot be read" in message
+    assert "its metadata: JSONDecodeError" in message and "from checkpoint 10" in message
+    assert (step, extra) == (10, {"frame": 10})
+
+
 def test_keep_last_k_and_same_step(tmp_path, agent_state):
     with Checkpointer(tmp_path, fingerprint=FINGERPRINT, keep=2) as ckpt:
         for step in (10, 20, 30):

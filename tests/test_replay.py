@@ -257,6 +257,29 @@ def test_same_episode_negatives_are_uniform_over_the_episode_but_t_and_neighbour
     assert np.all(np.abs(counts - draws * p) < 5 * np.sqrt(draws * p * (1 - p))), counts
 
 
+def test_same_episode_frames_are_whole_stacks_after_the_ring_wraps():
+    """One episode of 30 steps in a ring of 12 rows (steps 18..29): TED's same-episode frames,
+    like the observations, are stacks of 3 consecutive stored frames, never the oldest stored
+    frame repeated in place of the overwritten ones."""
+    state = replay.init(12, 1, (2, 2, 1), 2)
+    for g in range(30):
+        state = replay.add(
+            state,
+            jnp.full((1, 2, 2, 1), g, jnp.uint8),
+            jnp.zeros((1, 2, 2), jnp.uint8),
+            jnp.zeros((1, 2)),
+            jnp.zeros(1),
+            jnp.ones(1),
+            jnp.array([g == 0]),
+        )
+    sample = functools.partial(replay.sample, nstep=1, gamma=0.99, frame_stack=3, same_episode=True)
+    batch = jax.jit(sample, static_argnums=2)(state, jax.random.key(0), 4000)
+    far = np.asarray(batch.far_obs[:, 0, 0])[np.asarray(batch.far_valid) > 0].astype(int)
+    assert len(far) > 3000 and far.min() >= 18
+    np.testing.assert_array_equal(far[:, 1:] - far[:, :-1], 1)  # consecutive frames
+    assert far[:, 0].min() == 18  # the oldest whole stack (18, 19, 20) is drawn
+
+
 def _assert_drawn_by_episode(state, want, key, draws=24_000):
     """Starts drawn by episode (frame_stack 1: a frame's value names its start) are exactly
     those of `want`, each as often as its probability there (within 5 standard deviations)."""
@@ -332,10 +355,20 @@ def test_episode_sampling_over_envs_returns_valid_transitions_of_finished_episod
     assert np.all(np.abs(counts - draws * p) < 5 * np.sqrt(draws * p * (1 - p))), counts
 
 
-def test_episode_sampling_draws_running_episodes_until_each_env_has_finished_one():
-    """Two envs, one finished episode (env 0's first, 3 entries) beside two running ones (env
-    0's second, 5 entries; env 1's, 8): fewer finished episodes than envs, so all three are
-    drawn, each a third of the draws, evenly over its starts."""
+@pytest.mark.parametrize(
+    "env0_starts, want",
+    [
+        # One finished episode (env 0's first, 3 entries) beside two running ones (env 0's
+        # second, 5 entries; env 1's, 8): all three drawn, each a third of the draws.
+        ((0, 3), {0: 1 / 6, 1: 1 / 6, **dict.fromkeys(range(3, 7), 1 / 12)}),
+        # Env 0 has finished two (as many as there are envs), env 1 none: all four still drawn,
+        # env 1's running one too, each a quarter.
+        ((0, 3, 6), {0: 1 / 8, 1: 1 / 8, 3: 1 / 8, 4: 1 / 8, 6: 1 / 4}),
+    ],
+)
+def test_episode_sampling_draws_running_episodes_until_each_env_has_finished_one(env0_starts, want):
+    """Two envs over 8 steps, env 1 in one running episode: until each env has finished an
+    episode, every episode is drawn, running ones too, evenly over its starts."""
     state = replay.init(32, 2, FRAME, 2)
     for g in range(8):
         state = replay.add(
@@ -345,10 +378,10 @@ def test_episode_sampling_draws_running_episodes_until_each_env_has_finished_one
             jnp.zeros((2, 2)),
             jnp.zeros(2),
             jnp.ones(2),
-            jnp.array([g in (0, 3), g == 0]),
+            jnp.array([g in env0_starts, g == 0]),
         )
-    want = {0: 1 / 6, 1: 1 / 6, **dict.fromkeys(range(3, 7), 1 / 12)}
-    want.update(dict.fromkeys(range(100, 107), 1 / 21))
+    episodes = len(env0_starts) + 1
+    want = {**want, **dict.fromkeys(range(100, 107), 1 / (7 * episodes))}
     _assert_drawn_by_episode(state, want, key=4)
 
 

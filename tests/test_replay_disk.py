@@ -1,6 +1,8 @@
 """The replay on disk: chunks written as rows fill, a checkpoint's partial chunk, and the device
 replay rebuilt from them (ring wrap-around included), ignoring files written after the checkpoint."""
 
+import shutil
+
 import jax
 import numpy as np
 import pytest
@@ -71,6 +73,31 @@ def test_round_trip_from_chunks_and_the_checkpoints_partial_chunk(tmp_path, chec
     assert any(end - start == CHUNK and start <= checkpoint_row < end for start, end, _ in files)
 
 
+def test_every_kept_checkpoint_finds_its_whole_replay(tmp_path):
+    """Checkpoints every 4-6 rows, the last 3 kept, the ring (10 rows) wrapped past the oldest
+    kept one's: pruning after each save keeps the rows of every kept checkpoint, and a resume
+    from each (the files written after it forgotten) rebuilds its replay as it was."""
+    rng = np.random.default_rng(5)
+    store = replay_disk.ChunkStore(tmp_path / "replay", SEEDS, ROWS, CHUNK)
+    buffer, saved, kept, row = _empty(), {}, [], 0
+    for checkpoint_row in (6, 11, 15, 21, 26):
+        buffer = _fill(buffer, store, rng, row, checkpoint_row)
+        row = checkpoint_row
+        store.save_partial(buffer, checkpoint_row)
+        saved[checkpoint_row] = jax.tree.map(np.asarray, buffer)
+        kept = [*kept, checkpoint_row][-3:]
+        store.prune(checkpoint_row, set(kept))
+    store.close()
+    for checkpoint_row in kept:
+        copy = tmp_path / f"resume_{checkpoint_row}"
+        shutil.copytree(tmp_path / "replay", copy)
+        resumed = replay_disk.ChunkStore(copy, SEEDS, ROWS, CHUNK)
+        resumed.forget_after(checkpoint_row)
+        rebuilt = resumed.restore(_empty(), checkpoint_row)
+        resumed.close()
+        _assert_equal(rebuilt.replace(**_meta(saved[checkpoint_row])), saved[checkpoint_row])
+
+
 def test_missing_rows_are_a_clear_error(tmp_path):
     store = replay_disk.ChunkStore(tmp_path, SEEDS, ROWS, CHUNK)
     with pytest.raises(FileNotFoundError, match="replay rows from 0 of seed 0 are missing"):
@@ -119,8 +146,8 @@ def test_disk_check_names_the_numbers_and_the_field(tmp_path):
     )
     # Per seed: the buffer's rows, the rows written between two checkpoints (kept until the
     # next), and the chunks the kept checkpoints' partial files and the writer hold.
-    assert bound == 3 * (100 + 50 + 5 * 10) * 8 * 1000
+    assert bound == 3 * (100 + 3 * 50 + 5 * 10) * 8 * 1000
     # A run shorter than that writes every row once, plus at most one partial chunk.
     short = dict(num_seeds=3, rows=100, chunk_rows=10, num_envs=8, entry_bytes=1000)
     short.update(rows_between_checkpoints=50, keep_checkpoints=3, total_rows=120)
-    assert replay_disk.disk_bound(**short) == 3 * (120 + 10) * 8 * 1000
+    assert replay_disk.disk_bound(**short) == 3 * (120 + 4 * 10) * 8 * 1000

@@ -626,6 +626,11 @@ def test_where_the_evaluation_runs_by_default_and_when_told(monkeypatch):
         ("env.episode_frames", -5, r"env.episode_frames must be >= 0 \(0: the task's own\)"),
         # the tiny config's 40-frame episodes, and below walker's own 1,000 (episode_frames 0)
         ("env.action_repeat", 3, "env.action_repeat=3 does not divide env.episode_frames of 40"),
+        (
+            "replay.capacity",
+            6,
+            r"replay.capacity=6 holds 3 steps of envs_per_seed=2 envs: .* above 6",
+        ),
         ("agent.updates_per_call", -1, r"agent.updates_per_call must be an int >= 1, or 0 \(on"),
         ("agent.xla_options", "CONCURRENT", "'CONCURRENT': give NAME=VALUE, NAME an XLA option"),
         # XLA's own error, named

@@ -163,9 +163,9 @@ _STOP_SIGNALS = tuple(
 
 def _stop_before_training(signum, frame):
     """Until train() takes the stop signals over (dear_jax/signals.py), SIGINT, SIGTERM or SIGHUP
-    (unless ignored, as under nohup) ends the process at once: nothing is trained or saved yet, and an interrupt raised during the
-    imports could otherwise be swallowed (a KeyboardInterrupt in a garbage-collection callback
-    is only printed, and the run would go on)."""
+    (unless ignored, as under nohup) ends the process at once: nothing is trained or saved yet,
+    and an interrupt raised during the imports could otherwise be swallowed (a KeyboardInterrupt
+    in a garbage-collection callback is only printed, and the run would go on)."""
     for undo in _UNDO_BEFORE_TRAINING:
         undo()
     name = signal.Signals(signum).name
@@ -236,8 +236,8 @@ def main(argv):
         # Nothing saved or logged (a second signal while a stop before training unwinds): a new
         # workdir goes, as after one signal.
         unstarted = not saved and not any(pathlib.Path(workdir).glob("*/*.csv"))
-        _leave(pathlib.Path(workdir), lock, new, unstarted, refused=False)
         logging.shutdown()
+        _leave(pathlib.Path(workdir), lock, new, unstarted, refused=False)
         # Cut short inside a compile or a render, the interpreter's shutdown may crash (a
         # segmentation fault, seen); the run's resources were closed as the stop unwound.
         os._exit(128 + e.signum)

@@ -195,15 +195,21 @@ class EvalProcess:
             return self._exchange(request, timeout)
 
     def _exchange(self, request: tuple, timeout: float | None):
-        if request:
-            self._conn.send(request)
-        start = time.monotonic()
-        while not self._conn.poll(1.0):
-            if not self._proc.is_alive():
-                raise RuntimeError(f"the evaluation process died (exit code {self._proc.exitcode})")
-            if timeout is not None and time.monotonic() - start > timeout:
-                raise TimeoutError(f"the evaluation process gave no answer in {timeout:.0f} s")
-        status, payload, state = self._conn.recv()
+        try:
+            if request:
+                self._conn.send(request)
+            start = time.monotonic()
+            while not self._conn.poll(1.0):
+                if not self._proc.is_alive():
+                    raise EOFError
+                if timeout is not None and time.monotonic() - start > timeout:
+                    raise TimeoutError(f"the evaluation process gave no answer in {timeout:.0f} s")
+            status, payload, state = self._conn.recv()
+        except (EOFError, ConnectionError) as e:  # its end of the pipe closed: it has died
+            self._proc.join(timeout=5)
+            raise RuntimeError(
+                f"the evaluation process died (exit code {self._proc.exitcode})"
+            ) from e
         if status != "ok":
             raise RuntimeError(f"the evaluation process failed:\n{payload}")
         self._state = state

@@ -116,6 +116,13 @@ def _values(key: str, text) -> tuple[float, ...]:
         ) from None
     if len(set(values)) != len(values):
         raise ValueError(f"sweep.{key}={text!r} repeats a value")
+    names = [f"{v:g}" for v in values]  # as Lane.label names them: the lanes' folders
+    if len(set(names)) != len(names):
+        same = sorted({n for n in names if names.count(n) > 1})
+        raise ValueError(
+            f"sweep.{key}={text!r}: values named alike ({', '.join(f'{key}={n}' for n in same)}) "
+            "would share a lane folder; give values that differ in their first 6 digits"
+        )
     for value in values:
         try:
             check_value(key, value)

@@ -771,7 +771,15 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
             continue
         seed = config.get("seed", 0)
         cell["used"].add(seed)
-        if reached is not None and reached >= frames:
+        # Stopped at its last frame, in its last iteration or its closing evaluation, which it
+        # has not run (train._finished): resumed where it kept checkpoints (it runs that
+        # evaluation then); without them, done, its last evaluation the one before.
+        unfinished = (
+            bool(summary.get("stopped"))
+            and (reached or 0) >= config.get("total_frames", math.inf)
+            and (workdir / "checkpoints").is_dir()
+        )
+        if reached is not None and reached >= frames and not unfinished:
             cell["done"].append(name)
             for k in fields:
                 if k.startswith(GRID_MAY_DIFFER) and k not in ("seed", "seeds", *RESUMABLE_CHANGES):
@@ -784,9 +792,14 @@ def grid_rows(workdirs, tasks, methods, seeds: int = 3, frames: int = 1_000_000,
         running = lock.held(workdir)  # a run in it now: its seeds are coming, not to resume
         brings = {(seed, s) for s in range(config["seeds"])}
         state = "running" if running else "no summary" if reached is None else f"{reached:,}"
+        state += ", before its closing evaluation" if not running and unfinished else ""
         # A checkpoint without its replay (replay.disk False) would resume on an empty replay:
-        # another seed's learning, so such a run is not resumed.
-        resumable = (workdir / "checkpoints").is_dir() and fields.get("replay.disk", True)
+        # another seed's learning, so such a run is not resumed (unless all it has left is its
+        # closing evaluation).
+        closing_only = unfinished and reached >= frames
+        resumable = (workdir / "checkpoints").is_dir() and (
+            fields.get("replay.disk", True) or closing_only
+        )
         if not running and (workdir / "checkpoints").is_dir() and not resumable:
             state += ", its replay not kept"
         cell["short"].append(f"{name} ({state})")

@@ -118,6 +118,17 @@ def test_a_failure_in_the_eval_process_is_raised_here_with_its_traceback(tmp_pat
     assert "Traceback" in str(failure.value) and str(tmp_path) in str(failure.value)
 
 
+def test_an_eval_process_that_died_is_named_as_dead():
+    """Killed (by the OOM killer, say), the evaluation process's next request says it died and
+    with which exit code, not a bare broken pipe."""
+    with EvalProcess(tiny_config()) as remote:
+        state = remote.host_state()
+        os.kill(remote._proc.pid, signal.SIGKILL)
+        remote._proc.join(timeout=30)
+        with pytest.raises(RuntimeError, match=r"the evaluation process died \(exit code -9\)"):
+            remote.set_host_state(state)
+
+
 def _running(pid: int) -> bool:
     """The process exists and has not exited (an exited child nobody has reaped yet is a zombie,
     state Z, whoever its new parent is)."""

@@ -163,6 +163,35 @@ def test_the_jobs_resume_stopped_runs_then_start_missing_seeds_task_by_task(tmp_
         report.grid_jobs(three, 1_000_000, seeds_per_run=0)
 
 
+def test_a_run_stopped_at_its_last_frame_is_resumed_for_its_closing_evaluation(tmp_path):
+    """A seed-run stopped in its last iteration (the grid's time limit, say) reached its frames
+    but not its closing evaluation (train._finished): with checkpoints it is resumed, its replay
+    kept or not (nothing is left to train); without them (a copy of its logs) it counts done."""
+
+    def stopped(name, seed, **fields):
+        run = paper_run(tmp_path / name, "cup,dear", seed, 1_000_000, **fields)
+        (run / "summary.json").write_text(
+            json.dumps({"frames_per_seed": 1_000_000, "stopped": "SIGTERM"})
+        )
+        return run
+
+    kept, no_replay, copied = (
+        stopped("kept", 0),
+        stopped("no_replay", 1, **{"replay.disk": False}),
+        stopped("copied", 2),
+    )
+    for run in (kept, no_replay):
+        (run / "checkpoints").mkdir()
+    cells = report.grid_rows([kept, no_replay, copied], ["cup"], ["dear"], seeds=3)
+    (cell,) = cells["cells"]
+    assert cell["done"] == [f"{tmp_path.name}/copied"] and cell["seeds_done"] == 1
+    assert sorted(args[-1] for args in cell["resume"]) == sorted(
+        str(r.resolve()) for r in (kept, no_replay)
+    )
+    assert f"{tmp_path.name}/kept (1,000,000, before its closing evaluation)" in cell["short"]
+    assert cell["next_seeds"] == []
+
+
 def test_new_seed_runs_choose_what_the_cells_finished_runs_chose_alike(tmp_path):
     """A cell's finished runs all in bf16 with 16 envs per seed: its new seed-runs are too (and
     pool with them in `report table`), unless the queue's --set says otherwise; a choice the

@@ -64,6 +64,9 @@ def test_bad_sweeps_are_refused_naming_the_key():
         lanes.lanes(sweep_config(beta="1,x"))
     with pytest.raises(ValueError, match="repeats a value"):
         lanes.lanes(sweep_config(beta="1,1.0"))
+    # Values named alike (6 significant digits) would write to one lane folder.
+    with pytest.raises(ValueError, match=r"named alike \(beta=1\) would share a lane folder"):
+        lanes.lanes(sweep_config(beta="1,1.0000001"))
     # A swept value is checked as the config's own field is: range, finiteness, whole numbers.
     for key, text, match in [
         ("noise_hold", "1,0.5", "noise_hold must be a whole number >= 1, got 0.5"),

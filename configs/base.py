@@ -190,10 +190,11 @@ def get_config() -> ConfigDict:
     c.agent.beta = 100.0  # orthogonality loss weight (DEAR)
     c.agent.recon_weight = 1.0  # SEAR
     c.agent.ted_weight = 100.0  # TED
-    # TED's same-episode negatives and classifier: "strict" (never a frame of the n-step
-    # positive's window, a pair without one dropped, W0 and W1 drawn apart, c from 0) |
-    # "reference_code" (TED's code: t+-1 excluded only, another sample's frame instead, one
-    # orthogonal 2 x F draw for W0 and W1, c = +-1); docs/method.md, decision 8.
+    # TED's negatives and classifier: "strict" (another sample's z_t+n never a sample's own,
+    # never a frame of the n-step positive's window, a pair without one dropped, W0 and W1 drawn
+    # apart, c from 0) | "reference_code" (TED's code: a plain shuffle, t+-1 excluded only,
+    # another sample's frame instead, one orthogonal 2 x F draw for W0 and W1, c = +-1);
+    # docs/method.md, decision 8.
     c.agent.ted_form = "strict"
     c.agent.tau = 0.01  # the target critic's EMA rate per update
     c.agent.stddev_clip = 0.3  # the clip of the policy noise in the critic target and actor loss

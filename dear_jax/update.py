@@ -407,7 +407,7 @@ def ted_classifier_loss(
     substitute: bool = False,
 ):
     """TED's temporal loss on latents [B, F]: positives (z_t, z_t+n); negatives (z_t, z_t+n of
-    another sample) and (z_t, a frame of the same episode, where far_valid [B] is 1:
+    another sample: the next in a shuffle's cycle; substitute: of the shuffled sample) and (z_t, a frame of the same episode, where far_valid [B] is 1:
     `replay.same_episode_offsets`). Mean BCE over the valid pairs; returns (loss, metrics).
     substitute: where far_valid is 0, the pair takes instead of being dropped the frame drawn for
     another sample, the next in the shuffle's cycle (its same-episode frame, or where it has
@@ -415,12 +415,15 @@ def ted_classifier_loss(
     batch is split in equal parts (its mean over the axis is the whole batch's loss: the valid
     pairs are counted over it; the other-sample negatives are drawn within each part)."""
     perm = jax.random.permutation(key, z.shape[0])
-    if substitute:  # perm[p] takes perm[p + 1]'s: never a sample's own
-        other = jnp.zeros_like(perm).at[perm].set(jnp.roll(perm, -1))
+    other = jnp.zeros_like(perm).at[perm].set(jnp.roll(perm, -1))  # perm[p] takes perm[p + 1]'s
+    if substitute:
         z_far = jnp.where(far_valid[:, None] > 0, z_far, z_far[other])
         far_valid = jnp.ones_like(far_valid)
+    # Strict: another sample's z_t+n, never a sample's own (its positive); TED's code shuffles,
+    # which leaves a few in place.
+    negatives = z_next[perm] if substitute else z_next[other]
     classify = lambda a, b: nets.ted.apply({"params": ted_params}, a, b)  # noqa: E731
-    logits = jnp.concatenate([classify(z, z_next), classify(z, z_next[perm]), classify(z, z_far)])
+    logits = jnp.concatenate([classify(z, z_next), classify(z, negatives), classify(z, z_far)])
     n = z.shape[0]
     labels = jnp.concatenate([jnp.ones(n), jnp.zeros(2 * n)])
     weights = jnp.concatenate([jnp.ones(2 * n), far_valid])

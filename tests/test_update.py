@@ -497,6 +497,34 @@ def test_ted_reference_form_substitutes_another_samples_frame_for_a_missing_nega
     assert not np.isclose(dropped, want, rtol=1e-3)  # "strict" drops the two pairs instead
 
 
+def test_ted_strict_form_pairs_z_t_with_another_samples_next_latent():
+    """ted_form "strict": the other-sample negative is z_t+n of the next sample in the shuffle's
+    cycle, never a sample's own, even where the shuffle leaves a sample in place (key 0 keeps
+    samples 0 and 1); same-episode pairs without a frame are dropped. The loss by hand."""
+    cfg = update.AgentConfig(method="ted", **SMALL)
+    nets = update.make_networks(cfg)
+    params = _init(cfg, jax.random.key(0)).params["ted"]
+    rng = np.random.default_rng(4)
+    z, z_next, z_far = (rng.normal(size=(4, 64)).astype(np.float32) for _ in range(3))
+    valid = np.array([1, 0, 1, 1], np.float32)
+    key = jax.random.key(0)
+    perm = np.asarray(jax.random.permutation(key, 4))
+    assert (perm == np.arange(4)).any()  # a plain shuffle would pair a sample with its own
+    other = np.empty(4, int)
+    other[perm] = np.roll(perm, -1)
+    assert (other != np.arange(4)).all()
+
+    def logits(a, b):
+        return np.asarray(nets.ted.apply({"params": params}, a, b), np.float64)
+
+    x = np.concatenate([logits(z, z_next), logits(z, z_next[other]), logits(z, z_far)])
+    labels = np.concatenate([np.ones(4), np.zeros(8)])
+    weights = np.concatenate([np.ones(8), valid])
+    want = np.sum(weights * (np.logaddexp(0, x) - x * labels)) / weights.sum()
+    got, _ = update.ted_classifier_loss(params, z, z_next, z_far, valid, key, nets=nets)
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+
+
 def test_ted_gradient_reaches_the_encoder_through_z_t_only():
     """TED's encoder gradient is J_enc(obs)^T dL/dz_t: the next and same-episode observations
     are encoded without gradient (TED's reference). Checked as the difference of the encoder

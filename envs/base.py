@@ -362,8 +362,11 @@ class Env:
         reset = np.asarray(state.last, bool)
         starts = self._initial_states(reset) if reset.any() else None  # host RNG, in step order
         step = np.where(reset, 0, state.step + 1)
-        # Snapshot the host distraction draws now: the next step_async mutates them.
-        self._distractor.step()
+        # Snapshot the host distraction draws now: the next step_async mutates them. Dynamic
+        # distractions move once per frame, as the Distracting Control Suite's (under the
+        # action repeat): action_repeat moves per step.
+        for _ in range(self.spec.action_repeat):
+            self._distractor.step()
         if reset.any():
             self._distractor.reset(reset.reshape(-1))
         finish = functools.partial(

@@ -287,6 +287,26 @@ def test_reset_is_reproducible_from_the_key():
     assert not np.allclose(state_a.physics.qpos[0, 0], state_a.physics.qpos[0, 1])
 
 
+def test_dynamic_distractions_move_once_per_frame():
+    """Dynamic distractions move as the Distracting Control Suite's under an action repeat: once
+    per frame, so a background video advances action_repeat frames per agent step (here from
+    the middle of videos long enough not to bounce)."""
+    render = envs.RenderSettings(envs_per_worker=2)
+    for repeat in (1, 2):
+        with _make(
+            "walker-walk", render=render, distraction="medium", dynamic=True, action_repeat=repeat
+        ) as env:
+            dis = env._distractor
+            state, _ = env.reset(jax.random.key(0))
+            dis.frame[:] = dis.lengths[dis.video] // 2
+            dis.direction[:] = 1
+            start = dis.frame.copy()
+            action = jnp.zeros((S, E, env.spec.action_dim))
+            for _ in range(3):
+                state, _ = env.step(state, action)
+            np.testing.assert_array_equal(dis.frame - start, 3 * repeat)
+
+
 def test_cpu_physics_steps_on_the_env_thread(finger_env):
     """With CPU physics, step_async hands the physics to the env thread and returns at once: the
     caller (the trainer, dispatching updates meanwhile) never waits for the action or the step."""

@@ -992,26 +992,28 @@ def _read_until(proc: subprocess.Popen, marker: str) -> list[str]:
     return seen
 
 
-def test_a_ctrl_c_while_the_run_starts_stops_it(tmp_path):
-    """SIGINT as soon as the run holds its workdir (during its imports, before training): it
-    stops with 130 and one line, however early, and leaves no new workdir behind when it
-    had not begun; a later one checkpoints first. Never does the run go on to train."""
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGHUP])
+def test_a_ctrl_c_while_the_run_starts_stops_it(tmp_path, sig):
+    """SIGINT (or a closed terminal's SIGHUP) as soon as the run holds its workdir (during its
+    imports, before training): it stops with 128 + the signal and one line, however early, and
+    leaves no new workdir behind when it had not begun; a later one checkpoints first. Never
+    does the run go on to train."""
     workdir = tmp_path / "run"
-    # A terminal's SIGINT disposition, whatever this process's: a shell's background job (these
-    # tests run as one) ignores SIGINT, which its children inherit; a handler becomes the default
-    # in a child at its exec.
-    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    # A terminal's dispositions, whatever this process's: a shell's background job (these tests
+    # run as one) ignores SIGINT, and nohup SIGHUP, which its children inherit; a handler becomes
+    # the default in a child at its exec.
+    before = signal.signal(sig, signal.default_int_handler)
     try:
         # a process group of its own, as a terminal's foreground job
         proc = _smoke_run(workdir, start_new_session=True)
     finally:
-        signal.signal(signal.SIGINT, before)
+        signal.signal(sig, before)
     deadline = time.time() + 120
     while not (workdir / "run.lock").exists() and proc.poll() is None and time.time() < deadline:
         time.sleep(0.01)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     _, err = proc.communicate(timeout=300)
-    assert proc.returncode == 130 and "Traceback" not in err
+    assert proc.returncode == 128 + sig and "Traceback" not in err
     last = err.strip().splitlines()[-1]
     if "before training began" in last:
         assert not workdir.exists()

@@ -466,26 +466,34 @@ def test_ted_loss_over_a_split_batch_is_the_whole_batchs():
     assert not np.isclose(own.mean(), whole_loss, rtol=1e-3)
 
 
-def test_ted_reference_form_substitutes_another_samples_frame_for_a_missing_negative():
-    """ted_form "reference_code": a sample without a same-episode frame pairs z_t with the frame
-    drawn for another, the next in the shuffle's cycle, and every pair counts; the loss by hand
-    from the classifier's logits (BCE = softplus(x) - x * label)."""
-    cfg = update.AgentConfig(method="ted", ted_form="reference_code", **SMALL)
+def _ted_by_hand(ted_form: str, seed: int, key: jax.Array):
+    """TED's classifier and 4 latents z, z_next, z_far for a loss computed by hand: (params,
+    nets, latents, logits(a, b) in float64, the key's shuffle, and its cycle: sample perm[p]
+    takes perm[p + 1]'s)."""
+    cfg = update.AgentConfig(method="ted", ted_form=ted_form, **SMALL)
     nets = update.make_networks(cfg)
     params = _init(cfg, jax.random.key(0)).params["ted"]
-    rng = np.random.default_rng(3)
-    z, z_next, z_far = (rng.normal(size=(4, 64)).astype(np.float32) for _ in range(3))
-    valid = np.array([1, 0, 1, 0], np.float32)
-    key = jax.random.key(1)
+    rng = np.random.default_rng(seed)
+    latents = [rng.normal(size=(4, 64)).astype(np.float32) for _ in range(3)]
     perm = np.asarray(jax.random.permutation(key, 4))
     other = np.empty(4, int)
-    other[perm] = np.roll(perm, -1)  # sample perm[p] takes perm[p + 1]'s frame
+    other[perm] = np.roll(perm, -1)
     assert (other != np.arange(4)).all()
-    far = np.where(valid[:, None] > 0, z_far, z_far[other])
 
     def logits(a, b):
         return np.asarray(nets.ted.apply({"params": params}, a, b), np.float64)
 
+    return params, nets, latents, logits, perm, other
+
+
+def test_ted_reference_form_substitutes_another_samples_frame_for_a_missing_negative():
+    """ted_form "reference_code": a sample without a same-episode frame pairs z_t with the frame
+    drawn for another, the next in the shuffle's cycle, and every pair counts; the loss by hand
+    from the classifier's logits (BCE = softplus(x) - x * label)."""
+    key = jax.random.key(1)
+    params, nets, (z, z_next, z_far), logits, perm, other = _ted_by_hand("reference_code", 3, key)
+    valid = np.array([1, 0, 1, 0], np.float32)
+    far = np.where(valid[:, None] > 0, z_far, z_far[other])
     x = np.concatenate([logits(z, z_next), logits(z, z_next[perm]), logits(z, far)])
     labels = np.concatenate([np.ones(4), np.zeros(8)])
     want = np.mean(np.logaddexp(0, x) - x * labels)
@@ -501,22 +509,10 @@ def test_ted_strict_form_pairs_z_t_with_another_samples_next_latent():
     """ted_form "strict": the other-sample negative is z_t+n of the next sample in the shuffle's
     cycle, never a sample's own, even where the shuffle leaves a sample in place (key 0 keeps
     samples 0 and 1); same-episode pairs without a frame are dropped. The loss by hand."""
-    cfg = update.AgentConfig(method="ted", **SMALL)
-    nets = update.make_networks(cfg)
-    params = _init(cfg, jax.random.key(0)).params["ted"]
-    rng = np.random.default_rng(4)
-    z, z_next, z_far = (rng.normal(size=(4, 64)).astype(np.float32) for _ in range(3))
-    valid = np.array([1, 0, 1, 1], np.float32)
     key = jax.random.key(0)
-    perm = np.asarray(jax.random.permutation(key, 4))
+    params, nets, (z, z_next, z_far), logits, perm, other = _ted_by_hand("strict", 4, key)
     assert (perm == np.arange(4)).any()  # a plain shuffle would pair a sample with its own
-    other = np.empty(4, int)
-    other[perm] = np.roll(perm, -1)
-    assert (other != np.arange(4)).all()
-
-    def logits(a, b):
-        return np.asarray(nets.ted.apply({"params": params}, a, b), np.float64)
-
+    valid = np.array([1, 0, 1, 1], np.float32)
     x = np.concatenate([logits(z, z_next), logits(z, z_next[other]), logits(z, z_far)])
     labels = np.concatenate([np.ones(4), np.zeros(8)])
     weights = np.concatenate([np.ones(8), valid])

@@ -85,6 +85,7 @@ class Loop:
         key = self._everywhere(jax.random.fold_in(root, 1_000_003))
         self.eval_key = jax.random.fold_in(root, 2_000_003)  # the evaluations' own stream
         self.hold_keys = self._split(hold_keys(config))
+        self.per_call = updates_per_call(config)  # updates a call of the learn program
         key, k_reset = jax.random.split(key)
         state, ts = env.reset(hosts.env_key(k_reset))
         ts = hosts.to_global(ts)
@@ -250,7 +251,7 @@ class Loop:
         # Updates are dispatched while the env thread renders the next observations.
         if counters["frame"] >= lv["seed_frames"] and steps_per_seed:
             lv["steps_owed"] += steps_per_seed / config.agent.update_every_steps
-            per_call = updates_per_call(config)
+            per_call = self.per_call
             n = int(lv["steps_owed"]) // per_call * per_call  # whole calls: the rest owed
             lv["steps_owed"] -= n
             if n and not counters["updates"]:  # once: the replay must hold a batch
@@ -261,7 +262,7 @@ class Loop:
             # While an evaluation runs in the background on the training's devices, its steps'
             # programs queue behind the updates dispatched before them: each call of updates is
             # dispatched only once the one before it has finished, so they wait for one call
-            # (updates_per_call(config) updates), not for all. (An evaluation in a process of its
+            # (self.per_call updates), not for all. (An evaluation in a process of its
             # own queues nothing here.)
             short_queue = self.evals.beside_training
             keys = jax.random.split(k_learn, n) if n else ()

@@ -52,7 +52,11 @@ from envs import forkserver
 POLICY_PLACES = ("cpu", "accelerator")  # where an evaluation process runs its policy
 # The parameters an evaluation reads (the critic's and the TED classifier's are not sent).
 POLICY_PARAMS = ("encoder", "actor", "mask_decoder")
-_START_TIMEOUT_S = 600.0  # the child imports, builds its env and render workers
+# The longest the child may take to import and build its env and render workers, and by default
+# to answer a request: it says it is alive a hundred times in that span while it evaluates, so
+# silent for longer it is stuck (a render worker or an env step that never returns) and is
+# killed, which fails the run instead of hanging it.
+_SILENCE_S = 600.0
 
 
 class EvalAborted(Exception):
@@ -163,13 +167,16 @@ class EvalProcess:
     this side closes the pipe (or exits, even by SIGKILL). It ignores the stop signals: the
     training process handles those, and lets the evaluations in flight or queued end before it
     checkpoints.
-    An evaluation here always runs to its end (`stop` is not read). Calls from several threads
-    take turns. `stream`: which of the run's evaluation processes this is (`EvalProcesses`): its
+    An evaluation here always runs to its end (`stop` is not read). A child silent for
+    `silence_s` (while it works it says it is alive a hundred times in that span) is stuck: it is
+    killed and the call raises. Calls from several threads take turns. `stream`: which of the run's evaluation processes this is (`EvalProcesses`): its
     eval env's seed."""
 
     slots = 1
 
-    def __init__(self, config, stream: int = 0, policy_on: str = "cpu"):
+    def __init__(
+        self, config, stream: int = 0, policy_on: str = "cpu", silence_s: float = _SILENCE_S
+    ):
         if policy_on not in POLICY_PLACES:
             raise ValueError(f"policy_on={policy_on!r}: valid: {', '.join(POLICY_PLACES)}")
         # Never fork a process that holds CUDA: the process's fork server (as the render
@@ -178,7 +185,7 @@ class EvalProcess:
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
             target=_serve,
-            args=(child, pickle.dumps(config), stream, policy_on),
+            args=(child, pickle.dumps(config), stream, policy_on, silence_s / 100),
             name=f"eval{stream}",
         )
         self._proc.start()
@@ -186,25 +193,33 @@ class EvalProcess:
         self.stream = stream
         self._state = None  # the eval env's host state, as of the last answer
         self._lock = threading.Lock()  # one request and its answer at a time
+        self.silence_s = silence_s
 
     def evaluator_for(self, index: int) -> EvalProcess:
         return self
 
-    def _call(self, *request, timeout: float | None = None):
+    def _call(self, *request):
         with self._lock:
-            return self._exchange(request, timeout)
+            return self._exchange(request, self.silence_s)
 
-    def _exchange(self, request: tuple, timeout: float | None):
+    def _exchange(self, request: tuple, silence_s: float):
         try:
             if request:
                 self._conn.send(request)
-            start = time.monotonic()
-            while not self._conn.poll(1.0):
-                if not self._proc.is_alive():
-                    raise EOFError
-                if timeout is not None and time.monotonic() - start > timeout:
-                    raise TimeoutError(f"the evaluation process gave no answer in {timeout:.0f} s")
-            status, payload, state = self._conn.recv()
+            status = "alive"
+            while status == "alive":  # the child's beats while it works
+                heard = time.monotonic()
+                while not self._conn.poll(1.0):
+                    if not self._proc.is_alive():
+                        raise EOFError
+                    if time.monotonic() - heard > silence_s:
+                        self._proc.kill()
+                        self._proc.join()
+                        raise RuntimeError(
+                            f"the evaluation process said nothing for {silence_s:.0f} s: "
+                            "stuck (a render worker or an env step that never returned); killed"
+                        )
+                status, payload, state = self._conn.recv()
         except (EOFError, ConnectionError) as e:  # its end of the pipe closed: it has died
             self._proc.join(timeout=5)
             raise RuntimeError(
@@ -218,7 +233,7 @@ class EvalProcess:
     def _ready(self) -> None:
         with self._lock:
             if self._state is None:  # its first answer: built, with the env's initial host state
-                self._exchange((), _START_TIMEOUT_S)
+                self._exchange((), _SILENCE_S)
 
     def host_state(self) -> dict:
         self._ready()
@@ -295,9 +310,9 @@ class EvalProcesses:
         self.close()
 
 
-def _serve(conn, config_bytes: bytes, stream: int, policy_on: str) -> None:
+def _serve(conn, config_bytes: bytes, stream: int, policy_on: str, beat_s: float) -> None:
     """The child: build the eval env and the policy (on the host's CPU, or on the accelerator),
-    then answer requests."""
+    then answer requests, saying it is alive every `beat_s` while it evaluates."""
     forkserver.ignore_stop_signals()
     config = pickle.loads(config_bytes)
     on_accelerator = policy_on == "accelerator"
@@ -310,6 +325,15 @@ def _serve(conn, config_bytes: bytes, stream: int, policy_on: str) -> None:
         os.sched_setaffinity(0, cores[len(cores) // 2 :])
     if config.get("eval_nice"):  # lower priority, for it and the processes it starts
         os.nice(config.eval_nice)
+
+    last_beat = time.monotonic()
+
+    def beat() -> bool:  # as `evaluate`'s stop, read every step: never stops it
+        nonlocal last_beat
+        if time.monotonic() - last_beat > beat_s:
+            conn.send(("alive", None, None))
+            last_beat = time.monotonic()
+        return False
 
     env = None
     try:
@@ -335,7 +359,7 @@ def _serve(conn, config_bytes: bytes, stream: int, policy_on: str) -> None:
                     policy, key_data, impl, videos = request[1:]
                     key = jax.random.wrap_key_data(jnp.asarray(key_data), impl=impl)
                     answer, clips = evaluate(
-                        env, step, place(policy), key, video=videos is not None
+                        env, step, place(policy), key, video=videos is not None, stop=beat
                     )
                     write_videos(clips, videos)
                 conn.send(("ok", answer, env.host_state()))

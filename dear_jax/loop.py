@@ -28,7 +28,7 @@ from ml_collections import ConfigDict
 import envs
 from dear_jax import lanes, replay, replay_disk, update
 from dear_jax.carry import Carry
-from dear_jax.checkpoint import Checkpointer
+from dear_jax.checkpoint import Checkpointer, UnreadableCheckpointError
 from dear_jax.devices import Hosts, seed_sharding, uncommitted
 from dear_jax.evaluations import Evaluations, eval_due
 from dear_jax.evaluator import EvalProcess, EvalProcesses, LocalEvaluator
@@ -42,6 +42,23 @@ from dear_jax.trace import Trace
 log = logging.getLogger("dear_jax")
 
 _init_seeds = jax.jit(update.init_seeds, static_argnums=0)
+
+
+def replay_rows_kept(ckpt: Checkpointer, rows: int) -> set[int]:
+    """Row counts, up to `rows`, of the kept checkpoints whose replay is on disk: the replay files
+    each needs to resume. A checkpoint saved without the replay on disk (before a resume restarted
+    the row count) is not one of them, nor one whose metadata cannot be read: it cannot be resumed
+    from, so it is named in a warning and the save that asks goes on."""
+    kept = set()
+    for step in ckpt.all_steps():
+        try:
+            extra = ckpt.read_meta(step)[2]
+        except UnreadableCheckpointError as e:
+            log.warning("%s; its replay files are not kept", e)
+            continue
+        if extra.get("replay_on_disk") and extra["counters"]["rows"] <= rows:
+            kept.add(extra["counters"]["rows"])
+    return kept
 
 
 class Loop:
@@ -156,16 +173,8 @@ class Loop:
         )
         self.ckpt.save(c.counters["frame"], c.tree(), extra=extra)
         if self.store is not None:
-            # Row counts of the kept checkpoints of this replay (a checkpoint saved without the
-            # replay on disk, before a resume restarted the row count, is not one of them).
             rows = c.counters["rows"]
-            metas = (self.ckpt.read_meta(s)[2] for s in self.ckpt.all_steps())
-            kept = {
-                m["counters"]["rows"]
-                for m in metas
-                if m.get("replay_on_disk") and m["counters"]["rows"] <= rows
-            }
-            self.store.prune(rows, kept | {rows})
+            self.store.prune(rows, replay_rows_kept(self.ckpt, rows) | {rows})
 
     def _restore(self) -> None:
         c = self.carry

@@ -168,3 +168,39 @@ def test_the_eval_process_ends_with_the_training_process_even_when_killed():
             pytest.fail("the evaluation process outlived the killed training process")
     finally:
         parent.kill()
+
+
+def test_a_stuck_eval_process_is_killed_and_named_as_stuck():
+    """Alive but stuck (stopped here by SIGSTOP), the evaluation process says nothing: after its
+    `silence_s` the call kills it and says so, instead of waiting for ever."""
+    with EvalProcess(tiny_config(), silence_s=2.0) as remote:
+        state = remote.host_state()
+        os.kill(remote._proc.pid, signal.SIGSTOP)
+        with pytest.raises(RuntimeError, match=r"said nothing for 2 s: stuck .*; killed"):
+            remote.set_host_state(state)
+        assert not remote._proc.is_alive()
+
+
+def test_an_eval_process_that_works_longer_than_its_silence_is_not_stuck():
+    """An evaluation that outlasts `silence_s` ends with its answer, the one this process
+    computes: the child says it is alive while it steps."""
+    config = tiny_config()
+    params, acfg = _agent_params(config)
+    hosts = Hosts(None, lanes.num_lanes(config))
+    env = experiment.make_env(config, envs_per_seed=config.num_eval_episodes, split="val", seed=1)
+    step = build_programs(acfg, experiment.hparams(config), config).evaluate_step
+    local = LocalEvaluator(env, step, hosts)
+    with EvalProcess(config, silence_s=0.25) as remote:
+        try:
+            remote.silence_s = 600.0  # its first evaluation compiles the policy's step, silently
+            remote.evaluate(params, jax.random.key(6))
+            remote.silence_s = 0.25
+            local.set_host_state(remote.host_state())
+            t0 = time.monotonic()
+            got = remote.evaluate(params, jax.random.key(7))
+            took = time.monotonic() - t0
+            want = local.evaluate(params, jax.random.key(7))
+        finally:
+            local.close()
+    assert took > 2 * remote.silence_s  # else this shows nothing
+    np.testing.assert_array_equal(got["episode_return"], want["episode_return"])

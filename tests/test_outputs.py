@@ -400,6 +400,30 @@ def test_a_checkpoint_with_damaged_metadata_is_named_with_the_one_before(tmp_pat
     assert (step, extra) == (10, {"frame": 10})
 
 
+def test_a_checkpoint_with_damaged_metadata_does_not_stop_the_next_save(tmp_path, caplog):
+    """The replay files a save keeps are those of the kept checkpoints that can resume: one whose
+    metadata was damaged is named in a warning and left out, one saved without the replay on disk
+    or after the given row count is left out, and the save that asks goes on."""
+    from dear_jax.loop import replay_rows_kept
+
+    def extra(rows, on_disk=True):
+        return {"replay_on_disk": on_disk, "counters": {"rows": rows}}
+
+    with Checkpointer(tmp_path / "ck", fingerprint=FINGERPRINT, keep=5) as ckpt:
+        for step, meta in [(10, extra(100, False)), (20, extra(200)), (30, extra(300))]:
+            ckpt.save(step, {"w": jnp.arange(4.0)}, extra=meta)
+        ckpt.save(40, {"w": jnp.arange(4.0)}, extra=extra(400))
+        assert replay_rows_kept(ckpt, 400) == {200, 300, 400}
+        assert replay_rows_kept(ckpt, 350) == {200, 300}
+        for path in (tmp_path / "ck" / "20" / "meta").rglob("*"):
+            if path.is_file():
+                path.write_text("")
+        with caplog.at_level("WARNING", logger="dear_jax"):
+            assert replay_rows_kept(ckpt, 400) == {300, 400}
+    assert f"checkpoint 20 in {tmp_path / 'ck'} cannot be read" in caplog.text
+    assert "its replay files are not kept" in caplog.text
+
+
 def test_keep_last_k_and_same_step(tmp_path, agent_state):
     with Checkpointer(tmp_path, fingerprint=FINGERPRINT, keep=2) as ckpt:
         for step in (10, 20, 30):

@@ -295,8 +295,11 @@ class Checkpointer:
                     f"{jax.process_index()} ({path}): it was written by fewer processes; resume "
                     "with as many processes as wrote it"
                 )
-            with open(path) as f:
-                extra = json.load(f)
+            try:
+                with open(path) as f:
+                    extra = json.load(f)
+            except (ValueError, OSError) as e:  # json's errors are ValueErrors
+                self._raise_unreadable(step, f"{path}: {type(e).__name__}: {e}", e)
         return step, fingerprint, _decode_arrays(extra)
 
     def check_fingerprint(self, saved: Mapping, step: int) -> None:

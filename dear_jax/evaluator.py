@@ -167,10 +167,11 @@ class EvalProcess:
     this side closes the pipe (or exits, even by SIGKILL). It ignores the stop signals: the
     training process handles those, and lets the evaluations in flight or queued end before it
     checkpoints.
-    An evaluation here always runs to its end (`stop` is not read). A child silent for
-    `silence_s` (while it works it says it is alive a hundred times in that span) is stuck: it is
-    killed and the call raises. Calls from several threads take turns. `stream`: which of the run's evaluation processes this is (`EvalProcesses`): its
-    eval env's seed."""
+    An evaluation here always runs to its end (`stop` is not read). Between its env steps the
+    child says it is alive, a hundred times in `silence_s`; one silent for longer (its first
+    evaluation's compiles and its video writing are silent too) is stuck: it is killed and the
+    call raises. Calls from several threads take turns. `stream`: which of the run's evaluation
+    processes this is (`EvalProcesses`): its eval env's seed."""
 
     slots = 1
 
@@ -209,15 +210,20 @@ class EvalProcess:
             status = "alive"
             while status == "alive":  # the child's beats while it works
                 heard = time.monotonic()
-                while not self._conn.poll(1.0):
+                while not self._conn.poll(min(1.0, silence_s / 4)):
                     if not self._proc.is_alive():
                         raise EOFError
                     if time.monotonic() - heard > silence_s:
                         self._proc.kill()
-                        self._proc.join()
+                        self._proc.join(timeout=30)
+                        doing = (
+                            "an env step or render worker that never returned"
+                            if request
+                            else "importing, or building its env and render workers"
+                        )
                         raise RuntimeError(
-                            f"the evaluation process said nothing for {silence_s:.0f} s: "
-                            "stuck (a render worker or an env step that never returned); killed"
+                            f"the evaluation process said nothing for {silence_s:g} s: stuck "
+                            f"({doing}); killed"
                         )
                 status, payload, state = self._conn.recv()
         except (EOFError, ConnectionError) as e:  # its end of the pipe closed: it has died

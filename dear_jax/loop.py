@@ -44,18 +44,19 @@ log = logging.getLogger("dear_jax")
 _init_seeds = jax.jit(update.init_seeds, static_argnums=0)
 
 
-def replay_rows_kept(ckpt: Checkpointer, rows: int) -> set[int]:
+def replay_rows_kept(ckpt: Checkpointer, rows: int) -> set[int] | None:
     """Row counts, up to `rows`, of the kept checkpoints whose replay is on disk: the replay files
     each needs to resume. A checkpoint saved without the replay on disk (before a resume restarted
-    the row count) is not one of them, nor one whose metadata cannot be read: it cannot be resumed
-    from, so it is named in a warning and the save that asks goes on."""
+    the row count) is not one of them. None where a kept checkpoint's metadata cannot be read:
+    which files it needs is unknown, so none may be deleted; it is named in a warning, and the
+    save that asks goes on."""
     kept = set()
     for step in ckpt.all_steps():
         try:
             extra = ckpt.read_meta(step)[2]
         except UnreadableCheckpointError as e:
-            log.warning("%s; its replay files are not kept", e)
-            continue
+            log.warning("%s. No replay file is deleted while it is kept", e)
+            return None
         if extra.get("replay_on_disk") and extra["counters"]["rows"] <= rows:
             kept.add(extra["counters"]["rows"])
     return kept
@@ -174,7 +175,9 @@ class Loop:
         self.ckpt.save(c.counters["frame"], c.tree(), extra=extra)
         if self.store is not None:
             rows = c.counters["rows"]
-            self.store.prune(rows, replay_rows_kept(self.ckpt, rows) | {rows})
+            kept = replay_rows_kept(self.ckpt, rows)
+            if kept is not None:
+                self.store.prune(rows, kept | {rows})
 
     def _restore(self) -> None:
         c = self.carry

@@ -1,5 +1,6 @@
 """Evaluations in a process of their own (dear_jax/evaluator.py) against those in this process."""
 
+import concurrent.futures
 import os
 import pathlib
 import signal
@@ -176,9 +177,16 @@ def test_a_stuck_eval_process_is_killed_and_named_as_stuck():
     with EvalProcess(tiny_config(), silence_s=2.0) as remote:
         state = remote.host_state()
         os.kill(remote._proc.pid, signal.SIGSTOP)
-        with pytest.raises(RuntimeError, match=r"said nothing for 2 s: stuck .*; killed"):
-            remote.set_host_state(state)
-        assert not remote._proc.is_alive()
+        pool = concurrent.futures.ThreadPoolExecutor(1)
+        call = pool.submit(remote.set_host_state, state)
+        try:  # a call that never returns fails here (TimeoutError) rather than hanging the suite
+            with pytest.raises(RuntimeError, match=r"said nothing for 2 s: stuck \(an env step"):
+                call.result(timeout=60)
+            assert not remote._proc.is_alive()
+        finally:
+            if remote._proc.is_alive():
+                os.kill(remote._proc.pid, signal.SIGKILL)  # so that the call ends
+            pool.shutdown()
 
 
 def test_an_eval_process_that_works_longer_than_its_silence_is_not_stuck():

@@ -401,9 +401,9 @@ def test_a_checkpoint_with_damaged_metadata_is_named_with_the_one_before(tmp_pat
 
 
 def test_a_checkpoint_with_damaged_metadata_does_not_stop_the_next_save(tmp_path, caplog):
-    """The replay files a save keeps are those of the kept checkpoints that can resume: one whose
-    metadata was damaged is named in a warning and left out, one saved without the replay on disk
-    or after the given row count is left out, and the save that asks goes on."""
+    """The replay files a save keeps are those of the kept checkpoints: one saved without the
+    replay on disk or after the given row count needs none. While one's metadata cannot be read,
+    which files it needs is unknown: none is deleted, a warning names it, and the save goes on."""
     from dear_jax.loop import replay_rows_kept
 
     def extra(rows, on_disk=True):
@@ -419,9 +419,9 @@ def test_a_checkpoint_with_damaged_metadata_does_not_stop_the_next_save(tmp_path
             if path.is_file():
                 path.write_text("")
         with caplog.at_level("WARNING", logger="dear_jax"):
-            assert replay_rows_kept(ckpt, 400) == {300, 400}
+            assert replay_rows_kept(ckpt, 400) is None
     assert f"checkpoint 20 in {tmp_path / 'ck'} cannot be read" in caplog.text
-    assert "its replay files are not kept" in caplog.text
+    assert "No replay file is deleted while it is kept" in caplog.text
 
 
 def test_keep_last_k_and_same_step(tmp_path, agent_state):
@@ -1436,3 +1436,22 @@ def test_plot_errors(tmp_path, capsys):
     run = _fake_workdir(tmp_path, "run", "dear")
     with pytest.raises(KeyError, match="no column 'success'; columns: frame, episode_return"):
         plot.plot([run], metric="success")
+
+
+def test_a_process_damaged_host_state_is_named_as_unreadable(tmp_path):
+    """With several processes each keeps its host state in a file of its own beside the
+    checkpoint: that file cut short reads as an unreadable checkpoint, named with its path."""
+    from dear_jax.checkpoint import UnreadableCheckpointError
+
+    with Checkpointer(tmp_path / "ck", fingerprint=FINGERPRINT) as ckpt:
+        ckpt._own = str(tmp_path / "ck_process_1")  # as process 1 of several would
+        os.makedirs(ckpt._own)
+        ckpt.save(10, {"w": jnp.arange(4.0)}, extra={"frame": 10})
+        ckpt.save(20, {"w": jnp.arange(4.0)}, extra={"frame": 20})
+        own = tmp_path / "ck_process_1" / "20.json"
+        own.write_text(own.read_text()[:5])
+        assert ckpt.read_meta(10)[2] == {"frame": 10}
+        with pytest.raises(UnreadableCheckpointError) as error:
+            ckpt.read_meta(20)
+    assert f"checkpoint 20 in {tmp_path / 'ck'} cannot be read" in str(error.value)
+    assert f"{own}: JSONDecodeError" in str(error.value)

@@ -35,16 +35,21 @@ def _frames(path: pathlib.Path) -> np.ndarray:
     return np.stack(frames)
 
 
+def _local_evaluator(config, acfg) -> LocalEvaluator:
+    """The evaluator of this process that an evaluation process's answers are held against."""
+    hosts = Hosts(None, lanes.num_lanes(config))
+    env = experiment.make_env(config, envs_per_seed=config.num_eval_episodes, split="val", seed=1)
+    step = build_programs(acfg, experiment.hparams(config), config).evaluate_step
+    return LocalEvaluator(env, step, hosts)
+
+
 def test_the_eval_process_evaluates_as_this_process_does(tmp_path):
     """Same parameters, same key: the child's episodes, returns, cosines and the videos it writes
     are this process's (float32 on the CPU both), and so is the eval env's host state after them;
     restoring that state replays the same episodes there."""
     config = tiny_config()
     params, acfg = _agent_params(config)
-    hosts = Hosts(None, lanes.num_lanes(config))
-    env = experiment.make_env(config, envs_per_seed=config.num_eval_episodes, split="val", seed=1)
-    local = LocalEvaluator(env, build_programs(acfg, experiment.hparams(config), config)
-                           .evaluate_step, hosts)  # fmt: skip
+    local = _local_evaluator(config, acfg)
     key = jax.random.key(7)
     with EvalProcess(config) as remote:
         try:
@@ -194,10 +199,7 @@ def test_an_eval_process_that_works_longer_than_its_silence_is_not_stuck():
     computes: the child says it is alive while it steps."""
     config = tiny_config()
     params, acfg = _agent_params(config)
-    hosts = Hosts(None, lanes.num_lanes(config))
-    env = experiment.make_env(config, envs_per_seed=config.num_eval_episodes, split="val", seed=1)
-    step = build_programs(acfg, experiment.hparams(config), config).evaluate_step
-    local = LocalEvaluator(env, step, hosts)
+    local = _local_evaluator(config, acfg)
     with EvalProcess(config, silence_s=0.25) as remote:
         try:
             remote.silence_s = 600.0  # its first evaluation compiles the policy's step, silently

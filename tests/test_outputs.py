@@ -424,6 +424,25 @@ def test_a_checkpoint_with_damaged_metadata_does_not_stop_the_next_save(tmp_path
     assert "No replay file is deleted while it is kept" in caplog.text
 
 
+def test_a_process_damaged_host_state_is_named_as_unreadable(tmp_path):
+    """With several processes each keeps its host state in a file of its own beside the
+    checkpoint: that file cut short reads as an unreadable checkpoint, named with its path."""
+    from dear_jax.checkpoint import UnreadableCheckpointError
+
+    with Checkpointer(tmp_path / "ck", fingerprint=FINGERPRINT) as ckpt:
+        ckpt._own = str(tmp_path / "ck_process_1")  # as process 1 of several would
+        os.makedirs(ckpt._own)
+        ckpt.save(10, {"w": jnp.arange(4.0)}, extra={"frame": 10})
+        ckpt.save(20, {"w": jnp.arange(4.0)}, extra={"frame": 20})
+        own = tmp_path / "ck_process_1" / "20.json"
+        own.write_text(own.read_text()[:5])
+        assert ckpt.read_meta(10)[2] == {"frame": 10}
+        with pytest.raises(UnreadableCheckpointError) as error:
+            ckpt.read_meta(20)
+    assert f"checkpoint 20 in {tmp_path / 'ck'} cannot be read" in str(error.value)
+    assert f"{own}: JSONDecodeError" in str(error.value)
+
+
 def test_keep_last_k_and_same_step(tmp_path, agent_state):
     with Checkpointer(tmp_path, fingerprint=FINGERPRINT, keep=2) as ckpt:
         for step in (10, 20, 30):
@@ -1436,22 +1455,3 @@ def test_plot_errors(tmp_path, capsys):
     run = _fake_workdir(tmp_path, "run", "dear")
     with pytest.raises(KeyError, match="no column 'success'; columns: frame, episode_return"):
         plot.plot([run], metric="success")
-
-
-def test_a_process_damaged_host_state_is_named_as_unreadable(tmp_path):
-    """With several processes each keeps its host state in a file of its own beside the
-    checkpoint: that file cut short reads as an unreadable checkpoint, named with its path."""
-    from dear_jax.checkpoint import UnreadableCheckpointError
-
-    with Checkpointer(tmp_path / "ck", fingerprint=FINGERPRINT) as ckpt:
-        ckpt._own = str(tmp_path / "ck_process_1")  # as process 1 of several would
-        os.makedirs(ckpt._own)
-        ckpt.save(10, {"w": jnp.arange(4.0)}, extra={"frame": 10})
-        ckpt.save(20, {"w": jnp.arange(4.0)}, extra={"frame": 20})
-        own = tmp_path / "ck_process_1" / "20.json"
-        own.write_text(own.read_text()[:5])
-        assert ckpt.read_meta(10)[2] == {"frame": 10}
-        with pytest.raises(UnreadableCheckpointError) as error:
-            ckpt.read_meta(20)
-    assert f"checkpoint 20 in {tmp_path / 'ck'} cannot be read" in str(error.value)
-    assert f"{own}: JSONDecodeError" in str(error.value)
